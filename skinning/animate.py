@@ -1,0 +1,80 @@
+"""Per-frame body: retarget a person's pose, pose the character, skin and shade it.
+
+`BodyAnimator` owns every per-frame array (allocated once); each call overwrites them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .body import Body
+from .character import Character
+from .retarget import IKSettings, Retargeter, RetargetFrame, sole_points
+from .skeleton import Skeleton
+from .skin import linear_blend_skinning, skin_matrices, vertex_normals
+
+
+@dataclass
+class BodyFrame:
+    vertices: np.ndarray  # (n, 3) all skinned vertices (helpers included), metres, world
+    normals: np.ndarray  # (n_visible, 3) unit normals of the visible skin
+    joint_rotations: np.ndarray  # (bones, 3, 3) global
+    joint_positions: np.ndarray  # (bones, 3) global
+    retarget: RetargetFrame | None
+
+
+class BodyAnimator:
+    def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
+                 person_floor_y: float = 0.0):
+        self.body = body
+        self.character = Character(body.skeleton)
+        self.retargeter = None
+        if person is not None:
+            # sole points are placed relative to the floor at y = 0 (the world's floor)
+            rest = body.vertices + self.world_offset
+            soles = [sole_points(rest, body.weight_bones, body.weight_values, body.n_visible, body.skeleton, side)
+                     for side in ("left", "right")]
+            soles = [(pts - self.world_offset, on_toe) for pts, on_toe in soles]
+            self.retargeter = Retargeter(self.character, person, soles, person_floor_y, ik)
+        n_bones = len(body.skeleton.names)
+        self._local = np.empty((n_bones, 3, 3))
+        self._root = np.empty(3)
+        self._matrices = np.empty((n_bones, 3, 4))
+        self.frame = BodyFrame(
+            vertices=np.empty_like(body.vertices),
+            normals=np.empty((body.n_visible, 3)),
+            joint_rotations=np.empty((n_bones, 3, 3)),
+            joint_positions=np.empty((n_bones, 3)),
+            retarget=None,
+        )
+
+    @property
+    def world_offset(self) -> np.ndarray:
+        """Translation that puts the rest body on the floor y = 0."""
+        return np.array([0.0, -self.body.floor_y, 0.0])
+
+    def rest_configuration(self) -> np.ndarray:
+        q = self.character.neutral()
+        q[:3] += self.world_offset
+        return q
+
+    def pose(self, q: np.ndarray) -> BodyFrame:
+        """Skin the body in configuration q (Pinocchio layout)."""
+        f = self.frame
+        self.character.global_pose(q, self._local, self._root, f.joint_rotations, f.joint_positions)
+        skin_matrices(f.joint_rotations, f.joint_positions, self.body.skeleton.heads, self._matrices)
+        linear_blend_skinning(self.body.vertices, self.body.weight_bones, self.body.weight_values,
+                              self._matrices, f.vertices)
+        vertex_normals(f.vertices, self.body.triangles, f.normals)
+        return f
+
+    def __call__(self, local_rot: np.ndarray, root_position: np.ndarray) -> BodyFrame:
+        """Retarget one frame of the person's motion and skin the character."""
+        if self.retargeter is None:
+            raise RuntimeError("BodyAnimator was built without a person skeleton")
+        result = self.retargeter(local_rot, root_position)
+        self.pose(result.q)
+        self.frame.retarget = result
+        return self.frame

@@ -1,0 +1,125 @@
+"""The character's body: MakeHuman base mesh, its CMU skeleton and skin weights.
+
+Everything internal is metres, Y up, character facing +Z (MakeHuman files are
+decimetres with the same axes). All 19,158 vertices of base.obj are kept in file
+order: garments are fitted to helper vertices, and every index file refers to
+that order. Only the `body` group is visible and used for collision/drawing.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .data import data_dir
+from .obj import MeshFormatError, read_obj, split_polygons
+from .skeleton import CMU_BONES, Skeleton, bone_tails, cmu_parents
+
+MAKEHUMAN_UNIT_M = 0.1  # 1 MakeHuman unit = 1 decimetre
+
+
+@dataclass(frozen=True)
+class Body:
+    vertices: np.ndarray  # (n, 3) float64, rest pose, metres: all base.obj vertices, file order
+    n_visible: int  # vertices [0, n_visible) form the visible skin
+    triangles: np.ndarray  # (m, 3) int32, visible skin, quads split along the shorter diagonal
+    skeleton: Skeleton  # character skeleton, rest pose, metres
+    weight_bones: np.ndarray  # (n, K) int32 bone index per influence (padding: bone 0, weight 0)
+    weight_values: np.ndarray  # (n, K) float64, each row sums to 1
+    floor_y: float  # lowest visible vertex at rest: the soles
+
+    @property
+    def visible_vertices(self) -> np.ndarray:
+        return self.vertices[: self.n_visible]
+
+
+def _group_centroid(mesh, name: str, path: Path) -> np.ndarray:
+    if name not in mesh.group_names:
+        raise MeshFormatError(f"{path}: joint cube group {name!r} not found")
+    return mesh.vertices[mesh.group_vertex_ids(name)].mean(axis=0)
+
+
+def _rig_point(spec: dict, mesh, obj_path: Path, rig_path: Path, where: str) -> np.ndarray:
+    strategy = spec.get("strategy")
+    if strategy == "CUBE":
+        return _group_centroid(mesh, spec["cube_name"], obj_path)
+    if strategy == "MEAN":
+        ids = np.asarray(spec["vertex_indices"], dtype=np.int64)
+        if ids.size == 0 or ids.min() < 0 or ids.max() >= len(mesh.vertices):
+            raise MeshFormatError(f"{rig_path}: {where}: vertex_indices out of range")
+        return mesh.vertices[ids].mean(axis=0)
+    if strategy == "VERTEX":
+        return mesh.vertices[int(spec["vertex_index"])]
+    raise MeshFormatError(f"{rig_path}: {where}: unknown strategy {strategy!r}")
+
+
+def load_weights(path: Path, names: tuple[str, ...], n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read an MPFB2/MakeHuman weights JSON into padded (n, K) arrays, rows normalised."""
+    try:
+        doc = json.loads(path.read_text())
+        table = doc["weights"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise MeshFormatError(f"{path}: not a weights file: {exc}") from exc
+    per_vertex: list[list[tuple[int, float]]] = [[] for _ in range(n_vertices)]
+    for bone, pairs in table.items():
+        if bone not in names:
+            raise MeshFormatError(f"{path}: bone {bone!r} is not in the skeleton")
+        for vid, w in pairs:
+            vid = int(vid)
+            if not 0 <= vid < n_vertices:
+                raise MeshFormatError(f"{path}: bone {bone!r}: vertex {vid} out of range (< {n_vertices})")
+            if w > 0:
+                per_vertex[vid].append((names.index(bone), float(w)))
+    k = max(1, max(len(p) for p in per_vertex))
+    bones = np.zeros((n_vertices, k), dtype=np.int32)
+    values = np.zeros((n_vertices, k), dtype=np.float64)
+    for v, pairs in enumerate(per_vertex):
+        if not pairs:
+            raise MeshFormatError(f"{path}: vertex {v} has no weight")
+        for j, (b, w) in enumerate(pairs):
+            bones[v, j] = b
+            values[v, j] = w
+    values /= values.sum(axis=1, keepdims=True)
+    return bones, values
+
+
+def load_body(data: str | Path | None = None) -> Body:
+    """Load the MakeHuman body with the 31-bone CMU skeleton from `<data>/body/`."""
+    root = data_dir(data) / "body"
+    obj_path = root / "base.obj"
+    rig_path = root / "mpfb2_rig.cmu_mb.json"
+    mesh = read_obj(obj_path)
+    try:
+        rig = json.loads(rig_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise MeshFormatError(f"{rig_path}: cannot read rig: {exc}") from exc
+
+    heads = np.zeros((len(CMU_BONES), 3))
+    for b, name in enumerate(CMU_BONES):
+        if name not in rig:
+            raise MeshFormatError(f"{rig_path}: bone {name!r} missing")
+        heads[b] = _rig_point(rig[name]["head"], mesh, obj_path, rig_path, f"{name}.head")
+    ends = {b: _rig_point(rig[n]["tail"], mesh, obj_path, rig_path, f"{n}.tail") for b, n in enumerate(CMU_BONES)}
+    parents = cmu_parents()
+    scale = MAKEHUMAN_UNIT_M
+    heads *= scale
+    ends = {b: p * scale for b, p in ends.items()}
+    skeleton = Skeleton(CMU_BONES, parents, heads, bone_tails(CMU_BONES, parents, heads, ends))
+
+    vertices = mesh.vertices * scale
+    body_faces = mesh.group_faces("body")
+    n_visible = int(max(max(f) for f in body_faces)) + 1
+    triangles = split_polygons(body_faces, vertices)
+    bones, values = load_weights(root / "mpfb2_weights.cmu_mb.json", CMU_BONES, len(vertices))
+    return Body(
+        vertices=vertices,
+        n_visible=n_visible,
+        triangles=triangles,
+        skeleton=skeleton,
+        weight_bones=bones,
+        weight_values=values,
+        floor_y=float(vertices[:n_visible, 1].min()),
+    )

@@ -1,0 +1,193 @@
+"""numba kernels of the retargeting hot path (the Jacobians themselves come from Pinocchio)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def mat3_mul(a, b, out):
+    """out = a @ b for 3x3 matrices (out may not alias a or b)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
+
+
+@njit(cache=True)
+def mat3_tmul(a, b, out):
+    """out = a.T @ b for 3x3 matrices."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = a[0, i] * b[0, j] + a[1, i] * b[1, j] + a[2, i] * b[2, j]
+
+
+@njit(cache=True)
+def copy_rotations(person_global, person_index, align, parents, char_global, char_local):
+    """Character bone rotations from the person's: G_b = R_person_b A_b (bones the person lacks keep
+    their aligned rest rotation relative to the parent); local L_b = G_parent^T G_b."""
+    rel = np.empty((3, 3))
+    for b in range(parents.shape[0]):
+        p = parents[b]
+        pb = person_index[b]
+        if pb >= 0:
+            mat3_mul(person_global[pb], align[b], char_global[b])
+        elif p >= 0:
+            mat3_tmul(align[p], align[b], rel)
+            mat3_mul(char_global[p], rel, char_global[b])
+        else:
+            char_global[b] = align[b]
+        if p >= 0:
+            mat3_tmul(char_global[p], char_global[b], char_local[b])
+        else:
+            char_local[b] = char_global[b]
+
+
+@njit(cache=True)
+def rotation_log(r, out):
+    """Axis-angle vector of a rotation matrix (log map), robust near 0 and pi."""
+    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
+    c = min(1.0, max(-1.0, c))
+    theta = np.arccos(c)
+    vx = r[2, 1] - r[1, 2]
+    vy = r[0, 2] - r[2, 0]
+    vz = r[1, 0] - r[0, 1]
+    if theta < 1e-6:
+        f = 0.5
+    elif theta > np.pi - 1e-4:
+        # near a half-turn: axis from the diagonal
+        ax = np.sqrt(max(0.0, (r[0, 0] - c) / (1.0 - c)))
+        ay = np.sqrt(max(0.0, (r[1, 1] - c) / (1.0 - c)))
+        az = np.sqrt(max(0.0, (r[2, 2] - c) / (1.0 - c)))
+        if vx < 0:
+            ax = -ax
+        if vy < 0:
+            ay = -ay
+        if vz < 0:
+            az = -az
+        out[0] = ax * theta
+        out[1] = ay * theta
+        out[2] = az * theta
+        return
+    else:
+        f = 0.5 * theta / np.sin(theta)
+    out[0] = f * vx
+    out[1] = f * vy
+    out[2] = f * vz
+
+
+@njit(cache=True)
+def pose_error(target_rot, target_pos, rot, pos, out):
+    """6-vector [target_pos - pos, log(target_rot rot^T)] in world axes."""
+    for a in range(3):
+        out[a] = target_pos[a] - pos[a]
+    rel = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            rel[i, j] = target_rot[i, 0] * rot[j, 0] + target_rot[i, 1] * rot[j, 1] + target_rot[i, 2] * rot[j, 2]
+    tmp = np.empty(3)
+    rotation_log(rel, tmp)
+    out[3] = tmp[0]
+    out[4] = tmp[1]
+    out[5] = tmp[2]
+
+
+@njit(cache=True)
+def weighted_cost(error, weights):
+    s = 0.0
+    for i in range(error.shape[0]):
+        s += (error[i] * weights[i]) ** 2
+    return s
+
+
+@njit(cache=True)
+def solve_spd(a, b, out):
+    """Solve a x = b for a small symmetric positive definite a (Cholesky, no pivoting)."""
+    n = a.shape[0]
+    low = np.zeros((n, n))
+    for i in range(n):
+        for j in range(i + 1):
+            s = a[i, j]
+            for k in range(j):
+                s -= low[i, k] * low[j, k]
+            if i == j:
+                low[i, i] = np.sqrt(max(s, 1e-300))
+            else:
+                low[i, j] = s / low[j, j]
+    y = np.empty(n)
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= low[i, k] * y[k]
+        y[i] = s / low[i, i]
+    for i in range(n - 1, -1, -1):
+        s = y[i]
+        for k in range(i + 1, n):
+            s -= low[k, i] * out[k]
+        out[i] = s / low[i, i]
+
+
+@njit(cache=True)
+def dls_step(jac, error, weights, lam, posture, posture_gain, max_step, out):
+    """Damped least-squares step with a null-space pull towards a posture.
+
+    J_w = W J, e_w = W e, J+ = J_w^T (J_w J_w^T + lam I)^-1;
+    dq = J+ e_w + k (posture - J+ J_w posture), scaled so no component exceeds max_step.
+    """
+    m, n = jac.shape
+    jw = np.empty((m, n))
+    for i in range(m):
+        for j in range(n):
+            jw[i, j] = jac[i, j] * weights[i]
+    a = np.zeros((m, m))
+    for i in range(m):
+        for k in range(m):
+            s = 0.0
+            for j in range(n):
+                s += jw[i, j] * jw[k, j]
+            a[i, k] = s
+        a[i, i] += lam
+    # right-hand side: e_w - k J_w posture, so dq = J+ (e_w - k J_w p) + k p
+    rhs = np.empty(m)
+    for i in range(m):
+        s = 0.0
+        for j in range(n):
+            s += jw[i, j] * posture[j]
+        rhs[i] = error[i] * weights[i] - posture_gain * s
+    y = np.empty(m)
+    solve_spd(a, rhs, y)
+    biggest = 0.0
+    for j in range(n):
+        s = posture_gain * posture[j]
+        for i in range(m):
+            s += jw[i, j] * y[i]
+        out[j] = s
+        biggest = max(biggest, abs(s))
+    if biggest > max_step:
+        for j in range(n):
+            out[j] *= max_step / biggest
+
+
+@njit(cache=True)
+def lowest_sole_point(points, on_toe, foot_rot, foot_pos, foot_head, toe_local, toe_head):
+    """Lowest world height of the sole points when the foot joint is at (foot_rot, foot_pos) and the
+    toe joint rotates by toe_local relative to the foot (points are rest positions)."""
+    toe_rot = np.empty((3, 3))
+    mat3_mul(foot_rot, toe_local, toe_rot)
+    toe_pos = np.empty(3)
+    for a in range(3):
+        toe_pos[a] = foot_pos[a]
+        for m in range(3):
+            toe_pos[a] += foot_rot[a, m] * (toe_head[m] - foot_head[m])
+    lowest = np.inf
+    for i in range(points.shape[0]):
+        if on_toe[i]:
+            y = toe_pos[1]
+            for m in range(3):
+                y += toe_rot[1, m] * (points[i, m] - toe_head[m])
+        else:
+            y = foot_pos[1]
+            for m in range(3):
+                y += foot_rot[1, m] * (points[i, m] - foot_head[m])
+        lowest = min(lowest, y)
+    return lowest
