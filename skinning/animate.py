@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +26,12 @@ class BodyFrame:
     retarget: RetargetFrame | None
 
 
+STAGES = ("ik", "skinning", "normals")
+
+
 class BodyAnimator:
+    """Retarget + skin, one frame at a time. `stage_seconds` holds the last frame's stage times."""
+
     def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
                  person_floor_y: float = 0.0):
         self.body = body
@@ -42,6 +48,7 @@ class BodyAnimator:
         self._local = np.empty((n_bones, 3, 3))
         self._root = np.empty(3)
         self._matrices = np.empty((n_bones, 3, 4))
+        self.stage_seconds = np.zeros(len(STAGES))
         self.frame = BodyFrame(
             vertices=np.empty_like(body.vertices),
             normals=np.empty((body.n_visible, 3)),
@@ -63,18 +70,25 @@ class BodyAnimator:
     def pose(self, q: np.ndarray) -> BodyFrame:
         """Skin the body in configuration q (Pinocchio layout)."""
         f = self.frame
+        t0 = time.perf_counter()
         self.character.global_pose(q, self._local, self._root, f.joint_rotations, f.joint_positions)
         skin_matrices(f.joint_rotations, f.joint_positions, self.body.skeleton.heads, self._matrices)
         linear_blend_skinning(self.body.vertices, self.body.weight_bones, self.body.weight_values,
                               self._matrices, f.vertices)
+        t1 = time.perf_counter()
         vertex_normals(f.vertices, self.body.triangles, f.normals)
+        self.stage_seconds[1] = t1 - t0
+        self.stage_seconds[2] = time.perf_counter() - t1
         return f
 
     def __call__(self, local_rot: np.ndarray, root_position: np.ndarray) -> BodyFrame:
         """Retarget one frame of the person's motion and skin the character."""
         if self.retargeter is None:
             raise RuntimeError("BodyAnimator was built without a person skeleton")
+        t0 = time.perf_counter()
         result = self.retargeter(local_rot, root_position)
+        ik = time.perf_counter() - t0
         self.pose(result.q)
+        self.stage_seconds[0] = ik
         self.frame.retarget = result
         return self.frame

@@ -79,6 +79,9 @@ class IKSettings:
     rotation_weight: float = 0.3  # m per rad: trades ankle orientation against position
     posture_gain: float = 0.2  # pull of the copied leg angles in the null space, per iteration
     max_step: float = 0.5  # rad per joint coordinate per iteration
+    # Forward flexion added to the knees' posture prior: a straight copied knee does not say
+    # which way to bend when the ankle target comes closer; a knee bends forward.
+    knee_bias_deg: float = 8.0
 
 
 @dataclass
@@ -127,6 +130,10 @@ class Retargeter:
         self._char_local = np.empty((n, 3, 3))
         self._fk_rot = np.empty((n, 3, 3))
         self._fk_pos = np.empty((n, 3))
+        self._knees = [cs.index(LEGS[side][1]) for side in ("left", "right")]
+        c, sn = np.cos(np.deg2rad(self.ik.knee_bias_deg)), np.sin(np.deg2rad(self.ik.knee_bias_deg))
+        # rotation about the knee joint's x axis (world x at rest): positive moves the shin backward
+        self._knee_bias = np.array([[1.0, 0.0, 0.0], [0.0, c, -sn], [0.0, sn, c]])
         self._person_hips = (person.index("LeftUpLeg"), person.index("RightUpLeg"))
         self._char_hips = (cs.index("LeftUpLeg"), cs.index("RightUpLeg"))
         self._q = np.empty(model.nq)
@@ -159,6 +166,8 @@ class Retargeter:
         cs = self.character.skeleton
         copy_rotations(self._person_rot, self.person_index, self.align, cs.parents, self._char_global,
                        self._char_local)
+        for knee in self._knees:  # only the IK's posture prior; the solved knee follows the targets
+            self._char_local[knee] = self._char_local[knee] @ self._knee_bias
         # place the root so that the hip-joint centre lands on the mapped person's hip centre
         forward_kinematics(cs.parents, self.character.offsets, np.zeros(3), self._char_local,
                            self._fk_rot, self._fk_pos)

@@ -1,0 +1,104 @@
+"""The body job: stream a clip, retarget and skin every frame, time the stages, render snapshots."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from skinning.animate import STAGES, BodyAnimator
+from skinning.body import Body
+from skinning.source import BVHSource
+
+# Frames worth looking at in the shipped clips (data README, "Useful frame ranges").
+SHOWCASE_FRAMES = {
+    "cmu_13_29_jumping_jacks": [0, 70, 200, 1000, 2500, 3960, 4340],
+    "cmu_131_01_walk_3dsmax": [0, 300, 420, 560, 700, 900],
+    "cmu_npybvh_example_75f": [0, 20, 40, 60],
+}
+SKIN = (0.86, 0.69, 0.58)
+
+
+@dataclass
+class ClipReport:
+    name: str
+    frames: int = 0
+    stage_ms: dict[str, np.ndarray] = field(default_factory=dict)  # per frame
+    ankle_position_error: np.ndarray | None = None  # (frames, 2) m
+    ankle_rotation_error: np.ndarray | None = None  # (frames, 2) rad
+    floor_lift: np.ndarray | None = None  # (frames, 2) m
+    lowest_sole: np.ndarray | None = None  # (frames,) m, lowest foot vertex height
+    nan_frames: int = 0
+    snapshots: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)  # (frame, verts, normals)
+
+    def summary(self) -> str:
+        pe = self.ankle_position_error.max(axis=1) * 1000
+        re = np.rad2deg(self.ankle_rotation_error.max(axis=1))
+        stages = "  ".join(f"{s} {np.median(self.stage_ms[s]):.3f}" for s in STAGES)
+        return (f"{self.name}: {self.frames} frames | median ms/frame: {stages} | ankle error mm: "
+                f"median {np.median(pe):.3f} p99 {np.percentile(pe, 99):.2f} max {pe.max():.2f} | "
+                f"ankle rot deg p99 {np.percentile(re, 99):.2f} | lowest sole {self.lowest_sole.min() * 1000:.1f} mm"
+                f" | NaN frames {self.nan_frames}")
+
+
+def foot_vertices(body: Body) -> np.ndarray:
+    """Visible vertices that mostly follow a foot or toe bone."""
+    names = body.skeleton.names
+    feet = [names.index(n) for n in ("LeftFoot", "LeftToeBase", "RightFoot", "RightToeBase")]
+    vis = np.arange(body.n_visible)
+    dominant = body.weight_bones[vis, np.argmax(body.weight_values[vis], axis=1)]
+    return vis[np.isin(dominant, feet)]
+
+
+def run_clip(body: Body, path: str | Path, every: int = 1, snapshot_frames: list[int] | None = None,
+             max_frames: int | None = None) -> ClipReport:
+    path = Path(path)
+    report = ClipReport(path.stem)
+    wanted = set(snapshot_frames or [])
+    feet = foot_vertices(body)
+    stage_ms = {s: [] for s in STAGES}
+    pos_err, rot_err, lift, lowest = [], [], [], []
+    with BVHSource(path, every=every, max_frames=max_frames) as source:
+        animator = BodyAnimator(body, source.skeleton)
+        for frame in source:
+            out = animator(frame.local_rot, frame.root_position)
+            for s, sec in zip(STAGES, animator.stage_seconds):
+                stage_ms[s].append(sec * 1000)
+            r = out.retarget
+            pos_err.append(r.ankle_position_error.copy())
+            rot_err.append(r.ankle_rotation_error.copy())
+            lift.append(r.floor_lift.copy())
+            lowest.append(out.vertices[feet, 1].min())
+            if not (np.isfinite(out.vertices).all() and np.isfinite(out.normals).all()):
+                report.nan_frames += 1
+            if frame.index in wanted:
+                report.snapshots.append((frame.index, out.vertices.copy(), out.normals.copy()))
+            report.frames += 1
+    report.stage_ms = {s: np.array(v) for s, v in stage_ms.items()}
+    report.ankle_position_error = np.array(pos_err).reshape(-1, 2)
+    report.ankle_rotation_error = np.array(rot_err).reshape(-1, 2)
+    report.floor_lift = np.array(lift).reshape(-1, 2)
+    report.lowest_sole = np.array(lowest)
+    return report
+
+
+def render_snapshots(body: Body, report: ClipReport, out_dir: Path, renderer=None) -> Path:
+    """One contact sheet per clip: each snapshot frame from the front and from a three-quarter view."""
+    from .render import MeshDraw, Renderer, contact_sheet, orbit_camera, save_png
+
+    own = renderer is None
+    renderer = renderer or Renderer(360, 480)
+    images = []
+    tris = body.triangles
+    for frame, verts, normals in report.snapshots:
+        vis = verts[: body.n_visible]
+        centre = np.array([vis[:, 0].mean(), vis[:, 1].min() + 0.5 * np.ptp(vis[:, 1]), vis[:, 2].mean()])
+        for azimuth in (0.0, 60.0):
+            cam = orbit_camera(centre, azimuth, distance=3.6, height=0.2)
+            images.append(renderer.render([MeshDraw(vis, tris, normals, SKIN)], cam))
+    if own:
+        renderer.release()
+    path = out_dir / f"body_{report.name}.png"
+    save_png(path, contact_sheet(images, columns=4))
+    return path
