@@ -251,6 +251,15 @@ class Retargeter:
                     self._jacobian(k)
         return np.linalg.norm(err[:, :3], axis=1), np.linalg.norm(err[:, 3:], axis=1), it
 
+    def solve(self, q: np.ndarray, target_rot: np.ndarray, target_pos: np.ndarray,
+              prior: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, int]:
+        """Solve both legs towards given ankle targets ((2, 3, 3), (2, 3): left, right) from q,
+        which is updated in place; `prior` is the null-space posture (default: q itself)."""
+        self.target_rot[:] = target_rot
+        self.target_pos[:] = target_pos
+        self._q_prior[:] = q if prior is None else prior
+        return self.solve_legs(q)
+
     def __call__(self, person_local: np.ndarray, person_root: np.ndarray) -> RetargetFrame:
         prior = self.copied_pose(person_local, person_root)
         self.ankle_targets()

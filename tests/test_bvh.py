@@ -1,0 +1,294 @@
+import time
+
+import numpy as np
+import pytest
+
+from skinning.bvh import BVHError, BVHReader, read_bvh, local_pose
+from skinning.kinematics import forward_kinematics
+from skinning.skeleton import CMU_BONES
+from skinning.source import BVHSource
+
+EXPECTED = {"cmu_13_29_jumping_jacks": 4593, "cmu_131_01_walk_3dsmax": 994, "cmu_npybvh_example_75f": 75}
+
+SMALL = """HIERARCHY
+ROOT Hips
+{
+  OFFSET 0 0 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation
+  JOINT LeftUpLeg
+  {
+    OFFSET 1 -1 0
+    CHANNELS 3 Xrotation Yrotation Zrotation
+    JOINT LeftLeg
+    {
+      OFFSET 0 -4 0
+      CHANNELS 3 Zrotation Xrotation Yrotation
+      JOINT LeftFoot
+      {
+        OFFSET 0 -4 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        End Site
+        {
+          OFFSET 0 0 1
+        }
+      }
+    }
+  }
+  JOINT RightUpLeg
+  {
+    OFFSET -1 -1 0
+    CHANNELS 3 Zrotation Yrotation Xrotation
+    JOINT RightLeg
+    {
+      OFFSET 0 -4 0
+      CHANNELS 3 Zrotation Yrotation Xrotation
+      JOINT RightFoot
+      {
+        OFFSET 0 -4 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        End Site
+        {
+          OFFSET 0 0 1
+        }
+      }
+    }
+  }
+  JOINT LowerBack
+  {
+    OFFSET 0 1 0
+    CHANNELS 3 Zrotation Yrotation Xrotation
+    JOINT Spine
+    {
+      OFFSET 0 2 0
+      CHANNELS 3 Zrotation Yrotation Xrotation
+      JOINT Spine1
+      {
+        OFFSET 0 2 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        JOINT Neck
+        {
+          OFFSET 0 1 0
+          CHANNELS 3 Zrotation Yrotation Xrotation
+          JOINT Neck1
+          {
+            OFFSET 0 1 0
+            CHANNELS 3 Zrotation Yrotation Xrotation
+            JOINT Head
+            {
+              OFFSET 0 1 0
+              CHANNELS 3 Zrotation Yrotation Xrotation
+              End Site
+              {
+                OFFSET 0 1 0
+              }
+            }
+          }
+        }
+        JOINT LeftShoulder
+        {
+          OFFSET 1 0 0
+          CHANNELS 3 Zrotation Yrotation Xrotation
+          JOINT LeftArm
+          {
+            OFFSET 1 0 0
+            CHANNELS 3 Zrotation Yrotation Xrotation
+            JOINT LeftForeArm
+            {
+              OFFSET 3 0 0
+              CHANNELS 3 Zrotation Yrotation Xrotation
+              JOINT LeftHand
+              {
+                OFFSET 3 0 0
+                CHANNELS 3 Zrotation Yrotation Xrotation
+                End Site
+                {
+                  OFFSET 1 0 0
+                }
+              }
+            }
+          }
+        }
+        JOINT RightShoulder
+        {
+          OFFSET -1 0 0
+          CHANNELS 3 Zrotation Yrotation Xrotation
+          JOINT RightArm
+          {
+            OFFSET -1 0 0
+            CHANNELS 3 Zrotation Yrotation Xrotation
+            JOINT RightForeArm
+            {
+              OFFSET -3 0 0
+              CHANNELS 3 Zrotation Yrotation Xrotation
+              JOINT RightHand
+              {
+                OFFSET -3 0 0
+                CHANNELS 3 Zrotation Yrotation Xrotation
+                End Site
+                {
+                  OFFSET -1 0 0
+                }
+              }
+            }
+          }
+        }
+      }
+    }
+  }
+}
+MOTION
+Frames: 2
+Frame Time: 0.01
+"""
+N_CHANNELS = 6 + 3 * 20  # 21 joints
+FIRST_ROW = SMALL.count("\n") + 1  # line number of the first motion row
+
+
+def _row(value=0.0, n=N_CHANNELS):
+    return " ".join([str(value)] * n) + "\n"
+
+
+def write(tmp_path, text, name="clip.bvh"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+@pytest.mark.parametrize("clip", sorted(EXPECTED))
+def test_every_shipped_clip_parses(mocap, clip):
+    header, motion = read_bvh(mocap / f"{clip}.bvh")
+    assert motion.shape == (EXPECTED[clip], 96)
+    assert header.n_frames == EXPECTED[clip]
+    assert header.skeleton.names == CMU_BONES  # 31 joints, canonical names, file order
+    assert header.n_channels == 96
+    assert header.frame_time == pytest.approx(1 / 120, rel=1e-3)
+    assert np.isfinite(motion).all()
+
+
+def test_3dsmax_names_are_mapped_by_position(mocap):
+    header, _ = read_bvh(mocap / "cmu_131_01_walk_3dsmax.bvh")
+    mapping = dict(zip(header.source_names, header.skeleton.names))
+    # the same name means different joints in the two schemes
+    assert mapping["LeftShoulder"] == "LeftArm"
+    assert mapping["LeftCollar"] == "LeftShoulder"
+    assert mapping["Neck"] == "Neck1"
+    assert mapping["lowerneck"] == "Neck"
+    assert mapping["LFingers"] == "LeftHandFinger1"
+
+
+def test_finger_aliases(mocap):
+    header, _ = read_bvh(mocap / "cmu_13_29_jumping_jacks.bvh")
+    assert "LeftHandIndex1" in header.source_names
+    assert "LeftHandFinger1" in header.skeleton.names
+
+
+def test_units_convert_to_metres(mocap):
+    header, _ = read_bvh(mocap / "cmu_131_01_walk_3dsmax.bvh")
+    knee = header.skeleton.index("LeftLeg")
+    # OFFSET 2.49329 -6.85026 0 (CMU units) -> metres with 0.056444 m per unit
+    np.testing.assert_allclose(header.skeleton.offsets[knee], np.array([2.49329, -6.85026, 0]) * 0.056444)
+
+
+def test_small_file_without_optional_joints(tmp_path):
+    p = write(tmp_path, SMALL + _row() + _row(1.0))
+    header, motion = read_bvh(p, unit=1.0)
+    assert motion.shape == (2, N_CHANNELS)
+    assert "LHipJoint" not in header.skeleton.names
+
+
+def test_rotation_order_is_respected(tmp_path):
+    # LeftUpLeg lists X Y Z: R = Rx(90) Ry(90) Rz(0); LeftLeg lists Z X Y: R = Rz(90) Rx(90) Ry(0)
+    values = np.zeros(N_CHANNELS)
+    values[6:9] = [90, 90, 0]
+    values[9:12] = [90, 90, 0]
+    p = write(tmp_path, SMALL + " ".join(map(str, values)) + "\n" + _row())
+    header, motion = read_bvh(p, unit=1.0)
+    rot, _ = local_pose(header, motion[0])
+    rx = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    ry = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]])
+    rz = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    np.testing.assert_allclose(rot[header.skeleton.index("LeftUpLeg")], rx @ ry, atol=1e-12)
+    np.testing.assert_allclose(rot[header.skeleton.index("LeftLeg")], rz @ rx, atol=1e-12)
+
+
+def test_forward_kinematics_against_offsets(tmp_path):
+    values = np.zeros(N_CHANNELS)
+    values[:3] = [1.0, 9.0, 2.0]
+    values[6] = 90.0  # LeftUpLeg Xrotation +90: the leg below it (-y) swings to -z
+    p = write(tmp_path, SMALL + " ".join(map(str, values)) + "\n" + _row())
+    header, motion = read_bvh(p, unit=1.0)
+    sk = header.skeleton
+    rot, root = local_pose(header, motion[0])
+    n = len(sk.names)
+    g_rot, g_pos = np.empty((n, 3, 3)), np.empty((n, 3))
+    forward_kinematics(sk.parents, sk.offsets, root, rot, g_rot, g_pos)
+    np.testing.assert_allclose(g_pos[sk.index("Hips")], [1, 9, 2])
+    np.testing.assert_allclose(g_pos[sk.index("LeftUpLeg")], [2, 8, 2])
+    np.testing.assert_allclose(g_pos[sk.index("LeftLeg")], [2, 8, -2], atol=1e-12)
+    np.testing.assert_allclose(g_pos[sk.index("LeftFoot")], [2, 8, -6], atol=1e-12)
+    np.testing.assert_allclose(g_pos[sk.index("RightFoot")], [0, 0, 2], atol=1e-12)
+    np.testing.assert_allclose(g_pos[sk.index("LeftHand")], [9, 14, 2], atol=1e-12)
+
+
+@pytest.mark.parametrize("body_text, rows, problem, line", [
+    (SMALL, _row(), "truncated motion: file ends after 1 of 2 frames", FIRST_ROW),
+    (SMALL, _row() + _row(0.0, N_CHANNELS - 1), "expected 66 channel values, got 65", FIRST_ROW + 1),
+    (SMALL, _row() + _row().replace("0.0", "nan", 1), "channel 0 is not finite", FIRST_ROW + 1),
+    (SMALL, _row() + _row().replace("0.0", "abc", 1), "value is not a number: 'abc'", FIRST_ROW + 1),
+    (SMALL, _row() + _row() + _row(), "more motion rows than 'Frames: 2'", FIRST_ROW + 2),
+    (SMALL.replace("JOINT Neck1", "JOINT Tail"), "", "unknown joint 'Tail'", SMALL[:SMALL.index("JOINT Neck1")].count("\n") + 1),
+    (SMALL.replace("CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 4 Xrotation Yrotation Zrotation"), "",
+     "CHANNELS declares 4 but 'JOINT' is not a channel name", 10),
+    (SMALL.replace("Frame Time: 0.01", "Frame Time: -1"), "", "Frame Time: must be a positive number", FIRST_ROW - 1),
+    (SMALL.replace("OFFSET 1 -1 0", "OFFSET 1 -1"), "", "OFFSET of LeftUpLeg is not a number: 'CHANNELS'", 9),
+    (SMALL.replace("MOTION", "MOTON"), "", "no MOTION section", None),
+])
+def test_malformed_files_name_file_line_and_problem(tmp_path, body_text, rows, problem, line):
+    p = write(tmp_path, body_text + rows)
+    with pytest.raises(BVHError) as info:
+        read_bvh(p)
+    err = info.value
+    assert problem in str(err)
+    assert str(p) in str(err)
+    if line is not None:
+        assert err.line == line, str(err)
+
+
+def test_wrong_parent_is_rejected(tmp_path):
+    # swap two names so LeftHand sits directly under LeftArm
+    text = SMALL.replace("JOINT LeftForeArm", "JOINT TMP").replace("JOINT LeftHand", "JOINT LeftForeArm") \
+        .replace("JOINT TMP", "JOINT LeftHand")
+    with pytest.raises(BVHError, match="'LeftHand' is a child of 'LeftArm', expected 'LeftForeArm'"):
+        read_bvh(write(tmp_path, text + _row() + _row()))
+
+
+def test_streaming_reads_frames_before_the_end(tmp_path):
+    """Frames come one at a time: the first frame is served before a truncation is noticed."""
+    p = write(tmp_path, SMALL + _row(1.5))
+    with BVHReader(p) as reader:
+        rows = reader.rows()
+        assert next(rows)[0] == 1.5
+        with pytest.raises(BVHError, match="truncated"):
+            next(rows)
+
+
+def test_source_every_and_loop(mocap):
+    path = mocap / "cmu_npybvh_example_75f.bvh"
+    with BVHSource(path, every=2) as src:
+        frames = list(src)
+    assert len(frames) == 38
+    assert src.frame_time == pytest.approx(2 / 120, rel=1e-3)
+    assert frames[-1].time == pytest.approx(37 * src.frame_time)
+    with BVHSource(path, loop=True, max_frames=200) as src:
+        frames = list(src)
+    assert len(frames) == 200 and frames[-1].index == 199
+    np.testing.assert_array_equal(frames[75].local_rot, frames[0].local_rot)  # wrapped around
+
+
+def test_realtime_pacing_waits_for_the_clip_rate(mocap):
+    with BVHSource(mocap / "cmu_npybvh_example_75f.bvh", pace="realtime", max_frames=13) as src:
+        t0 = time.perf_counter()
+        n = sum(1 for _ in src)
+        elapsed = time.perf_counter() - t0
+    assert n == 13
+    assert elapsed >= 12 / 120 * 0.95  # never ahead of the clock

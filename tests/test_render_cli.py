@@ -1,0 +1,42 @@
+import numpy as np
+from PIL import Image
+
+from services.cli import main
+from services.render import MeshDraw, Renderer, orbit_camera
+from skinning.animate import BodyAnimator
+
+
+def test_render_shows_the_body(body):
+    animator = BodyAnimator(body)
+    frame = animator.pose(animator.rest_configuration())
+    r = Renderer(120, 160)
+    vis = frame.vertices[: body.n_visible]
+    cam = orbit_camera(np.array([0, 0.85, 0]), 0.0)
+    with_body = r.render([MeshDraw(vis, body.triangles, frame.normals)], cam)
+    empty = r.render([], cam)
+    r.release()
+    assert with_body.shape == (160, 120, 3)
+    changed = np.abs(with_body.astype(int) - empty.astype(int)).sum(axis=2) > 30
+    # the body covers a tall, centred, symmetric region of the picture
+    rows, cols = np.nonzero(changed)
+    assert changed.mean() > 0.05
+    assert np.ptp(rows) > 0.6 * 160
+    assert abs(cols.mean() - 60) < 6
+
+
+def test_cli_body_writes_snapshots(tmp_path, capsys):
+    rc = main(["body", "--clip", "cmu_npybvh_example_75f", "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "cmu_npybvh_example_75f: 75 frames" in out and "ik" in out
+    png = tmp_path / "body_cmu_npybvh_example_75f.png"
+    img = np.asarray(Image.open(png))
+    assert img.shape[0] > 100 and img.std() > 10
+
+
+def test_cli_reports_bad_clip(tmp_path, capsys):
+    bad = tmp_path / "bad.bvh"
+    bad.write_text("HIERARCHY\nROOT Hips\n{\n")
+    rc = main(["body", "--clip", str(bad), "--out", str(tmp_path), "--no-png"])
+    assert rc == 2
+    assert "bad.bvh" in capsys.readouterr().err

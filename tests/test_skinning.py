@@ -1,0 +1,46 @@
+import numpy as np
+
+from skinning.animate import BodyAnimator
+from skinning.skin import linear_blend_skinning, skin_matrices, vertex_normals
+
+
+def test_rest_pose_reproduces_rest_mesh(body):
+    animator = BodyAnimator(body)
+    frame = animator.pose(animator.rest_configuration())
+    np.testing.assert_allclose(frame.vertices, body.vertices + animator.world_offset, atol=1e-12)
+    assert abs(frame.vertices[: body.n_visible, 1].min()) < 1e-12  # soles on the floor y = 0
+
+
+def test_single_bone_vertex_moves_rigidly(body):
+    rng = np.random.default_rng(3)
+    n_bones = len(body.skeleton.names)
+    rot = np.empty((n_bones, 3, 3))
+    for b in range(n_bones):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        rot[b] = q * np.sign(np.linalg.det(q))
+    pos = rng.normal(size=(n_bones, 3))
+    mats = np.empty((n_bones, 3, 4))
+    skin_matrices(rot, pos, body.skeleton.heads, mats)
+    out = np.empty_like(body.vertices)
+    linear_blend_skinning(body.vertices, body.weight_bones, body.weight_values, mats, out)
+    rigid = np.flatnonzero(body.weight_values.max(axis=1) == 1.0)
+    assert len(rigid) > 1000
+    bone = body.weight_bones[rigid, body.weight_values[rigid].argmax(axis=1)]
+    expected = np.einsum("vij,vj->vi", rot[bone], body.vertices[rigid] - body.skeleton.heads[bone]) + pos[bone]
+    np.testing.assert_allclose(out[rigid], expected, atol=1e-12)
+    # distances between vertices on the same bone are preserved exactly
+    same = rigid[bone == bone[0]]
+    d_rest = np.linalg.norm(body.vertices[same[0]] - body.vertices[same[1:]], axis=1)
+    d_posed = np.linalg.norm(out[same[0]] - out[same[1:]], axis=1)
+    np.testing.assert_allclose(d_posed, d_rest, atol=1e-12)
+
+
+def test_vertex_normals_of_a_cube_point_outward():
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=np.int32)
+    n = np.empty_like(v)
+    vertex_normals(v, tris, n)
+    outward = v - 0.5
+    assert (np.einsum("ij,ij->i", n, outward) > 0).all()
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
