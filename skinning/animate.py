@@ -14,7 +14,7 @@ from .body import Body
 from .character import Character
 from .retarget import IKSettings, Retargeter, RetargetFrame, sole_points
 from .skeleton import Skeleton
-from .skin import linear_blend_skinning, skin_matrices, vertex_normals
+from .skin import MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices
 
 
 @dataclass
@@ -48,6 +48,8 @@ class BodyAnimator:
         self._local = np.empty((n_bones, 3, 3))
         self._root = np.empty(3)
         self._matrices = np.empty((n_bones, 3, 4))
+        self._weights = SkinWeights.from_padded(body.weight_bones, body.weight_values)
+        self._normals = MeshNormals(body.triangles, body.n_visible)
         self.stage_seconds = np.zeros(len(STAGES))
         self.frame = BodyFrame(
             vertices=np.empty_like(body.vertices),
@@ -73,10 +75,10 @@ class BodyAnimator:
         t0 = time.perf_counter()
         self.character.global_pose(q, self._local, self._root, f.joint_rotations, f.joint_positions)
         skin_matrices(f.joint_rotations, f.joint_positions, self.body.skeleton.heads, self._matrices)
-        linear_blend_skinning(self.body.vertices, self.body.weight_bones, self.body.weight_values,
-                              self._matrices, f.vertices)
+        w = self._weights
+        linear_blend_skinning(self.body.vertices, w.start, w.bones, w.weights, self._matrices, f.vertices)
         t1 = time.perf_counter()
-        vertex_normals(f.vertices, self.body.triangles, f.normals)
+        self._normals(f.vertices, f.normals)
         self.stage_seconds[1] = t1 - t0
         self.stage_seconds[2] = time.perf_counter() - t1
         return f

@@ -1,7 +1,7 @@
 import numpy as np
 
 from skinning.animate import BodyAnimator
-from skinning.skin import linear_blend_skinning, skin_matrices, vertex_normals
+from skinning.skin import MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices
 
 
 def test_rest_pose_reproduces_rest_mesh(body):
@@ -22,7 +22,8 @@ def test_single_bone_vertex_moves_rigidly(body):
     mats = np.empty((n_bones, 3, 4))
     skin_matrices(rot, pos, body.skeleton.heads, mats)
     out = np.empty_like(body.vertices)
-    linear_blend_skinning(body.vertices, body.weight_bones, body.weight_values, mats, out)
+    w = SkinWeights.from_padded(body.weight_bones, body.weight_values)
+    linear_blend_skinning(body.vertices, w.start, w.bones, w.weights, mats, out)
     rigid = np.flatnonzero(body.weight_values.max(axis=1) == 1.0)
     assert len(rigid) > 1000
     bone = body.weight_bones[rigid, body.weight_values[rigid].argmax(axis=1)]
@@ -39,8 +40,19 @@ def test_vertex_normals_of_a_cube_point_outward():
     v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=float)
     quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
     tris = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))], dtype=np.int32)
-    n = np.empty_like(v)
-    vertex_normals(v, tris, n)
+    n = MeshNormals(tris, len(v))(v, np.empty_like(v))
     outward = v - 0.5
     assert (np.einsum("ij,ij->i", n, outward) > 0).all()
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+
+
+def test_normals_of_a_flat_grid_are_exact():
+    xs, zs = np.meshgrid(np.arange(4.0), np.arange(3.0))
+    v = np.stack([xs.ravel(), np.zeros(xs.size), zs.ravel()], axis=1)
+    tris = []
+    for r in range(2):
+        for c in range(3):
+            a = r * 4 + c
+            tris += [(a, a + 4, a + 1), (a + 1, a + 4, a + 5)]
+    n = MeshNormals(np.array(tris), len(v))(v, np.empty_like(v))
+    np.testing.assert_allclose(n, np.tile([0.0, 1.0, 0.0], (len(v), 1)), atol=1e-15)
