@@ -38,11 +38,8 @@ class BodyAnimator:
         self.character = Character(body.skeleton)
         self.retargeter = None
         if person is not None:
-            # sole points are placed relative to the floor at y = 0 (the world's floor)
-            rest = body.vertices + self.world_offset
-            soles = [sole_points(rest, body.weight_bones, body.weight_values, body.n_visible, body.skeleton, side)
-                     for side in ("left", "right")]
-            soles = [(pts - self.world_offset, on_toe) for pts, on_toe in soles]
+            soles = [sole_points(body.vertices, body.weight_bones, body.weight_values, body.n_visible,
+                                 body.skeleton, side) for side in ("left", "right")]
             self.retargeter = Retargeter(self.character, person, soles, person_floor_y, ik)
         n_bones = len(body.skeleton.names)
         self._local = np.empty((n_bones, 3, 3))
