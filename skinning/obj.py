@@ -26,11 +26,12 @@ class ObjMesh:
 
     def group_faces(self, name: str) -> list[list[int]]:
         gid = self.group_names.index(name)
-        return [f for f, g in zip(self.faces, self.face_group) if g == gid]
+        return [self.faces[i] for i in np.flatnonzero(self.face_group == gid)]
 
     def group_vertex_ids(self, name: str) -> np.ndarray:
-        ids = sorted({v for f in self.group_faces(name) for v in f})
-        return np.asarray(ids, dtype=np.int64)
+        """Sorted ids of the vertices used by the group's faces."""
+        faces = self.group_faces(name)
+        return np.unique(np.fromiter((v for f in faces for v in f), dtype=np.int64))
 
 
 def read_obj(path: str | Path) -> ObjMesh:
