@@ -124,6 +124,7 @@ class Retargeter:
                                   qslice=slice(int(character.idx_q[bones[0]]), int(character.idx_q[bones[-1]]) + 4)))
         self.soles = soles  # per leg (points, on_toe) or None
         n = len(cs.names)
+        self._person_offsets = person.offsets  # a derived property: computed once, not per frame
         self._person_rot = np.empty((len(person.names), 3, 3))
         self._person_pos = np.empty((len(person.names), 3))
         self._char_global = np.empty((n, 3, 3))
@@ -138,6 +139,7 @@ class Retargeter:
         self._char_hips = (cs.index("LeftUpLeg"), cs.index("RightUpLeg"))
         self._q = np.empty(model.nq)
         self._q_prior = np.empty(model.nq)
+        self._q_try = np.empty(model.nq)
         self._q_last: np.ndarray | None = None
         self._dv = np.zeros(model.nv)
         self._weights = np.array([1, 1, 1, self.ik.rotation_weight, self.ik.rotation_weight,
@@ -161,7 +163,7 @@ class Retargeter:
 
     def copied_pose(self, person_local: np.ndarray, person_root: np.ndarray) -> np.ndarray:
         """The character configuration with every rotation copied (the IK prior)."""
-        forward_kinematics(self.person.parents, self.person.offsets, person_root, person_local,
+        forward_kinematics(self.person.parents, self._person_offsets, person_root, person_local,
                            self._person_rot, self._person_pos)
         cs = self.character.skeleton
         copy_rotations(self._person_rot, self.person_index, self.align, cs.parents, self._char_global,
@@ -213,7 +215,8 @@ class Retargeter:
         for k in range(2):
             self._jacobian(k)
         lam = [ik.damping, ik.damping]
-        q_try = q.copy()
+        q_try = self._q_try
+        q_try[:] = q
         it = 0
         while it < ik.max_iterations:
             active = [not (np.linalg.norm(err[k, :3]) < ik.position_tolerance
