@@ -1,0 +1,77 @@
+"""Fabric materials as data: presets in fabrics.toml, user files with the same keys."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+PRESETS_PATH = Path(__file__).with_name("fabrics.toml")
+
+
+class FabricError(ValueError):
+    """A fabric file or table is malformed; the message names the file, fabric and key."""
+
+
+@dataclass(frozen=True)
+class Fabric:
+    name: str
+    stretch_stiffness: float  # N/m, spring longer than rest
+    compression_stiffness: float  # N/m, spring shorter than rest
+    shear_stiffness: float  # N/m
+    bending_stiffness: float  # N/m
+    damping_ratio: float  # fraction of critical
+    density: float  # kg/m²
+    friction: float  # Coulomb coefficient
+    air_drag: float  # N·s/m³
+    thickness: float  # m
+
+
+_KEYS = [f.name for f in fields(Fabric) if f.name != "name"]
+_POSITIVE = {"stretch_stiffness", "density"}
+
+
+def fabric_from_table(name: str, table: dict, source: str = "<table>") -> Fabric:
+    unknown = set(table) - set(_KEYS)
+    if unknown:
+        raise FabricError(f"{source}: [{name}]: unknown key(s) {sorted(unknown)}; known: {_KEYS}")
+    missing = [k for k in _KEYS if k not in table]
+    if missing:
+        raise FabricError(f"{source}: [{name}]: missing key(s) {missing}")
+    values = {}
+    for k in _KEYS:
+        v = table[k]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise FabricError(f"{source}: [{name}].{k}: expected a finite number, got {v!r}")
+        if v < 0 or (k in _POSITIVE and v == 0):
+            raise FabricError(f"{source}: [{name}].{k}: must be {'> 0' if k in _POSITIVE else '>= 0'}, got {v}")
+        values[k] = float(v)
+    if values["compression_stiffness"] > values["stretch_stiffness"]:
+        raise FabricError(f"{source}: [{name}]: compression_stiffness must not exceed stretch_stiffness "
+                          "(cloth resists stretch, not compression)")
+    return Fabric(name=name, **values)
+
+
+def load_fabrics(path: str | Path = PRESETS_PATH) -> dict[str, Fabric]:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise FabricError(f"{path}: cannot read: {exc}") from exc
+    except tomllib.TOMLDecodeError as exc:
+        raise FabricError(f"{path}: not valid TOML: {exc}") from exc
+    out = {}
+    for name, table in data.items():
+        if not isinstance(table, dict):
+            raise FabricError(f"{path}: {name!r} must be a table [{name}]")
+        out[name] = fabric_from_table(name, table, str(path))
+    return out
+
+
+def fabric(name: str, path: str | Path | None = None) -> Fabric:
+    """A preset by name (or a fabric from a user file)."""
+    table = load_fabrics(path or PRESETS_PATH)
+    if name not in table:
+        raise FabricError(f"{path or PRESETS_PATH}: no fabric {name!r}; available: {sorted(table)}")
+    return table[name]

@@ -1,0 +1,232 @@
+"""Garment meshes: MakeHuman .mhclo fitting, any trimesh-readable mesh, split into garments.
+
+A garment here is one connected piece of cloth in the body's rest pose, metres, Y up:
+`Garment(name, vertices (n, 3) float64, faces (m, 4) int32 with -1 padding triangles)`.
+The cloth package sees the body only as arrays, so fitting takes the body's rest
+vertices (all of base.obj, helpers included: the mhclo files reference them).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .topology import boundary_loops, connected_components, orient_faces
+
+MAKEHUMAN_UNIT_M = 0.1  # mhclo offsets and OBJ coordinates are decimetres
+
+
+class GarmentError(ValueError):
+    """A garment file is malformed; the message names the file (and line) and the problem."""
+
+
+@dataclass
+class Garment:
+    name: str
+    vertices: np.ndarray  # (n, 3) float64, metres, rest pose
+    faces: np.ndarray  # (m, 4) int32, triangles padded with -1
+    source_ids: np.ndarray  # (n,) vertex index in the file the garment came from
+
+    @property
+    def boundary_loops(self) -> list[np.ndarray]:
+        return boundary_loops(self.faces)
+
+
+@dataclass
+class Mhclo:
+    path: Path
+    obj_file: str
+    refs: np.ndarray  # (n, 3) int64 reference vertices of the base mesh
+    weights: np.ndarray  # (n, 3) float64
+    offsets: np.ndarray  # (n, 3) float64, scaled per axis by `scale`
+    scale_refs: np.ndarray  # (3, 2) int64: x, y, z scale reference vertex pairs
+    scale_den: np.ndarray  # (3,) float64
+    delete_verts: np.ndarray  # base vertices hidden by the garment
+
+
+def read_mhclo(path: str | Path) -> Mhclo:
+    path = Path(path)
+    try:
+        lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError as exc:
+        raise GarmentError(f"{path}: cannot read: {exc}") from exc
+    obj_file = None
+    scale = {}
+    rows: list[list[float]] = []
+    deleted: list[int] = []
+    section = None
+    for lineno, raw in enumerate(lines, start=1):
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        words = line.split()
+        key = words[0]
+        try:
+            if key == "obj_file":
+                obj_file = words[1]
+            elif key in ("x_scale", "y_scale", "z_scale"):
+                scale[key[0]] = (int(words[1]), int(words[2]), float(words[3]))
+            elif key == "verts":
+                section = "verts"
+            elif key == "delete_verts":
+                section = "delete"
+            elif section == "verts" and key[0].isdigit():
+                if len(words) == 1:
+                    rows.append([int(words[0]), 0, 0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+                elif len(words) == 9:
+                    rows.append([float(w) for w in words])
+                else:
+                    raise GarmentError(f"{path}:{lineno}: vertex row needs 1 or 9 values, got {len(words)}")
+            elif section == "delete" and key[0].isdigit():
+                for w in words:  # "a - b" ranges are allowed by MakeHuman
+                    if w != "-":
+                        deleted.append(int(w))
+            elif section == "verts" and not key[0].isdigit():
+                section = None
+        except (ValueError, IndexError):
+            raise GarmentError(f"{path}:{lineno}: cannot parse {raw.strip()!r}") from None
+    if obj_file is None:
+        raise GarmentError(f"{path}: no obj_file line")
+    if len(scale) != 3:
+        raise GarmentError(f"{path}: needs x_scale, y_scale and z_scale lines, found {sorted(scale)}")
+    if not rows:
+        raise GarmentError(f"{path}: no vertex rows after 'verts 0'")
+    table = np.asarray(rows, dtype=np.float64)
+    refs = table[:, :3].astype(np.int64)
+    weights = table[:, 3:6]
+    if np.any(np.abs(weights.sum(axis=1) - 1.0) > 1e-3):
+        bad = int(np.argmax(np.abs(weights.sum(axis=1) - 1.0)))
+        raise GarmentError(f"{path}: weights of vertex row {bad} do not sum to 1")
+    return Mhclo(
+        path=path,
+        obj_file=obj_file,
+        refs=refs,
+        weights=weights,
+        offsets=table[:, 6:9],
+        scale_refs=np.array([scale[a][:2] for a in "xyz"], dtype=np.int64),
+        scale_den=np.array([scale[a][2] for a in "xyz"]),
+        delete_verts=np.asarray(deleted, dtype=np.int64),
+    )
+
+
+def fit_mhclo(clo: Mhclo, base_vertices: np.ndarray) -> np.ndarray:
+    """Fitted positions w1*B[v1] + w2*B[v2] + w3*B[v3] + offset*s (units of base_vertices).
+
+    base_vertices are in MakeHuman decimetres or metres; the offsets are decimetres
+    relative to the scale, so the result is in the units of base_vertices."""
+    n_base = len(base_vertices)
+    if clo.refs.max() >= n_base or clo.scale_refs.max() >= n_base:
+        raise GarmentError(f"{clo.path}: references vertex {max(clo.refs.max(), clo.scale_refs.max())}, "
+                           f"the base mesh has {n_base}")
+    pairs = base_vertices[clo.scale_refs]  # (3, 2, 3)
+    s = np.abs(pairs[np.arange(3), 0, np.arange(3)] - pairs[np.arange(3), 1, np.arange(3)]) / clo.scale_den
+    return np.einsum("nk,nkd->nd", clo.weights, base_vertices[clo.refs]) + clo.offsets * s
+
+
+def _pad_faces(faces: list[list[int]] | np.ndarray, path: Path) -> np.ndarray:
+    out = np.full((len(faces), 4), -1, dtype=np.int32)
+    for i, f in enumerate(faces):
+        if len(f) == 3 or len(f) == 4:
+            out[i, : len(f)] = f
+        else:
+            raise GarmentError(f"{path}: face {i} has {len(f)} vertices; garments need triangles or quads")
+    return out
+
+
+def read_obj_polygons(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices in file order and tri/quad faces of an OBJ (garment files are small and simple)."""
+    verts, faces = [], []
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise GarmentError(f"{path}: cannot read: {exc}") from exc
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        words = raw.split()
+        if not words:
+            continue
+        try:
+            if words[0] == "v":
+                verts.append([float(w) for w in words[1:4]])
+                if len(verts[-1]) != 3:
+                    raise ValueError
+            elif words[0] == "f":
+                ids = [int(w.split("/", 1)[0]) for w in words[1:]]
+                faces.append([k - 1 if k > 0 else len(verts) + k for k in ids])
+        except ValueError:
+            raise GarmentError(f"{path}:{lineno}: cannot parse {raw.strip()!r}") from None
+    v = np.asarray(verts, dtype=np.float64).reshape(-1, 3)
+    f = _pad_faces(faces, path)
+    if len(f) == 0:
+        raise GarmentError(f"{path}: no faces")
+    if f.max() >= len(v) or f[f >= 0].min() < 0:
+        raise GarmentError(f"{path}: a face references a vertex that does not exist")
+    if not np.isfinite(v).all():
+        raise GarmentError(f"{path}: a vertex coordinate is not finite")
+    return v, f
+
+
+def split_garments(name: str, vertices: np.ndarray, faces: np.ndarray, min_vertices: int = 16) -> list[Garment]:
+    """One Garment per connected component, named top to bottom (`name.top`, `name.bottom`)."""
+    faces = orient_faces(faces)
+    labels = connected_components(len(vertices), faces)
+    used = np.zeros(len(vertices), dtype=bool)
+    used[faces[faces >= 0]] = True
+    parts = []
+    for k in range(labels.max() + 1):
+        ids = np.flatnonzero((labels == k) & used)
+        if len(ids) < min_vertices:
+            continue  # stray loose geometry (buttons, labels) is not cloth
+        remap = np.full(len(vertices), -1, dtype=np.int32)
+        remap[ids] = np.arange(len(ids), dtype=np.int32)
+        mine = labels[faces[:, 0]] == k
+        f = np.where(faces[mine] >= 0, remap[faces[mine]], -1).astype(np.int32)
+        parts.append((vertices[ids, 1].mean(), ids, f))
+    parts.sort(key=lambda p: -p[0])
+    if len(parts) == 2:
+        suffixes = ["top", "bottom"]
+    else:
+        suffixes = [f"part{i}" for i in range(len(parts))]
+    return [Garment(f"{name}.{s}", vertices[ids].copy(), f, ids) for s, (_, ids, f) in zip(suffixes, parts)]
+
+
+def load_outfit(outfit_dir: str | Path, base_vertices_m: np.ndarray) -> list[Garment]:
+    """A MakeHuman outfit folder (`<name>.mhclo` + its OBJ) fitted on the base body (metres)."""
+    outfit_dir = Path(outfit_dir)
+    clos = sorted(outfit_dir.glob("*.mhclo"))
+    if not clos:
+        raise GarmentError(f"{outfit_dir}: no .mhclo file")
+    clo = read_mhclo(clos[0])
+    obj_path = outfit_dir / clo.obj_file
+    _, faces = read_obj_polygons(obj_path)
+    if len(clo.refs) < faces.max() + 1:
+        raise GarmentError(f"{clo.path}: {len(clo.refs)} vertex rows but {obj_path.name} uses {faces.max() + 1} vertices")
+    fitted = fit_mhclo(clo, base_vertices_m / MAKEHUMAN_UNIT_M) * MAKEHUMAN_UNIT_M
+    return split_garments(outfit_dir.name, fitted, faces)
+
+
+def load_garment_file(path: str | Path, scale: float = 1.0) -> list[Garment]:
+    """Any mesh trimesh reads (OBJ, PLY, GLB, ...), already placed on the rest body; `scale` to metres."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise GarmentError(f"{path}: no such file")
+    if path.suffix.lower() == ".obj":
+        vertices, faces = read_obj_polygons(path)  # keeps quads, which the coarse model prefers
+    else:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                mesh = trimesh.load(path, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types for bad files
+            raise GarmentError(f"{path}: trimesh cannot read it: {exc}") from exc
+        if len(getattr(mesh, "faces", [])) == 0:
+            raise GarmentError(f"{path}: no faces")
+        mesh.merge_vertices(merge_tex=True, merge_norm=True)  # UV/normal seams would split the cloth
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.full((len(mesh.faces), 4), -1, dtype=np.int32)
+        faces[:, :3] = mesh.faces
+    return split_garments(path.stem, vertices * scale, faces)

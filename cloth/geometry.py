@@ -1,0 +1,90 @@
+"""Small geometric kernels shared by the cloth stages (numba, no allocation)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, inline="always")
+def dot3(a0, a1, a2, b0, b1, b2):
+    return a0 * b0 + a1 * b1 + a2 * b2
+
+
+@njit(cache=True)
+def closest_point_triangle(p, a, b, c, out):
+    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5).
+
+    Writes the point to out and returns its barycentric weight of (b, c) as (v, w)."""
+    abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    acx, acy, acz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+    apx, apy, apz = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    d1 = dot3(abx, aby, abz, apx, apy, apz)
+    d2 = dot3(acx, acy, acz, apx, apy, apz)
+    v = 0.0
+    w = 0.0
+    if d1 <= 0.0 and d2 <= 0.0:
+        v, w = 0.0, 0.0
+    else:
+        bpx, bpy, bpz = p[0] - b[0], p[1] - b[1], p[2] - b[2]
+        d3 = dot3(abx, aby, abz, bpx, bpy, bpz)
+        d4 = dot3(acx, acy, acz, bpx, bpy, bpz)
+        cpx, cpy, cpz = p[0] - c[0], p[1] - c[1], p[2] - c[2]
+        d5 = dot3(abx, aby, abz, cpx, cpy, cpz)
+        d6 = dot3(acx, acy, acz, cpx, cpy, cpz)
+        vc = d1 * d4 - d3 * d2
+        vb = d5 * d2 - d1 * d6
+        va = d3 * d6 - d5 * d4
+        if d3 >= 0.0 and d4 <= d3:
+            v, w = 1.0, 0.0
+        elif d6 >= 0.0 and d5 <= d6:
+            v, w = 0.0, 1.0
+        elif vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+            v, w = d1 / (d1 - d3), 0.0
+        elif vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+            v, w = 0.0, d2 / (d2 - d6)
+        elif va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+            w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+            v = 1.0 - w
+        else:
+            denom = 1.0 / (va + vb + vc)
+            v = vb * denom
+            w = vc * denom
+    for k in range(3):
+        out[k] = a[k] + v * (b[k] - a[k]) + w * (c[k] - a[k])
+    return v, w
+
+
+@njit(cache=True)
+def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
+    """Brute force: the closest triangle to each point and the point's barycentric coordinates there.
+
+    Setup-time only (garment mapping); per-frame queries use local walks instead."""
+    q = np.empty(3)
+    for i in range(points.shape[0]):
+        best = np.inf
+        for t in range(triangles.shape[0]):
+            a = vertices[triangles[t, 0]]
+            b = vertices[triangles[t, 1]]
+            c = vertices[triangles[t, 2]]
+            v, w = closest_point_triangle(points[i], a, b, c, q)
+            d = (q[0] - points[i, 0]) ** 2 + (q[1] - points[i, 1]) ** 2 + (q[2] - points[i, 2]) ** 2
+            if d < best:
+                best = d
+                tri_out[i] = t
+                bary_out[i, 0] = 1.0 - v - w
+                bary_out[i, 1] = v
+                bary_out[i, 2] = w
+
+
+@njit(cache=True)
+def nearest_vertices(points, vertices, out):
+    """Brute force nearest vertex per point (setup and recovery only)."""
+    for i in range(points.shape[0]):
+        best = np.inf
+        for j in range(vertices.shape[0]):
+            d = ((vertices[j, 0] - points[i, 0]) ** 2 + (vertices[j, 1] - points[i, 1]) ** 2
+                 + (vertices[j, 2] - points[i, 2]) ** 2)
+            if d < best:
+                best = d
+                out[i] = j

@@ -1,0 +1,171 @@
+"""A garment's coarse cloth model: what does not change during a session (built once).
+
+Particles, faces, springs with rest lengths and stiffnesses, masses, the fabric, the
+substep count, and the map from the authored garment onto the coarse mesh.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .coarsen import CoarseMesh, coarsen
+from .dynamics import stable_time_step
+from .fabric import Fabric
+from .garment import Garment
+from .topology import boundary_loops, triangulate, unique_edges
+
+STRUCTURAL, SHEAR, BENDING = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    frame_rate: float = 60.0  # frames per second the substep count is chosen for
+    substeps: int | None = None  # None: the fewest stable ones for the fabric (see stable_time_step)
+    collide_every: int = 1  # vertex collision after every n-th substep, and always after the last
+    gravity: float = 9.81  # m/s², along -Y
+    follow_near: float = 0.01  # m: particles this close to the body follow it fully
+    follow_far: float = 0.04  # m: particles farther away do not follow it
+    max_speed: float = 30.0  # m/s: a faster particle is treated as exploded
+    max_stretch: float = 3.0  # a structural spring longer than this times rest marks an explosion
+    target_particles: int = 360  # coarse model size (SPEC.md table: 322-430)
+
+
+@dataclass
+class ClothModel:
+    name: str
+    fabric: Fabric
+    settings: SimSettings
+    rest_positions: np.ndarray  # (n, 3) float64 m, rest pose, intersections resolved
+    faces: np.ndarray  # (m, 4) int32 quads and triangles (-1 padded)
+    triangles: np.ndarray  # (t, 3) int32: quads split along the shorter diagonal at rest
+    mass: np.ndarray  # (n,) kg
+    inv_mass: np.ndarray  # (n,)
+    drag: np.ndarray  # (n,) N·s/m = air_drag * area per particle
+    spring_i: np.ndarray  # (s,) int32
+    spring_j: np.ndarray  # (s,) int32
+    spring_kind: np.ndarray  # (s,) int8: STRUCTURAL, SHEAR, BENDING
+    rest_length: np.ndarray  # (s,)
+    k_stretch: np.ndarray  # (s,) N/m
+    k_compress: np.ndarray  # (s,) N/m
+    c_stretch: np.ndarray  # (s,) N·s/m
+    c_compress: np.ndarray  # (s,) N·s/m
+    substeps: int
+    stable_dt: float
+    grip: np.ndarray  # (n,) uint8: 1 for particles that grip the body (a waistband), kinematic
+    boundary_loops: list[np.ndarray] = field(default_factory=list)
+    coarse: CoarseMesh | None = None  # authored-garment map (fine_triangle, fine_bary)
+
+    @property
+    def n_particles(self) -> int:
+        return len(self.rest_positions)
+
+    @property
+    def structural(self) -> np.ndarray:
+        return np.flatnonzero(self.spring_kind == STRUCTURAL)
+
+    def substeps_for(self, dt: float) -> int:
+        """Configured substeps, or more if a longer frame would be unstable."""
+        return max(self.substeps, math.ceil(dt / self.stable_dt - 1e-9))
+
+
+def _bending_pairs(triangles: np.ndarray, quad_diagonals: set) -> np.ndarray:
+    """For every interior edge of the triangulation, the two vertices opposite it (not a quad's diagonal)."""
+    owner: dict[tuple[int, int], list[int]] = {}
+    for tri in triangles:
+        for k in range(3):
+            a, b, c = int(tri[k]), int(tri[(k + 1) % 3]), int(tri[(k + 2) % 3])
+            owner.setdefault((min(a, b), max(a, b)), []).append(c)
+    pairs = [(min(o), max(o)) for e, o in owner.items() if len(o) == 2 and e not in quad_diagonals and o[0] != o[1]]
+    return np.unique(np.asarray(pairs, dtype=np.int64).reshape(-1, 2), axis=0)
+
+
+def _areas(vertices, faces):
+    """Per-face area (quads as two triangles) and per-vertex share (face area / corner count)."""
+    tris, src = triangulate(faces, vertices)
+    t = vertices[tris]
+    ta = 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+    face_area = np.bincount(src, ta, minlength=len(faces))
+    corners = (faces >= 0).sum(axis=1)
+    vert_area = np.zeros(len(vertices))
+    for k in range(4):
+        ok = faces[:, k] >= 0
+        np.add.at(vert_area, faces[ok, k], face_area[ok] / corners[ok])
+    return face_area, vert_area
+
+
+def build_springs(vertices: np.ndarray, faces: np.ndarray, fabric: Fabric):
+    """Structural (every polygon edge), shear (both quad diagonals) and bending springs.
+
+    Stiffness per spring from the fabric's 2D moduli (N/m): k = E * A_e / L², where A_e is the
+    area the spring stands for (twice the share of its faces' areas per edge); a regular grid of
+    squares gets k = E. Damping c = 2 ζ sqrt(k m_ij) with the pair's reduced mass."""
+    edges, _ = unique_edges(faces)
+    face_area, vert_area = _areas(vertices, faces)
+    n_edges_face = (faces >= 0).sum(axis=1)
+    edge_area: dict[tuple[int, int], float] = {}
+    for f, face in enumerate(faces):
+        ring = face[face >= 0]
+        for a, b in zip(ring, np.roll(ring, -1)):
+            key = (int(min(a, b)), int(max(a, b)))
+            edge_area[key] = edge_area.get(key, 0.0) + 2.0 * face_area[f] / n_edges_face[f]
+    quads = faces[faces[:, 3] >= 0]
+    diag = np.concatenate([quads[:, [0, 2]], quads[:, [1, 3]]])
+    diag = np.sort(diag, axis=1)
+    diag_area = np.concatenate([face_area[faces[:, 3] >= 0]] * 2)
+    tris, _ = triangulate(faces, vertices)
+    bend = _bending_pairs(tris, {(int(a), int(b)) for a, b in diag})
+
+    def length(p):
+        return np.linalg.norm(vertices[p[:, 0]] - vertices[p[:, 1]], axis=1)
+
+    l_e, l_d, l_b = length(edges), length(diag), length(bend)
+    a_e = np.array([edge_area[(int(a), int(b))] for a, b in edges])
+    # The area factors are clipped: a sliver face would otherwise make one spring far stiffer
+    # than the rest, and the stiffest spring sets the explicit time step.
+    f_e = np.clip(a_e / l_e**2, 0.5, 1.5)
+    k_e = fabric.stretch_stiffness * f_e
+    kc_e = fabric.compression_stiffness * f_e
+    k_d = fabric.shear_stiffness * np.clip(diag_area / l_d**2, 0.25, 0.75)
+    k_b = np.full(len(bend), fabric.bending_stiffness)
+    pairs = np.concatenate([edges, diag, bend]).astype(np.int32)
+    kind = np.concatenate([np.full(len(edges), STRUCTURAL), np.full(len(diag), SHEAR),
+                           np.full(len(bend), BENDING)]).astype(np.int8)
+    rest = np.concatenate([l_e, l_d, l_b])
+    ks = np.concatenate([k_e, k_d, k_b])
+    kc = np.concatenate([kc_e, k_d, k_b])
+    # Lumped mass per particle, floored at half the median: a particle at a sharp hem corner
+    # has little area, and the lightest particle would otherwise set the time step.
+    mass = fabric.density * np.maximum(vert_area, 0.5 * np.median(vert_area))
+    m_red = mass[pairs[:, 0]] * mass[pairs[:, 1]] / (mass[pairs[:, 0]] + mass[pairs[:, 1]])
+    cs = 2.0 * fabric.damping_ratio * np.sqrt(ks * m_red)
+    cc = 2.0 * fabric.damping_ratio * np.sqrt(kc * m_red)
+    return pairs, kind, rest, ks, kc, cs, cc, mass, vert_area
+
+
+def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | None = None,
+                      rest_positions: np.ndarray | None = None, coarse: CoarseMesh | None = None) -> ClothModel:
+    """Coarsen a garment and build its springs.
+
+    rest_positions: the coarse particles with the body's intersections already resolved
+    (see `ClothSim.fit`); rest lengths are measured on them."""
+    settings = settings or SimSettings()
+    coarse = coarse or coarsen(garment.vertices, garment.faces, settings.target_particles)
+    verts = coarse.vertices if rest_positions is None else np.asarray(rest_positions, dtype=np.float64)
+    faces = coarse.faces
+    pairs, kind, rest, ks, kc, cs, cc, mass, area = build_springs(verts, faces, fabric)
+    if np.any(rest <= 0) or np.any(mass <= 0):
+        raise ValueError(f"{garment.name}: degenerate coarse mesh (zero-length spring or zero-area particle)")
+    inv_mass = 1.0 / mass
+    si, sj = pairs[:, 0].copy(), pairs[:, 1].copy()
+    dt = stable_time_step(verts, inv_mass, si, sj, ks)
+    substeps = settings.substeps or max(1, math.ceil(1.0 / settings.frame_rate / dt))
+    tris, _ = triangulate(faces, verts)
+    return ClothModel(
+        name=garment.name, fabric=fabric, settings=settings, rest_positions=verts.copy(), faces=faces,
+        triangles=tris, mass=mass, inv_mass=inv_mass, drag=fabric.air_drag * area, spring_i=si, spring_j=sj,
+        spring_kind=kind, rest_length=rest, k_stretch=ks, k_compress=kc, c_stretch=cs, c_compress=cc,
+        substeps=substeps, stable_dt=dt, grip=np.zeros(len(verts), dtype=np.uint8), boundary_loops=boundary_loops(faces), coarse=coarse,
+    )

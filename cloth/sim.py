@@ -1,0 +1,211 @@
+"""Per-frame coarse cloth simulation (S101): state arrays and the frame step.
+
+    model = prepare_cloth(garment, fabric, body_rest_vertices, body_mesh)   # once
+    sim = ClothSim(model, body_mesh, body_rest_vertices)                    # once per session
+    x = sim.step(body_vertices, dt)                                          # every frame
+
+A frame: body following (relative coordinates to the nearest face, distance-blended), then
+`substeps` × (RK4 step, vertex collision), then the instability check (NaN, speed, runaway
+stretch → reset to the body-following positions, counted), then the new relative coordinates.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .coarsen import coarsen
+from .collision import BodyMesh, attach_to_body, collide_particles, follow_body
+from .dynamics import particle_normals, rk4_substep
+from .fabric import Fabric
+from .garment import Garment
+from .geometry import nearest_vertices
+from .model import STRUCTURAL, ClothModel, SimSettings, build_cloth_model
+
+
+@njit(cache=True)
+def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs, cc, work,
+                      body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, nearest,
+                      thickness, friction, contact, fixed):
+    """n_sub × RK4 integration, vertex collision after every collide_every-th substep and the last,
+    fused so that a frame is one call."""
+    for k in range(n_sub):
+        rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs, cc, work)
+        if (k + 1) % collide_every == 0 or k == n_sub - 1:
+            collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, nearest,
+                              thickness, friction, contact, fixed)
+
+
+@njit(cache=True)
+def recover_unstable(x, v, followed, body_vel, si, sj, rest, kind, max_speed, max_stretch, bad):
+    """Reset exploded particles to their body-following positions; returns how many were reset.
+
+    Exploded: a non-finite position or velocity, a speed above max_speed, or a structural
+    spring longer than max_stretch × its rest length (both ends)."""
+    n = x.shape[0]
+    lim2 = max_speed * max_speed
+    for i in range(n):
+        s2 = v[i, 0] ** 2 + v[i, 1] ** 2 + v[i, 2] ** 2
+        ok = np.isfinite(x[i, 0]) and np.isfinite(x[i, 1]) and np.isfinite(x[i, 2]) and np.isfinite(s2)
+        bad[i] = 0 if (ok and s2 <= lim2) else 1
+    for s in range(si.shape[0]):
+        if kind[s] != 0:
+            continue
+        i = si[s]
+        j = sj[s]
+        d2 = (x[i, 0] - x[j, 0]) ** 2 + (x[i, 1] - x[j, 1]) ** 2 + (x[i, 2] - x[j, 2]) ** 2
+        if not (d2 <= (max_stretch * rest[s]) ** 2):
+            bad[i] = 1
+            bad[j] = 1
+    count = 0
+    for i in range(n):
+        if bad[i]:
+            count += 1
+            for k in range(3):
+                x[i, k] = followed[i, k]
+                v[i, k] = body_vel[i, k]
+    return count
+
+
+def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh, thickness: float,
+                          iterations: int = 4) -> np.ndarray:
+    """Move particles that start inside the body out to its surface plus thickness (garment setup)."""
+    x = np.array(points, dtype=np.float64)
+    v = np.zeros_like(x)
+    nearest = np.empty(len(x), dtype=np.int32)
+    nearest_vertices(x, body_x, nearest)
+    contact = np.zeros(len(x), dtype=np.uint8)
+    free = np.zeros(len(x), dtype=np.uint8)
+    for _ in range(iterations):
+        collide_particles(x, v, body_x, v, body.nbr_start, body.nbr_ids, body.triangles, body.tri_start,
+                          body.tri_ids, nearest, thickness, 0.0, contact, free)
+    return x
+
+
+def prepare_cloth(garment: Garment, fabric: Fabric, body_rest: np.ndarray, body: BodyMesh,
+                  settings: SimSettings | None = None, grip_waistband: bool = False) -> ClothModel:
+    """Coarse model of a garment fitted on the rest body, its initial intersections resolved.
+
+    grip_waistband: the garment's highest boundary loop grips the body (an elastic or buttoned
+    waistband): those particles keep their rest-pose place on the body. The rest of the garment
+    is simulated."""
+    settings = settings or SimSettings()
+    coarse = coarsen(garment.vertices, garment.faces, settings.target_particles)
+    body_x = np.ascontiguousarray(body_rest[: body.n_vertices], dtype=np.float64)
+    resolved = resolve_intersections(coarse.vertices, body_x, body, fabric.thickness)
+    model = build_cloth_model(garment, fabric, settings, resolved, coarse)
+    if grip_waistband and model.boundary_loops:
+        top = max(model.boundary_loops, key=lambda loop: model.rest_positions[loop, 1].mean())
+        model.grip[top] = 1
+        model.inv_mass[top] = 0.0
+    return model
+
+
+@dataclass
+class ClothStats:
+    frames: int = 0
+    reset_particles: int = 0  # particles reset by the instability recovery, summed over frames
+    reset_frames: int = 0  # frames in which any particle was reset
+    last_substeps: int = 0
+
+
+class ClothState:
+    """Everything that changes per frame, preallocated."""
+
+    def __init__(self, n: int):
+        self.x = np.zeros((n, 3))  # positions, m
+        self.v = np.zeros((n, 3))  # velocities, m/s
+        self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex
+        self.face = np.zeros(n, dtype=np.int32)  # body face of the relative coordinates
+        self.bary = np.zeros((n, 3))  # barycentric coordinates on that face
+        self.height = np.zeros(n)  # offset along the face normal, m
+        self.anchor = np.zeros((n, 3))  # the attachment point on the body
+        self.body_vel = np.zeros((n, 3))  # body velocity at the attachment point, m/s
+        self.followed = np.zeros((n, 3))  # fully body-following positions (recovery targets)
+        self.contact = np.zeros(n, dtype=np.uint8)  # in contact after the last collision
+        self.normals = np.zeros((n, 3))  # particle normals of this frame (air drag)
+        self.bad = np.zeros(n, dtype=np.uint8)
+        self.work = np.zeros((9, n, 3))
+
+
+class ClothSim:
+    def __init__(self, model: ClothModel, body: BodyMesh, body_vertices: np.ndarray):
+        self.model = model
+        self.body = body
+        self.state = ClothState(model.n_particles)
+        self.stats = ClothStats()
+        self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
+        self.reset(body_vertices)
+
+    def _body(self, body_vertices: np.ndarray) -> np.ndarray:
+        b = body_vertices[: self.body.n_vertices]
+        if b.dtype != np.float64 or not b.flags.c_contiguous:
+            b = np.ascontiguousarray(b, dtype=np.float64)
+        return b
+
+    def reset(self, body_vertices: np.ndarray) -> None:
+        """Garment at its rest positions on a body in its rest pose, at rest."""
+        s, m, b = self.state, self.model, self.body
+        body_x = self._body(body_vertices)
+        s.x[:] = m.rest_positions
+        s.v[:] = 0.0
+        s.body_vel[:] = 0.0
+        nearest_vertices(s.x, body_x, s.nearest)
+        free = np.zeros_like(m.grip)
+        attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, free, s.face, s.bary,
+                       s.height, s.anchor)
+        s.followed[:] = s.x
+        self.stats = ClothStats()
+
+    def step(self, body_vertices: np.ndarray, dt: float, profile: bool = False) -> np.ndarray:
+        """Advance one frame of length dt against the body's new vertices; returns positions (n, 3)."""
+        s, m, b, st = self.state, self.model, self.body, self.model.settings
+        f = m.fabric
+        body_x = self._body(body_vertices)
+        follow_body(s.x, s.v, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, 1.0 / dt,
+                    st.follow_near, st.follow_far, s.followed)
+        particle_normals(s.x, m.triangles, s.normals)
+        n_sub = m.substeps_for(dt)
+        h = dt / n_sub
+        g = -st.gravity
+        if profile:
+            t_int = t_col = 0.0
+            for k in range(n_sub):
+                t0 = time.perf_counter()
+                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length, m.k_stretch,
+                            m.k_compress, m.c_stretch, m.c_compress, s.work)
+                t1 = time.perf_counter()
+                if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
+                    collide_particles(s.x, s.v, body_x, s.body_vel, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
+                                      b.tri_ids, s.nearest, f.thickness, f.friction, s.contact, m.grip)
+                t_int += t1 - t0
+                t_col += time.perf_counter() - t1
+            self.stage_seconds[0] = t_int
+            self.stage_seconds[1] = t_col
+        else:
+            simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length,
+                              m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work, body_x, s.body_vel,
+                              b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, s.nearest,
+                              f.thickness, f.friction, s.contact, m.grip)
+        n_bad = recover_unstable(s.x, s.v, s.followed, s.body_vel, m.spring_i, m.spring_j, m.rest_length,
+                                 m.spring_kind, st.max_speed, st.max_stretch, s.bad)
+        if n_bad:
+            self.stats.reset_particles += n_bad
+            self.stats.reset_frames += 1
+            # a reset particle may be far from where its walk left off
+            idx = np.flatnonzero(s.bad)
+            near = np.empty(len(idx), dtype=np.int32)
+            nearest_vertices(s.x[idx], body_x, near)
+            s.nearest[idx] = near
+        attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
+                       s.height, s.anchor)
+        self.stats.frames += 1
+        self.stats.last_substeps = n_sub
+        return s.x
+
+
+__all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",
+           "recover_unstable", "STRUCTURAL", "SimSettings"]

@@ -1,0 +1,196 @@
+"""The cloth job: an outfit on the retargeted, skinned body through a clip (S101 coarse cloth).
+
+Session start: the garments are fitted on the rest body, then the body is blended from its
+rest pose to the clip's first frame over a pre-roll, and held there to settle, so the clip
+starts with the garments on and at rest.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from cloth.collision import BodyMesh
+from cloth.fabric import Fabric, fabric as fabric_preset
+from cloth.garment import Garment, load_outfit
+from cloth.model import ClothModel, SimSettings
+from cloth.sim import ClothSim, prepare_cloth
+from skinning.animate import BodyAnimator
+from skinning.body import Body
+from skinning.source import BVHSource
+
+OUTFITS = ("female_casualsuit01", "female_elegantsuit01", "female_sportsuit01")
+# Default fabric per garment (blouse: silk, skirt: cotton, T-shirt: cotton, jeans: denim, sportswear: jersey).
+DEFAULT_FABRICS = {
+    "female_elegantsuit01.top": "silk",
+    "female_elegantsuit01.bottom": "cotton",
+    "female_casualsuit01.top": "cotton",
+    "female_casualsuit01.bottom": "denim",
+    "female_sportsuit01.top": "jersey",
+    "female_sportsuit01.bottom": "jersey",
+}
+GARMENT_COLORS = [(0.25, 0.42, 0.75), (0.78, 0.33, 0.28), (0.35, 0.6, 0.38), (0.65, 0.55, 0.25)]
+# MB clips begin with the converter's T-pose, 10 cm below the floor: start from frame 1.
+START_FRAME = 1
+
+
+def smoothstep(t: float) -> float:
+    return t * t * (3.0 - 2.0 * t)
+
+
+@dataclass
+class Outfit:
+    name: str
+    garments: list[Garment]
+    models: list[ClothModel]
+
+
+def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
+                       fabrics: dict[str, Fabric] | Fabric | None = None,
+                       settings: SimSettings | None = None) -> Outfit:
+    """Fit an outfit on the rest body (world frame: floor at y = 0) and build each garment's coarse model."""
+    rest_body = animator.pose(animator.rest_configuration()).vertices.copy()
+    garments = load_outfit(outfit_dir, body.vertices + animator.world_offset)
+    models = []
+    for g in garments:
+        if isinstance(fabrics, Fabric):
+            fab = fabrics
+        elif fabrics and g.name in fabrics:
+            fab = fabrics[g.name]
+        else:
+            fab = fabric_preset(DEFAULT_FABRICS.get(g.name, "cotton"))
+        # bottoms are held up by their waistband (elastic or buttoned): it grips the body
+        models.append(prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=g.name.endswith(".bottom")))
+    return Outfit(outfit_dir.name, garments, models)
+
+
+@dataclass
+class ClothReport:
+    clip: str
+    outfit: str
+    garments: list[str]
+    frames: int = 0
+    substeps: list[int] = field(default_factory=list)
+    stage_ms: dict[str, list[float]] = field(default_factory=dict)  # per garment-frame: whole S101 step
+    split_ms: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # (integration, collision), profile
+    nan_frames: int = 0
+    resets: list[int] = field(default_factory=list)  # particles reset per garment
+    snapshots: list[tuple[int, np.ndarray, list[np.ndarray]]] = field(default_factory=list)
+    models: list[ClothModel] = field(default_factory=list)
+
+    def summary(self) -> str:
+        ms = "  ".join(f"{k} {np.median(v):.3f}" for k, v in self.stage_ms.items())
+        return (f"{self.clip} × {self.outfit}: {self.frames} frames, substeps {self.substeps} | "
+                f"median ms per garment-frame: {ms} | NaN frames {self.nan_frames} | resets {self.resets}")
+
+
+class OutfitSession:
+    """Body animator + one ClothSim per garment; `frame()` advances everything by one frame."""
+
+    def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit):
+        self.body, self.animator, self.outfit = body, animator, outfit
+        rest_body = animator.pose(animator.rest_configuration()).vertices
+        self.sims = [ClothSim(m, body_mesh, rest_body) for m in outfit.models]
+        self.profile = False
+        self.stage_seconds = np.zeros((len(self.sims), 2))
+        self.cloth_seconds = np.zeros(len(self.sims))
+
+    def step_cloth(self, body_vertices: np.ndarray, dt: float) -> list[np.ndarray]:
+        out = []
+        for k, sim in enumerate(self.sims):
+            t0 = time.perf_counter()
+            out.append(sim.step(body_vertices, dt, profile=self.profile))
+            self.cloth_seconds[k] = time.perf_counter() - t0
+            self.stage_seconds[k] = sim.stage_seconds
+        return out
+
+    def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5):
+        """Blend the body from rest to the first frame's pose, then hold it while the cloth settles."""
+        model = self.animator.character.model
+        q_rest = self.animator.rest_configuration()
+        n_blend = max(1, int(round(blend_seconds / dt)))
+        n_settle = max(1, int(round(settle_seconds / dt)))
+        for k in range(1, n_blend + n_settle + 1):
+            t = smoothstep(min(1.0, k / n_blend))
+            q = pin.interpolate(model, q_rest, q_first, t)
+            frame = self.animator.pose(q)
+            self.step_cloth(frame.vertices, dt)
+
+
+def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max_frames: int | None = None,
+                   snapshot_frames: list[int] | None = None, settings: SimSettings | None = None,
+                   fabrics=None, profile: bool = False, on_frame=None) -> ClothReport:
+    """Run an outfit through a clip. on_frame(index, session, body_frame, positions) sees every frame."""
+    wanted = set(snapshot_frames or [])
+    with BVHSource(clip, every=every, max_frames=max_frames) as source:
+        animator = BodyAnimator(body, source.skeleton)
+        body_mesh = BodyMesh.build(body.triangles, body.n_visible)
+        outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)
+        session = OutfitSession(body, animator, body_mesh, outfit)
+        session.profile = profile
+        report = ClothReport(Path(clip).stem, outfit.name, [m.name for m in outfit.models], models=outfit.models)
+        stage = {f"{g}": [] for g in report.garments}
+        dt = source.frame_time
+        started = False
+        for frame in source:
+            if frame.index < START_FRAME:
+                continue
+            body_frame = animator(frame.local_rot, frame.root_position)
+            if not started:
+                session.preroll(body_frame.retarget.q.copy(), dt)
+                body_frame = animator.pose(body_frame.retarget.q)
+                started = True
+            positions = session.step_cloth(body_frame.vertices, dt)
+            for k, (name, sec) in enumerate(zip(report.garments, session.cloth_seconds)):
+                stage[name].append(sec * 1000)
+                if profile:
+                    report.split_ms.setdefault(name, []).append(tuple(session.stage_seconds[k] * 1000))
+            if not all(np.isfinite(p).all() for p in positions):
+                report.nan_frames += 1
+            if on_frame is not None:
+                on_frame(frame.index, session, body_frame, positions)
+            if frame.index in wanted:
+                report.snapshots.append((frame.index, body_frame.vertices[: body.n_visible].copy(),
+                                         [p.copy() for p in positions]))
+            report.frames += 1
+        report.stage_ms = {k: np.array(v) for k, v in stage.items()}
+        report.substeps = [s.stats.last_substeps for s in session.sims]
+        report.resets = [s.stats.reset_particles for s in session.sims]
+    return report
+
+
+def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals (drawing only)."""
+    fn = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]], vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
+    n = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(n, triangles[:, k], fn)
+    return n / (np.linalg.norm(n, axis=1, keepdims=True) + 1e-30)
+
+
+def render_cloth_snapshots(body: Body, report: ClothReport, models: list[ClothModel], out_dir: Path,
+                           renderer=None, azimuths=(0.0, 150.0)) -> Path:
+    """One contact sheet per clip × outfit: each snapshot frame from two sides."""
+    from .body_job import SKIN
+    from .render import MeshDraw, Renderer, contact_sheet, orbit_camera, save_png
+
+    own = renderer is None
+    renderer = renderer or Renderer(360, 480)
+    images = []
+    for _, verts, garments in report.snapshots:
+        meshes = [MeshDraw(verts, body.triangles, vertex_normals(verts, body.triangles), SKIN)]
+        for k, (m, x) in enumerate(zip(models, garments)):
+            meshes.append(MeshDraw(x, m.triangles, vertex_normals(x, m.triangles), GARMENT_COLORS[k % 4]))
+        centre = np.array([verts[:, 0].mean(), verts[:, 1].min() + 0.5 * np.ptp(verts[:, 1]), verts[:, 2].mean()])
+        for az in azimuths:
+            images.append(renderer.render(meshes, orbit_camera(centre, az, distance=3.6, height=0.2)))
+    if own:
+        renderer.release()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / f"cloth_{report.clip}_{report.outfit}.png"
+    save_png(path, contact_sheet(images, columns=4))
+    return path
