@@ -26,14 +26,23 @@ class BodyMesh:
     nbr_ids: np.ndarray  # int32
     tri_start: np.ndarray  # (n + 1,) int64
     tri_ids: np.ndarray  # int32
+    regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each leg)
 
     @classmethod
-    def build(cls, triangles: np.ndarray, n_vertices: int) -> "BodyMesh":
+    def build(cls, triangles: np.ndarray, n_vertices: int, regions: np.ndarray | None = None) -> "BodyMesh":
+        """regions: a bit per vertex naming its body part. A particle's nearest-vertex walk stays in
+        the parts it lay near at rest, so an arm swinging past the torso cannot carry a shirt's
+        side away, nor one leg the other trouser leg. None: one region."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
         ts, ti = vertex_triangles(n_vertices, triangles)
-        return cls(triangles, n_vertices, ns, ni, ts, ti)
+        if regions is None:
+            regions = np.ones(n_vertices, dtype=np.uint8)
+        regions = np.ascontiguousarray(regions, dtype=np.uint8)
+        if regions.shape != (n_vertices,) or np.any(regions == 0):
+            raise ValueError(f"regions must be ({n_vertices},) uint8 with a bit set for every vertex")
+        return cls(triangles, n_vertices, ns, ni, ts, ti, regions)
 
 
 @njit(cache=True)
@@ -58,8 +67,9 @@ def face_normal(body_x, tri, out):
 
 
 @njit(cache=True)
-def walk_nearest(p, body_x, nbr_start, nbr_ids, start):
-    """Nearest body vertex to p by a local walk from `start` (S101: repeat while a neighbour is nearer)."""
+def walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, mask):
+    """Nearest body vertex to p by a local walk from `start` (S101: repeat while a neighbour is nearer),
+    through vertices of the particle's body regions only (regions[u] & mask)."""
     best = start
     bd = (body_x[best, 0] - p[0]) ** 2 + (body_x[best, 1] - p[1]) ** 2 + (body_x[best, 2] - p[2]) ** 2
     moved = True
@@ -67,6 +77,8 @@ def walk_nearest(p, body_x, nbr_start, nbr_ids, start):
         moved = False
         for k in range(nbr_start[best], nbr_start[best + 1]):
             u = nbr_ids[k]
+            if not (regions[u] & mask):
+                continue
             d = (body_x[u, 0] - p[0]) ** 2 + (body_x[u, 1] - p[1]) ** 2 + (body_x[u, 2] - p[2]) ** 2
             if d < bd:
                 bd = d
@@ -101,19 +113,20 @@ def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, n, n_out, n_verte
 
 
 @njit(cache=True)
-def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, nearest,
-                      thickness, friction, contact, fixed):
+def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
+                      nearest, thickness, friction, contact, fixed):
     """S101 collision: update each particle's nearest body vertex by a walk; if the particle is
     behind every face around it (closer than `thickness`), move it onto the surface plus thickness.
 
-    Velocity relative to the body (body_vel, per particle) loses its inward normal part, and
-    Coulomb friction removes up to friction * |removed normal speed| of its tangential part."""
+    Velocity relative to the body (body_vel: the body's velocity at the particle not already
+    carried by body following) loses its inward normal part, and Coulomb friction removes up to
+    friction * |removed normal speed| of its tangential part."""
     n = np.empty(3)
     nv = np.empty(3)
     scratch = np.empty(3)
     for i in range(x.shape[0]):
         p = x[i]
-        nearest[i] = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest[i])
+        nearest[i] = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
         d = deepest_plane(p, body_x, tris, tri_start, tri_ids, nearest[i], scratch, n, nv)
         if d >= thickness or fixed[i]:
             contact[i] = 0
@@ -202,15 +215,21 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
 
 
 @njit(cache=True)
-def follow_body(x, v, body_x, tris, fixed, face, bary, height, anchor, body_vel, inv_dt, near, far, followed):
+def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, carrier, inv_dt, near, far,
+                followed):
     """S101 body following, before a step, after the body moved (with the Decision's distance blend).
 
     The fully-followed position keeps the particle's face, barycentric coordinates and height;
     a particle within `near` of the body takes it, one beyond `far` keeps its own, and between
-    the two the move is blended linearly. The body's velocity at the anchor is the anchor's
-    displacement over the frame; the blended particle's velocity changes by the same blend of
-    the change in body velocity, so its velocity relative to the body is kept. Gripped particles
-    (fixed[i] != 0: a waistband) follow fully and move with the body."""
+    the two the move is blended linearly (weight w). Gripped particles (fixed[i] != 0: a
+    waistband) always follow fully.
+
+    Following is a transport: the body's motion reaches the particle through this move, not
+    through its velocity, which stays the particle's own motion relative to the carried frame
+    (adding the body velocity as well would move it twice, once here and once in the substeps,
+    against a body that stands still at its new pose during them). The part of the body's
+    velocity not transported, (1 - w) * body velocity, is the `carrier` velocity collisions and
+    friction measure against."""
     n = np.empty(3)
     for i in range(x.shape[0]):
         t = face[i]
@@ -224,6 +243,6 @@ def follow_body(x, v, body_x, tris, fixed, face, bary, height, anchor, body_vel,
             vb = (a - anchor[i, k]) * inv_dt
             followed[i, k] = target
             x[i, k] += w * (target - x[i, k])
-            v[i, k] = vb if fixed[i] else v[i, k] + w * (vb - body_vel[i, k])
             body_vel[i, k] = vb
+            carrier[i, k] = (1.0 - w) * vb
             anchor[i, k] = a

@@ -56,6 +56,25 @@ def closest_point_triangle(p, a, b, c, out):
 
 
 @njit(cache=True)
+def region_masks(points, vertices, regions, radius, out):
+    """OR of the regions of every vertex within radius of each point (at least the nearest one's)."""
+    r2 = radius * radius
+    for i in range(points.shape[0]):
+        mask = 0
+        best = np.inf
+        nearest = 0
+        for j in range(vertices.shape[0]):
+            d = ((vertices[j, 0] - points[i, 0]) ** 2 + (vertices[j, 1] - points[i, 1]) ** 2
+                 + (vertices[j, 2] - points[i, 2]) ** 2)
+            if d < r2:
+                mask |= regions[j]
+            if d < best:
+                best = d
+                nearest = j
+        out[i] = mask | regions[nearest]
+
+
+@njit(cache=True)
 def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
     """Brute force: the closest triangle to each point and the point's barycentric coordinates there.
 
@@ -78,11 +97,13 @@ def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
 
 
 @njit(cache=True)
-def nearest_vertices(points, vertices, out):
-    """Brute force nearest vertex per point (setup and recovery only)."""
+def nearest_vertices(points, vertices, out, regions, masks):
+    """Brute force nearest vertex per point among vertices of its regions (setup and recovery only)."""
     for i in range(points.shape[0]):
         best = np.inf
         for j in range(vertices.shape[0]):
+            if not (regions[j] & masks[i]):
+                continue
             d = ((vertices[j, 0] - points[i, 0]) ** 2 + (vertices[j, 1] - points[i, 1]) ** 2
                  + (vertices[j, 2] - points[i, 2]) ** 2)
             if d < best:

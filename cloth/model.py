@@ -55,6 +55,7 @@ class ClothModel:
     substeps: int
     stable_dt: float
     grip: np.ndarray  # (n,) uint8: 1 for particles that grip the body (a waistband), kinematic
+    region_mask: np.ndarray  # (n,) uint8: body regions each particle may touch (BodyMesh.regions bits)
     boundary_loops: list[np.ndarray] = field(default_factory=list)
     coarse: CoarseMesh | None = None  # authored-garment map (fine_triangle, fine_bary)
 
@@ -167,5 +168,6 @@ def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | 
         name=garment.name, fabric=fabric, settings=settings, rest_positions=verts.copy(), faces=faces,
         triangles=tris, mass=mass, inv_mass=inv_mass, drag=fabric.air_drag * area, spring_i=si, spring_j=sj,
         spring_kind=kind, rest_length=rest, k_stretch=ks, k_compress=kc, c_stretch=cs, c_compress=cc,
-        substeps=substeps, stable_dt=dt, grip=np.zeros(len(verts), dtype=np.uint8), boundary_loops=boundary_loops(faces), coarse=coarse,
+        substeps=substeps, stable_dt=dt, grip=np.zeros(len(verts), dtype=np.uint8),
+        region_mask=np.full(len(verts), 255, dtype=np.uint8), boundary_loops=boundary_loops(faces), coarse=coarse,
     )

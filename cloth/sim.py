@@ -22,25 +22,25 @@ from .collision import BodyMesh, attach_to_body, collide_particles, follow_body
 from .dynamics import particle_normals, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
-from .geometry import nearest_vertices
+from .geometry import nearest_vertices, region_masks
 from .model import STRUCTURAL, ClothModel, SimSettings, build_cloth_model
 
 
 @njit(cache=True)
-def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs, cc, work,
-                      body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, nearest,
-                      thickness, friction, contact, fixed):
+def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs,
+                      cc, work, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
+                      nearest, thickness, friction, contact, fixed):
     """n_sub × RK4 integration, vertex collision after every collide_every-th substep and the last,
     fused so that a frame is one call."""
     for k in range(n_sub):
         rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs, cc, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
-            collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, nearest,
-                              thickness, friction, contact, fixed)
+            collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
+                              masks, nearest, thickness, friction, contact, fixed)
 
 
 @njit(cache=True)
-def recover_unstable(x, v, followed, body_vel, si, sj, rest, kind, max_speed, max_stretch, bad):
+def recover_unstable(x, v, followed, si, sj, rest, kind, max_speed, max_stretch, bad):
     """Reset exploded particles to their body-following positions; returns how many were reset.
 
     Exploded: a non-finite position or velocity, a speed above max_speed, or a structural
@@ -66,22 +66,31 @@ def recover_unstable(x, v, followed, body_vel, si, sj, rest, kind, max_speed, ma
             count += 1
             for k in range(3):
                 x[i, k] = followed[i, k]
-                v[i, k] = body_vel[i, k]
+                v[i, k] = 0.0  # at rest relative to the body, which carries it
     return count
 
 
+REGION_RADIUS = 0.06  # m: a particle may attach to the body parts within this distance at rest
+
+
+def particle_regions(points: np.ndarray, body_x: np.ndarray, body: BodyMesh) -> np.ndarray:
+    masks = np.zeros(len(points), dtype=np.uint8)
+    region_masks(np.ascontiguousarray(points, dtype=np.float64), body_x, body.regions, REGION_RADIUS, masks)
+    return masks
+
+
 def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh, thickness: float,
-                          iterations: int = 4) -> np.ndarray:
+                          masks: np.ndarray, iterations: int = 4) -> np.ndarray:
     """Move particles that start inside the body out to its surface plus thickness (garment setup)."""
     x = np.array(points, dtype=np.float64)
     v = np.zeros_like(x)
     nearest = np.empty(len(x), dtype=np.int32)
-    nearest_vertices(x, body_x, nearest)
+    nearest_vertices(x, body_x, nearest, body.regions, masks)
     contact = np.zeros(len(x), dtype=np.uint8)
     free = np.zeros(len(x), dtype=np.uint8)
     for _ in range(iterations):
         collide_particles(x, v, body_x, v, body.nbr_start, body.nbr_ids, body.triangles, body.tri_start,
-                          body.tri_ids, nearest, thickness, 0.0, contact, free)
+                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free)
     return x
 
 
@@ -95,8 +104,10 @@ def prepare_cloth(garment: Garment, fabric: Fabric, body_rest: np.ndarray, body:
     settings = settings or SimSettings()
     coarse = coarsen(garment.vertices, garment.faces, settings.target_particles)
     body_x = np.ascontiguousarray(body_rest[: body.n_vertices], dtype=np.float64)
-    resolved = resolve_intersections(coarse.vertices, body_x, body, fabric.thickness)
+    masks = particle_regions(coarse.vertices, body_x, body)
+    resolved = resolve_intersections(coarse.vertices, body_x, body, fabric.thickness, masks)
     model = build_cloth_model(garment, fabric, settings, resolved, coarse)
+    model.region_mask = masks
     if grip_waistband and model.boundary_loops:
         top = max(model.boundary_loops, key=lambda loop: model.rest_positions[loop, 1].mean())
         model.grip[top] = 1
@@ -124,6 +135,7 @@ class ClothState:
         self.height = np.zeros(n)  # offset along the face normal, m
         self.anchor = np.zeros((n, 3))  # the attachment point on the body
         self.body_vel = np.zeros((n, 3))  # body velocity at the attachment point, m/s
+        self.carrier = np.zeros((n, 3))  # part of it not transported by body following, m/s
         self.followed = np.zeros((n, 3))  # fully body-following positions (recovery targets)
         self.contact = np.zeros(n, dtype=np.uint8)  # in contact after the last collision
         self.normals = np.zeros((n, 3))  # particle normals of this frame (air drag)
@@ -153,7 +165,8 @@ class ClothSim:
         s.x[:] = m.rest_positions
         s.v[:] = 0.0
         s.body_vel[:] = 0.0
-        nearest_vertices(s.x, body_x, s.nearest)
+        s.carrier[:] = 0.0
+        nearest_vertices(s.x, body_x, s.nearest, b.regions, m.region_mask)
         free = np.zeros_like(m.grip)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, free, s.face, s.bary,
                        s.height, s.anchor)
@@ -165,8 +178,8 @@ class ClothSim:
         s, m, b, st = self.state, self.model, self.body, self.model.settings
         f = m.fabric
         body_x = self._body(body_vertices)
-        follow_body(s.x, s.v, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, 1.0 / dt,
-                    st.follow_near, st.follow_far, s.followed)
+        follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
+                    1.0 / dt, st.follow_near, st.follow_far, s.followed)
         particle_normals(s.x, m.triangles, s.normals)
         n_sub = m.substeps_for(dt)
         h = dt / n_sub
@@ -179,18 +192,19 @@ class ClothSim:
                             m.k_compress, m.c_stretch, m.c_compress, s.work)
                 t1 = time.perf_counter()
                 if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
-                    collide_particles(s.x, s.v, body_x, s.body_vel, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
-                                      b.tri_ids, s.nearest, f.thickness, f.friction, s.contact, m.grip)
+                    collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
+                                      b.tri_ids, b.regions, m.region_mask, s.nearest, f.thickness, f.friction,
+                                      s.contact, m.grip)
                 t_int += t1 - t0
                 t_col += time.perf_counter() - t1
             self.stage_seconds[0] = t_int
             self.stage_seconds[1] = t_col
         else:
             simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length,
-                              m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work, body_x, s.body_vel,
-                              b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, s.nearest,
-                              f.thickness, f.friction, s.contact, m.grip)
-        n_bad = recover_unstable(s.x, s.v, s.followed, s.body_vel, m.spring_i, m.spring_j, m.rest_length,
+                              m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work, body_x, s.carrier,
+                              b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
+                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip)
+        n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
                                  m.spring_kind, st.max_speed, st.max_stretch, s.bad)
         if n_bad:
             self.stats.reset_particles += n_bad
@@ -198,7 +212,7 @@ class ClothSim:
             # a reset particle may be far from where its walk left off
             idx = np.flatnonzero(s.bad)
             near = np.empty(len(idx), dtype=np.int32)
-            nearest_vertices(s.x[idx], body_x, near)
+            nearest_vertices(s.x[idx], body_x, near, b.regions, m.region_mask[idx])
             s.nearest[idx] = near
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
                        s.height, s.anchor)

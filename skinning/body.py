@@ -123,3 +123,31 @@ def load_body(data: str | Path | None = None) -> Body:
         weight_values=values,
         floor_y=float(vertices[:n_visible, 1].min()),
     )
+
+
+BODY_REGIONS = {
+    "torso": 1,
+    "left_arm": 2,
+    "right_arm": 4,
+    "left_leg": 8,
+    "right_leg": 16,
+}
+_REGION_BONES = {
+    "left_arm": ("LeftArm", "LeftForeArm", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb"),
+    "right_arm": ("RightArm", "RightForeArm", "RightHand", "RightFingerBase", "RightHandFinger1", "RThumb"),
+    "left_leg": ("LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase"),
+    "right_leg": ("RightUpLeg", "RightLeg", "RightFoot", "RightToeBase"),
+}
+
+
+def body_regions(body: Body) -> np.ndarray:
+    """(n_visible,) uint8 region bit per visible vertex (BODY_REGIONS), from its dominant bone."""
+    names = body.skeleton.names
+    bone_region = np.full(len(names), BODY_REGIONS["torso"], dtype=np.uint8)
+    for region, bones in _REGION_BONES.items():
+        for b in bones:
+            if b in names:
+                bone_region[names.index(b)] = BODY_REGIONS[region]
+    vis = np.arange(body.n_visible)
+    dominant = body.weight_bones[vis, np.argmax(body.weight_values[vis], axis=1)]
+    return bone_region[dominant]
