@@ -86,6 +86,8 @@ def read_mhclo(path: str | Path) -> Mhclo:
                         deleted.append(int(w))
             elif section == "verts" and not key[0].isdigit():
                 section = None
+        except GarmentError:
+            raise
         except (ValueError, IndexError):
             raise GarmentError(f"{path}:{lineno}: cannot parse {raw.strip()!r}") from None
     if obj_file is None:

@@ -1,0 +1,250 @@
+"""S101 kernels on cases whose answers are known."""
+
+import math
+
+import numpy as np
+import pytest
+
+from cloth.collision import BodyMesh, attach_to_body, collide_particles, follow_body
+from cloth.dynamics import rk4_substep, spring_forces, stable_time_step
+from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
+
+G = 9.81
+
+
+def springs(pairs, rest, ks, kc, cs=0.0, cc=0.0):
+    s = len(pairs)
+    p = np.asarray(pairs, dtype=np.int32)
+    return (p[:, 0].copy(), p[:, 1].copy(), np.full(s, rest, float), np.full(s, ks, float), np.full(s, kc, float),
+            np.full(s, cs, float), np.full(s, cc, float))
+
+
+def run_rk4(x, v, inv_mass, spring_args, dt, steps, gravity=0.0, drag=None, normals=None):
+    n = len(x)
+    drag = np.zeros(n) if drag is None else drag
+    normals = np.zeros((n, 3)) if normals is None else normals
+    work = np.zeros((9, n, 3))
+    for _ in range(steps):
+        rk4_substep(x, v, dt, inv_mass, drag, normals, -gravity, *spring_args, work)
+
+
+def test_hanging_spring_settles_at_analytic_extension():
+    m, k, rest = 0.01, 50.0, 0.1
+    x = np.array([[0.0, 0.0, 0.0], [0.0, -rest, 0.0]])
+    v = np.zeros_like(x)
+    inv_mass = np.array([0.0, 1.0 / m])  # the top particle is held
+    c = 2 * 0.5 * math.sqrt(k * m)  # half-critical damping: settles quickly
+    args = springs([(0, 1)], rest, k, k * 0.01, c, c)
+    run_rk4(x, v, inv_mass, args, 1e-3, 3000, gravity=G)
+    extension = -x[1, 1] - rest
+    assert extension == pytest.approx(m * G / k, rel=1e-6)
+    assert x[0, 1] == 0.0
+
+
+def test_stretch_and_compression_forces_have_the_configured_ratio():
+    ks, kc, rest, d = 400.0, 10.0, 0.05, 0.004
+    x_long = np.array([[0.0, 0.0, 0.0], [rest + d, 0.0, 0.0]])
+    x_short = np.array([[0.0, 0.0, 0.0], [rest - d, 0.0, 0.0]])
+    args = springs([(0, 1)], rest, ks, kc)
+    forces = []
+    for x in (x_long, x_short):
+        f = np.zeros_like(x)
+        spring_forces(x, np.zeros_like(x), *args, f)
+        forces.append(f)
+    f_long, f_short = forces
+    assert f_long[1, 0] == pytest.approx(-ks * d)  # pulled back towards particle 0
+    assert f_short[1, 0] == pytest.approx(kc * d)  # pushed away, weakly
+    assert abs(f_long[1, 0] / f_short[1, 0]) == pytest.approx(ks / kc)
+    np.testing.assert_allclose(f_long[0], -f_long[1])  # action = reaction
+
+
+def oscillator_error(dt: float) -> float:
+    """Phase-space error of an undamped particle on a symmetric spring after 1 s vs the exact solution.
+
+    sqrt(dx² + (dv/omega)²) is the size of the complex error, free of the cancellations a
+    position-only error has at particular times."""
+    m, k, rest, a = 0.02, 20.0, 0.1, 0.01
+    x = np.array([[0.0, 0.0, 0.0], [rest + a, 0.0, 0.0]])
+    v = np.zeros_like(x)
+    inv_mass = np.array([0.0, 1.0 / m])
+    args = springs([(0, 1)], rest, k, k)
+    steps = int(round(1.0 / dt))
+    run_rk4(x, v, inv_mass, args, dt, steps)
+    w = math.sqrt(k / m)
+    t = steps * dt
+    dx = x[1, 0] - (rest + a * math.cos(w * t))
+    dv = v[1, 0] - (-a * w * math.sin(w * t))
+    return math.hypot(dx, dv / w)
+
+
+def test_rk4_is_fourth_order_on_a_linear_oscillator():
+    e1, e2 = oscillator_error(0.02), oscillator_error(0.01)  # omega*dt = 0.63, 0.32: far above round-off
+    order = math.log2(e1 / e2)
+    assert 3.7 < order < 4.3, order
+
+
+def test_stable_time_step_matches_a_single_spring():
+    # one free particle on a held spring: omega = sqrt(k/m), RK4 limit 2.8/omega, margin 0.7
+    x = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    k, m = 30.0, 0.01
+    dt = stable_time_step(x, np.array([0.0, 1.0 / m]), np.array([0], np.int32), np.array([1], np.int32),
+                          np.array([k]))
+    assert dt == pytest.approx(0.7 * 2.8 / math.sqrt(k / m), rel=1e-3)
+
+
+def uv_sphere(radius=0.5, n_lat=24, n_lon=48):
+    verts = [[0.0, radius, 0.0]]
+    for i in range(1, n_lat):
+        th = math.pi * i / n_lat
+        for j in range(n_lon):
+            ph = 2 * math.pi * j / n_lon
+            verts.append([radius * math.sin(th) * math.cos(ph), radius * math.cos(th), radius * math.sin(th) * math.sin(ph)])
+    verts.append([0.0, -radius, 0.0])
+    tris = []
+    for j in range(n_lon):
+        tris.append([0, 1 + (j + 1) % n_lon, 1 + j])
+    for i in range(n_lat - 2):
+        for j in range(n_lon):
+            a = 1 + i * n_lon + j
+            b = 1 + i * n_lon + (j + 1) % n_lon
+            c = a + n_lon
+            d = b + n_lon
+            tris += [[a, b, d], [a, d, c]]
+    last = len(verts) - 1
+    base = 1 + (n_lat - 2) * n_lon
+    for j in range(n_lon):
+        tris.append([last, base + j, base + (j + 1) % n_lon])
+    return np.array(verts), np.array(tris, dtype=np.int32)
+
+
+def box(half=0.3, n=8):
+    """A closed box made of n×n quads per side (outward triangles)."""
+    verts, tris, index = [], [], {}
+
+    def vid(p):
+        key = tuple(np.round(p, 9))
+        if key not in index:
+            index[key] = len(verts)
+            verts.append(p)
+        return index[key]
+
+    g = np.linspace(-half, half, n + 1)
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            u_ax, v_ax = [a for a in range(3) if a != axis]
+            for i in range(n):
+                for j in range(n):
+                    quad = []
+                    for di, dj in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                        p = np.zeros(3)
+                        p[axis] = sign * half
+                        p[u_ax] = g[i + di]
+                        p[v_ax] = g[j + dj]
+                        quad.append(vid(p))
+                    a, b, c, d = quad
+                    t1, t2 = [a, b, c], [a, c, d]
+                    # orient outward
+                    pa, pb, pc = (np.array(verts[q]) for q in t1)
+                    if np.dot(np.cross(pb - pa, pc - pa), pa) < 0:
+                        t1, t2 = t1[::-1], t2[::-1]
+                    tris += [t1, t2]
+    return np.array(verts), np.array(tris, dtype=np.int32)
+
+
+def collide_once(points, verts, tris, thickness):
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array(points, dtype=float)
+    v = np.zeros_like(x)
+    nearest = np.zeros(len(x), dtype=np.int32)  # start the walk anywhere: it must find its way
+    contact = np.zeros(len(x), dtype=np.uint8)
+    masks = np.full(len(x), 255, dtype=np.uint8)
+    free = np.zeros(len(x), dtype=np.uint8)
+    collide_particles(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                      mesh.tri_ids, mesh.regions, masks, nearest, thickness, 0.5, contact, free)
+    return x, contact
+
+
+def test_particle_inside_a_sphere_is_pushed_out_to_its_surface():
+    verts, tris = uv_sphere(0.5)
+    rng = np.random.default_rng(1)
+    dirs = rng.standard_normal((50, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    inside = dirs * 0.47  # 3 cm deep
+    x, contact = collide_once(inside, verts, tris, thickness=0.002)
+    assert contact.all()
+    r = np.linalg.norm(x, axis=1)
+    # faceted sphere: the faces lie between cos(half angle)·R and R from the centre
+    assert np.all(r > 0.5 * math.cos(math.pi / 24) + 0.0019) and np.all(r < 0.503)
+    outside = dirs * 0.6
+    x2, contact2 = collide_once(outside, verts, tris, thickness=0.002)
+    assert not contact2.any()
+    np.testing.assert_array_equal(x2, outside)
+
+
+def test_particle_inside_a_box_is_pushed_out_to_the_nearest_face():
+    verts, tris = box(0.3)
+    p = np.array([[0.1, 0.28, -0.05], [-0.29, 0.0, 0.12]])
+    x, contact = collide_once(p, verts, tris, thickness=0.003)
+    assert contact.all()
+    np.testing.assert_allclose(x[0], [0.1, 0.303, -0.05], atol=1e-9)
+    np.testing.assert_allclose(x[1], [-0.303, 0.0, 0.12], atol=1e-9)
+
+
+def rotation(axis, angle):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+
+
+def test_body_following_moves_an_attached_particle_rigidly():
+    verts, tris = box(0.3)
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[0.05, 0.305, 0.1], [0.3 + 0.02, 0.1, -0.1], [0.1, -0.1, 0.3 + 0.2]])
+    n = len(x)
+    nearest = np.zeros(n, dtype=np.int32)
+    from cloth.geometry import nearest_vertices
+
+    nearest_vertices(x, verts, nearest, mesh.regions, np.full(n, 255, np.uint8))
+    face, bary, height, anchor = np.zeros(n, np.int32), np.zeros((n, 3)), np.zeros(n), np.zeros((n, 3))
+    free = np.zeros(n, np.uint8)
+    attach_to_body(x, verts, mesh.triangles, mesh.tri_start, mesh.tri_ids, nearest, free, face, bary, height, anchor)
+    np.testing.assert_allclose(height, [0.005, 0.02, 0.2], atol=1e-12)
+    R = rotation([0.3, 1.0, -0.2], 0.7)
+    t = np.array([0.4, -0.1, 0.25])
+    moved = verts @ R.T + t
+    body_vel, carrier, followed = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    x0 = x.copy()
+    dt = 1 / 60
+    follow_body(x, moved, mesh.triangles, free, face, bary, height, anchor, body_vel, carrier, 1 / dt,
+                0.01, 0.04, followed)
+    rigid = x0 @ R.T + t
+    np.testing.assert_allclose(followed, rigid, atol=1e-12)  # relative coordinates are preserved
+    np.testing.assert_allclose(x[0], rigid[0], atol=1e-12)  # within `near`: follows fully
+    w = (0.04 - 0.02) / (0.04 - 0.01)
+    np.testing.assert_allclose(x[1], x0[1] + w * (rigid[1] - x0[1]), atol=1e-12)  # blended
+    np.testing.assert_allclose(x[2], x0[2])  # beyond `far`: free cloth keeps its place
+    np.testing.assert_allclose(carrier[0], 0.0)
+    np.testing.assert_allclose(carrier[2], body_vel[2])
+
+
+def test_fabric_presets_and_errors(tmp_path):
+    presets = load_fabrics()
+    assert {"cotton", "denim", "silk", "jersey"} <= set(presets)
+    for f in presets.values():
+        assert f.compression_stiffness < f.stretch_stiffness
+    assert fabric("denim").density > fabric("silk").density
+    table = {k: getattr(fabric("cotton"), k) for k in ("stretch_stiffness", "compression_stiffness", "shear_stiffness",
+                                                        "bending_stiffness", "damping_ratio", "density", "friction",
+                                                        "air_drag", "thickness")}
+    with pytest.raises(FabricError, match=r"\[wool\]\.density"):
+        fabric_from_table("wool", {**table, "density": -1.0}, "user.toml")
+    with pytest.raises(FabricError, match="unknown key"):
+        fabric_from_table("wool", {**table, "stiffness": 3.0}, "user.toml")
+    with pytest.raises(FabricError, match="missing key"):
+        fabric_from_table("wool", {k: v for k, v in table.items() if k != "friction"}, "user.toml")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[wool\nfriction = 1\n")
+    with pytest.raises(FabricError, match="bad.toml: not valid TOML"):
+        load_fabrics(bad)
+    with pytest.raises(FabricError, match="no fabric 'tweed'"):
+        fabric("tweed")
