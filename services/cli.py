@@ -56,6 +56,40 @@ def cmd_body(args) -> int:
     return 0
 
 
+def cmd_cloth(args) -> int:
+    from cloth.fabric import fabric as fabric_by_name
+    from skinning.body import load_body
+
+    from .body_job import SHOWCASE_FRAMES
+    from .cloth_job import OUTFITS, render_cloth_snapshots, run_cloth_clip
+
+    data = data_dir(args.data)
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    body = load_body(data)
+    fabrics = fabric_by_name(args.fabric, args.fabrics) if args.fabric else None
+    renderer = None
+    if not args.no_png:
+        from .render import Renderer
+
+        renderer = Renderer(360, 480)
+    for outfit in args.outfit or list(OUTFITS):
+        outfit_dir = Path(outfit) if Path(outfit).is_dir() else data / "garments" / outfit
+        if not outfit_dir.is_dir():
+            raise FileNotFoundError(f"outfit {outfit!r} not found (looked for {outfit_dir})")
+        for clip in _clips(data, args.clip):
+            frames = [f for f in SHOWCASE_FRAMES.get(clip.stem, [0, 100, 200, 300]) if f % args.every == 0]
+            frames = [max(f, args.every) for f in frames]  # frame 0 is skipped (converter T-pose)
+            report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
+                                    snapshot_frames=frames, fabrics=fabrics)
+            print(report.summary())
+            if renderer is not None and report.snapshots:
+                print(f"  snapshots: {render_cloth_snapshots(body, report, report.models, out_dir, renderer)}")
+    if renderer is not None:
+        renderer.release()
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="tryon", description="Real-time virtual try-on.")
     parser.add_argument("--data", help=f"data folder (default: ${ENV_VAR} or ../shared/data)")
@@ -67,6 +101,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
     p.set_defaults(func=cmd_body)
+    p = sub.add_parser("cloth", help="coarse cloth (S101) of outfits on motion clips; timings and PNG snapshots")
+    p.add_argument("--outfit", action="append", help="outfit folder name in <data>/garments or a path (default all)")
+    p.add_argument("--clip", action="append", help="clip name in <data>/mocap or a BVH path (default all)")
+    p.add_argument("--fabric", help="one fabric for every garment (default: a preset per garment)")
+    p.add_argument("--fabrics", help="TOML file of fabrics (default: the presets, cloth/fabrics.toml)")
+    p.add_argument("--out", default="out", help="output folder (default out/)")
+    p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
+    p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
+    p.set_defaults(func=cmd_cloth)
     args = parser.parse_args(argv)
     try:
         return args.func(args)
