@@ -52,7 +52,7 @@ def recover_unstable(x, v, followed, si, sj, rest, kind, max_speed, max_stretch,
         ok = np.isfinite(x[i, 0]) and np.isfinite(x[i, 1]) and np.isfinite(x[i, 2]) and np.isfinite(s2)
         bad[i] = 0 if (ok and s2 <= lim2) else 1
     for s in range(si.shape[0]):
-        if kind[s] != 0:
+        if kind[s] != STRUCTURAL:
             continue
         i = si[s]
         j = sj[s]

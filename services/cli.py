@@ -27,23 +27,28 @@ def _clips(data: Path, names: list[str] | None) -> list[Path]:
     return out
 
 
-def cmd_body(args) -> int:
-    from skinning.body import load_body
-
-    from .body_job import SHOWCASE_FRAMES, render_snapshots, run_clip
-
-    data = data_dir(args.data)
+def _start(args):
+    """Data folder, output folder and (unless --no-png) a renderer, shared by the jobs."""
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
-    body = load_body(data)
-    print(f"body: {len(body.vertices)} vertices ({body.n_visible} visible), {len(body.triangles)} triangles, "
-          f"{len(body.skeleton.names)} bones, loaded in {time.perf_counter() - t0:.2f} s")
     renderer = None
     if not args.no_png:
         from .render import Renderer
 
         renderer = Renderer(360, 480)
+    return data_dir(args.data), out_dir, renderer
+
+
+def cmd_body(args) -> int:
+    from skinning.body import load_body
+
+    from .body_job import SHOWCASE_FRAMES, render_snapshots, run_clip
+
+    data, out_dir, renderer = _start(args)
+    t0 = time.perf_counter()
+    body = load_body(data)
+    print(f"body: {len(body.vertices)} vertices ({body.n_visible} visible), {len(body.triangles)} triangles, "
+          f"{len(body.skeleton.names)} bones, loaded in {time.perf_counter() - t0:.2f} s")
     for clip in _clips(data, args.clip):
         frames = SHOWCASE_FRAMES.get(clip.stem, [0, 100, 200, 300])
         frames = [f // args.every for f in frames if f % args.every == 0] if args.every > 1 else frames
@@ -63,16 +68,9 @@ def cmd_cloth(args) -> int:
     from .body_job import SHOWCASE_FRAMES
     from .cloth_job import OUTFITS, render_cloth_snapshots, run_cloth_clip
 
-    data = data_dir(args.data)
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    data, out_dir, renderer = _start(args)
     body = load_body(data)
     fabrics = fabric_by_name(args.fabric, args.fabrics) if args.fabric else None
-    renderer = None
-    if not args.no_png:
-        from .render import Renderer
-
-        renderer = Renderer(360, 480)
     for outfit in args.outfit or list(OUTFITS):
         outfit_dir = Path(outfit) if Path(outfit).is_dir() else data / "garments" / outfit
         if not outfit_dir.is_dir():

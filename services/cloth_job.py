@@ -47,6 +47,7 @@ class Outfit:
     name: str
     garments: list[Garment]
     models: list[ClothModel]
+    rest_body: np.ndarray  # the skinned rest body they were fitted on (world frame)
 
 
 def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
@@ -65,7 +66,7 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
             fab = fabric_preset(DEFAULT_FABRICS.get(g.name, "cotton"))
         # bottoms are held up by their waistband (elastic or buttoned): it grips the body
         models.append(prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=g.name.endswith(".bottom")))
-    return Outfit(outfit_dir.name, garments, models)
+    return Outfit(outfit_dir.name, garments, models, rest_body)
 
 
 @dataclass
@@ -93,8 +94,7 @@ class OutfitSession:
 
     def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit):
         self.body, self.animator, self.outfit = body, animator, outfit
-        rest_body = animator.pose(animator.rest_configuration()).vertices
-        self.sims = [ClothSim(m, body_mesh, rest_body) for m in outfit.models]
+        self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))
