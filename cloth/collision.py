@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from .geometry import closest_point_triangle
 from .topology import unique_edges, vertex_neighbours, vertex_triangles
 
 
@@ -45,10 +46,21 @@ class BodyMesh:
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions)
 
 
-@njit(cache=True)
-def face_normal(body_x, tri, out):
-    """Unit normal of triangle tri (3 vertex ids); returns twice its area."""
-    a, b, c = tri[0], tri[1], tri[2]
+def face_cache(n_faces: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame store of body face normals: (normals (m, 4): unit normal and twice the area,
+    stamps (m,)). A face's entry is valid while its stamp equals the caller's frame stamp."""
+    return np.zeros((n_faces, 4)), np.full(n_faces, -1, dtype=np.int64)
+
+
+@njit(cache=True, inline="always")
+def cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp):
+    """Fill face_n[t] = (unit normal, twice the area) of body face t, once per frame stamp.
+
+    The body stands still during a frame's substeps, so each face touched by the collision
+    walk is computed once per frame, not once per substep."""
+    if face_stamp[t] == stamp:
+        return
+    a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
     ux = body_x[b, 0] - body_x[a, 0]
     uy = body_x[b, 1] - body_x[a, 1]
     uz = body_x[b, 2] - body_x[a, 2]
@@ -60,13 +72,14 @@ def face_normal(body_x, tri, out):
     nz = ux * vy - uy * vx
     area2 = math.sqrt(nx * nx + ny * ny + nz * nz)
     inv = 1.0 / area2 if area2 > 0.0 else 0.0
-    out[0] = nx * inv
-    out[1] = ny * inv
-    out[2] = nz * inv
-    return area2
+    face_n[t, 0] = nx * inv
+    face_n[t, 1] = ny * inv
+    face_n[t, 2] = nz * inv
+    face_n[t, 3] = area2
+    face_stamp[t] = stamp
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, mask):
     """Nearest body vertex to p by a local walk from `start` (S101: repeat while a neighbour is nearer),
     through vertices of the particle's body regions only (regions[u] & mask)."""
@@ -87,73 +100,79 @@ def walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, mask):
     return best
 
 
-@njit(cache=True)
-def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, n, n_out, n_vertex):
-    """Signed distance of p to the incident-face plane it is least behind, and that plane's normal.
+@njit(cache=True, inline="always")
+def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n, face_stamp, stamp):
+    """Signed distance of p to the incident-face plane it is least behind, and that face.
 
-    p is inside (behind every face incident to `vertex`) exactly when the result is < 0.
-    n: (3,) scratch; n_vertex receives the area-weighted vertex normal (not normalised)."""
+    p is inside (behind every face incident to `vertex`) exactly when the distance is < 0."""
     best = -np.inf
-    n_vertex[:] = 0.0
+    best_t = -1
     for k in range(tri_start[vertex], tri_start[vertex + 1]):
         t = tri_ids[k]
-        area2 = face_normal(body_x, tris[t], n)
-        if area2 == 0.0:
+        cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
+        if face_n[t, 3] == 0.0:
             continue
-        for c in range(3):
-            n_vertex[c] += area2 * n[c]
         a = tris[t, 0]
-        d = (p[0] - body_x[a, 0]) * n[0] + (p[1] - body_x[a, 1]) * n[1] + (p[2] - body_x[a, 2]) * n[2]
+        d = ((p[0] - body_x[a, 0]) * face_n[t, 0] + (p[1] - body_x[a, 1]) * face_n[t, 1]
+             + (p[2] - body_x[a, 2]) * face_n[t, 2])
         if d > best:
             best = d
-            n_out[0] = n[0]
-            n_out[1] = n[1]
-            n_out[2] = n[2]
-    return best
+            best_t = t
+    return best, best_t
 
 
 @njit(cache=True)
 def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
-                      nearest, thickness, friction, contact, fixed):
+                      nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp):
     """S101 collision: update each particle's nearest body vertex by a walk; if the particle is
     behind every face around it (closer than `thickness`), move it onto the surface plus thickness.
 
     Velocity relative to the body (body_vel: the body's velocity at the particle not already
     carried by body following) loses its inward normal part, and Coulomb friction removes up to
-    friction * |removed normal speed| of its tangential part."""
-    n = np.empty(3)
-    nv = np.empty(3)
-    scratch = np.empty(3)
+    friction * |removed normal speed| of its tangential part.
+    face_n, face_stamp, stamp: the per-frame face normal store (see `face_cache`)."""
     for i in range(x.shape[0]):
         p = x[i]
-        nearest[i] = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
-        d = deepest_plane(p, body_x, tris, tri_start, tri_ids, nearest[i], scratch, n, nv)
-        if d >= thickness or fixed[i]:
+        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
+        nearest[i] = vtx
+        d, t = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp)
+        if d >= thickness or fixed[i] or t < 0:
             contact[i] = 0
             continue
         contact[i] = 1
+        nx, ny, nz = face_n[t, 0], face_n[t, 1], face_n[t, 2]
         push = thickness - d
-        for k in range(3):
-            p[k] += push * n[k]
+        p[0] += push * nx
+        p[1] += push * ny
+        p[2] += push * nz
         rx = v[i, 0] - body_vel[i, 0]
         ry = v[i, 1] - body_vel[i, 1]
         rz = v[i, 2] - body_vel[i, 2]
-        vn = rx * n[0] + ry * n[1] + rz * n[2]
+        vn = rx * nx + ry * ny + rz * nz
         # In a crease the push alternates between faces; the inward part along the vertex
-        # normal is removed too, or a velocity into the crease would survive every push.
-        nl = math.sqrt(nv[0] * nv[0] + nv[1] * nv[1] + nv[2] * nv[2])
-        if nl > 0.0:
-            vnv = (rx * nv[0] + ry * nv[1] + rz * nv[2]) / nl
+        # normal (area-weighted) is removed too, or a velocity into the crease would survive every push.
+        wx = wy = wz = 0.0
+        for k in range(tri_start[vtx], tri_start[vtx + 1]):
+            f = tri_ids[k]
+            wx += face_n[f, 3] * face_n[f, 0]
+            wy += face_n[f, 3] * face_n[f, 1]
+            wz += face_n[f, 3] * face_n[f, 2]
+        wl = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if wl > 0.0:
+            wx /= wl
+            wy /= wl
+            wz /= wl
+            vnv = rx * wx + ry * wy + rz * wz
             if vnv < 0.0:
-                rx -= vnv * nv[0] / nl
-                ry -= vnv * nv[1] / nl
-                rz -= vnv * nv[2] / nl
+                rx -= vnv * wx
+                ry -= vnv * wy
+                rz -= vnv * wz
                 vn = min(vn, vnv)
-        vplane = rx * n[0] + ry * n[1] + rz * n[2]
+        vplane = rx * nx + ry * ny + rz * nz
         if vplane < 0.0:
-            rx -= vplane * n[0]
-            ry -= vplane * n[1]
-            rz -= vplane * n[2]
+            rx -= vplane * nx
+            ry -= vplane * ny
+            rz -= vplane * nz
         if vn < 0.0:
             vt = math.sqrt(rx * rx + ry * ry + rz * rz)
             if vt > 0.0:
@@ -167,14 +186,14 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
 
 
 @njit(cache=True)
-def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, bary, height, anchor):
+def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, bary, height, anchor, face_n,
+                   face_stamp, stamp):
     """Store each particle's coordinates relative to its nearest body face (S101 body following).
 
     Among the faces around the nearest vertex, the one whose plane projection is most inside
     the triangle; barycentric coordinates of the projection, and height along the face normal.
     anchor = the projected point on the body (its motion is the body's velocity there).
     Gripped particles (fixed[i] != 0) keep the coordinates they got at the start."""
-    n = np.empty(3)
     for i in range(x.shape[0]):
         vtx = nearest[i]
         lo = tri_start[vtx]
@@ -182,7 +201,8 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
         best = -np.inf
         for k in range(lo, hi):
             t = tri_ids[k]
-            if face_normal(body_x, tris[t], n) == 0.0:
+            cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
+            if face_n[t, 3] == 0.0:
                 continue
             a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
             # barycentric coordinates of the projection of x onto the plane
@@ -207,7 +227,7 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
                 bary[i, 0] = wa
                 bary[i, 1] = wb
                 bary[i, 2] = wc
-                height[i] = px * n[0] + py * n[1] + pz * n[2]
+                height[i] = px * face_n[t, 0] + py * face_n[t, 1] + pz * face_n[t, 2]
         t = face[i]
         for k in range(3):
             anchor[i, k] = (bary[i, 0] * body_x[tris[t, 0], k] + bary[i, 1] * body_x[tris[t, 1], k]
@@ -216,7 +236,7 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
 
 @njit(cache=True)
 def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, carrier, inv_dt, near, far,
-                followed):
+                followed, face_n, face_stamp, stamp):
     """S101 body following, before a step, after the body moved (with the Decision's distance blend).
 
     The fully-followed position keeps the particle's face, barycentric coordinates and height;
@@ -230,19 +250,80 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
     against a body that stands still at its new pose during them). The part of the body's
     velocity not transported, (1 - w) * body velocity, is the `carrier` velocity collisions and
     friction measure against."""
-    n = np.empty(3)
     for i in range(x.shape[0]):
         t = face[i]
-        face_normal(body_x, tris[t], n)
+        cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
         h = height[i]
         w = 1.0 if (h <= near or fixed[i]) else (0.0 if h >= far else (far - h) / (far - near))
         for k in range(3):
             a = (bary[i, 0] * body_x[tris[t, 0], k] + bary[i, 1] * body_x[tris[t, 1], k]
                  + bary[i, 2] * body_x[tris[t, 2], k])
-            target = a + h * n[k]
+            target = a + h * face_n[t, k]
             vb = (a - anchor[i, k]) * inv_dt
             followed[i, k] = target
             x[i, k] += w * (target - x[i, k])
             body_vel[i, k] = vb
             carrier[i, k] = (1.0 - w) * vb
             anchor[i, k] = a
+
+
+@njit(cache=True)
+def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, nearest_any,
+                     thickness, fixed, face_n, face_stamp, stamp, q):
+    """End-of-step contact pass against every body part (after the substeps' S101 collisions).
+
+    The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
+    body regions the particle lay near at rest; it misses a particle that a concave fold of the
+    body (armpit, crotch) or another limb swung into. Here each particle walks to its nearest
+    body vertex over the whole body, takes the exact closest point on the faces around it, and
+    one inside or closer than `thickness` is put at that point plus thickness along the surface
+    normal there (the face normal, or the vertex normal at an edge or corner), its inward velocity
+    relative to the body removed. q: (3,) scratch."""
+    for i in range(x.shape[0]):
+        if fixed[i]:
+            continue
+        p = x[i]
+        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
+        nearest_any[i] = vtx
+        best = np.inf
+        best_t = -1
+        interior = False
+        qx = qy = qz = 0.0
+        wx = wy = wz = 0.0
+        for k in range(tri_start[vtx], tri_start[vtx + 1]):
+            t = tri_ids[k]
+            cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
+            wx += face_n[t, 3] * face_n[t, 0]
+            wy += face_n[t, 3] * face_n[t, 1]
+            wz += face_n[t, 3] * face_n[t, 2]
+            bv, bw = closest_point_triangle(p, body_x[tris[t, 0]], body_x[tris[t, 1]], body_x[tris[t, 2]], q)
+            d = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+            if d < best:
+                best = d
+                best_t = t
+                qx, qy, qz = q[0], q[1], q[2]
+                interior = bv > 1e-9 and bw > 1e-9 and bv + bw < 1.0 - 1e-9
+        if best_t < 0:
+            continue
+        if interior:
+            nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
+        else:
+            wl = math.sqrt(wx * wx + wy * wy + wz * wz)
+            if wl == 0.0:
+                continue
+            nx, ny, nz = wx / wl, wy / wl, wz / wl
+        side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
+        dist = math.sqrt(best)
+        if side >= 0.0 and dist >= thickness:
+            continue
+        p[0] = qx + thickness * nx
+        p[1] = qy + thickness * ny
+        p[2] = qz + thickness * nz
+        rx = v[i, 0] - body_vel[i, 0]
+        ry = v[i, 1] - body_vel[i, 1]
+        rz = v[i, 2] - body_vel[i, 2]
+        vn = rx * nx + ry * ny + rz * nz
+        if vn < 0.0:
+            v[i, 0] -= vn * nx
+            v[i, 1] -= vn * ny
+            v[i, 2] -= vn * nz

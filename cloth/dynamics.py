@@ -1,4 +1,4 @@
-"""S101 coarse dynamics: asymmetric springs, drag, gravity, explicit RK4 (numba kernels).
+"""S101 coarse dynamics: asymmetric springs, drag, gravity, explicit RK4, strain limiting (numba kernels).
 
 Every kernel writes into arrays the caller preallocated; nothing allocates per frame.
 """
@@ -32,12 +32,10 @@ def spring_forces(x, v, si, sj, rest, k_stretch, k_compress, c_stretch, c_compre
         dy *= inv
         dz *= inv
         ext = length - rest[s]
-        if ext > 0.0:
-            k = k_stretch[s]
-            c = c_stretch[s]
-        else:
-            k = k_compress[s]
-            c = c_compress[s]
+        # branch-free choice: near rest the sign of ext is a coin toss the CPU cannot predict
+        stretched = 1.0 if ext > 0.0 else 0.0
+        k = k_compress[s] + stretched * (k_stretch[s] - k_compress[s])
+        c = c_compress[s] + stretched * (c_stretch[s] - c_compress[s])
         rel = (v[i, 0] - v[j, 0]) * dx + (v[i, 1] - v[j, 1]) * dy + (v[i, 2] - v[j, 2]) * dz
         mag = -k * ext - c * rel
         force[i, 0] += mag * dx
@@ -122,6 +120,51 @@ def rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, si, sj, rest, k_st
         for k in range(3):
             x[i, k] += s * (v[i, k] + 2.0 * v2[i, k] + 2.0 * v3[i, k] + v4[i, k])
             v[i, k] += s * (a1[i, k] + 2.0 * a2[i, k] + 2.0 * a3[i, k] + a4[i, k])
+
+
+@njit(cache=True)
+def limit_stretch(x, v, inv_mass, si, sj, rest, n_springs, max_strain):
+    """Strain limiting (Provot 1995) on the first n_springs springs (the structural ones).
+
+    One Gauss-Seidel pass: a spring longer than (1 + max_strain) * rest has its ends pulled
+    together to that length, split by inverse mass, and loses the part of its ends' relative
+    velocity that separates them (an inextensible thread does not bounce back). Explicit
+    springs soft enough for a few substeps would otherwise let loose cloth sag and flutter
+    far beyond what woven fabric allows."""
+    for s in range(n_springs):
+        i = si[s]
+        j = sj[s]
+        wi = inv_mass[i]
+        wj = inv_mass[j]
+        w = wi + wj
+        if w == 0.0:
+            continue
+        dx = x[i, 0] - x[j, 0]
+        dy = x[i, 1] - x[j, 1]
+        dz = x[i, 2] - x[j, 2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        limit = (1.0 + max_strain) * rest[s]
+        if length <= limit:
+            continue
+        dx /= length
+        dy /= length
+        dz /= length
+        corr = (length - limit) / w
+        x[i, 0] -= wi * corr * dx
+        x[i, 1] -= wi * corr * dy
+        x[i, 2] -= wi * corr * dz
+        x[j, 0] += wj * corr * dx
+        x[j, 1] += wj * corr * dy
+        x[j, 2] += wj * corr * dz
+        sep = (v[i, 0] - v[j, 0]) * dx + (v[i, 1] - v[j, 1]) * dy + (v[i, 2] - v[j, 2]) * dz
+        if sep > 0.0:
+            imp = sep / w
+            v[i, 0] -= wi * imp * dx
+            v[i, 1] -= wi * imp * dy
+            v[i, 2] -= wi * imp * dz
+            v[j, 0] += wj * imp * dx
+            v[j, 1] += wj * imp * dy
+            v[j, 2] += wj * imp * dz
 
 
 def stable_time_step(x: np.ndarray, inv_mass: np.ndarray, si: np.ndarray, sj: np.ndarray, k_stretch: np.ndarray,

@@ -26,6 +26,7 @@ class Fabric:
     friction: float  # Coulomb coefficient
     air_drag: float  # N·s/m³
     thickness: float  # m
+    max_strain: float  # structural springs are capped at (1 + max_strain) * rest length
 
 
 _KEYS = [f.name for f in fields(Fabric) if f.name != "name"]

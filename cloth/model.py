@@ -30,7 +30,8 @@ class SimSettings:
     follow_far: float = 0.04  # m: particles farther away do not follow it
     max_speed: float = 30.0  # m/s: a faster particle is treated as exploded
     max_stretch: float = 3.0  # a structural spring longer than this times rest marks an explosion
-    target_particles: int = 360  # coarse model size (SPEC.md table: 322-430)
+    limit_passes: int = 4  # strain-limiting passes after the last substep (one after each other substep)
+    target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
 
 
 @dataclass
@@ -54,6 +55,7 @@ class ClothModel:
     c_compress: np.ndarray  # (s,) N·s/m
     substeps: int
     stable_dt: float
+    n_structural: int  # the structural springs come first in the spring arrays (strain limiting)
     grip: np.ndarray  # (n,) uint8: 1 for particles that grip the body (a waistband), kinematic
     region_mask: np.ndarray  # (n,) uint8: body regions each particle may touch (BodyMesh.regions bits)
     boundary_loops: list[np.ndarray] = field(default_factory=list)
@@ -168,6 +170,6 @@ def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | 
         name=garment.name, fabric=fabric, settings=settings, rest_positions=verts.copy(), faces=faces,
         triangles=tris, mass=mass, inv_mass=inv_mass, drag=fabric.air_drag * area, spring_i=si, spring_j=sj,
         spring_kind=kind, rest_length=rest, k_stretch=ks, k_compress=kc, c_stretch=cs, c_compress=cc,
-        substeps=substeps, stable_dt=dt, grip=np.zeros(len(verts), dtype=np.uint8),
+        substeps=substeps, stable_dt=dt, n_structural=int(np.sum(kind == STRUCTURAL)), grip=np.zeros(len(verts), dtype=np.uint8),
         region_mask=np.full(len(verts), 255, dtype=np.uint8), boundary_loops=boundary_loops(faces), coarse=coarse,
     )

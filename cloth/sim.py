@@ -18,8 +18,8 @@ import numpy as np
 from numba import njit
 
 from .coarsen import coarsen
-from .collision import BodyMesh, attach_to_body, collide_particles, follow_body
-from .dynamics import particle_normals, rk4_substep
+from .collision import BodyMesh, attach_to_body, collide_particles, face_cache, follow_body, resolve_contacts
+from .dynamics import limit_stretch, particle_normals, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
 from .geometry import nearest_vertices, region_masks
@@ -28,15 +28,18 @@ from .model import STRUCTURAL, ClothModel, SimSettings, build_cloth_model
 
 @njit(cache=True)
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs,
-                      cc, work, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
-                      nearest, thickness, friction, contact, fixed):
-    """n_sub × RK4 integration, vertex collision after every collide_every-th substep and the last,
-    fused so that a frame is one call."""
+                      cc, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
+                      nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp):
+    """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
+    call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
         rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs, cc, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
             collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
-                              masks, nearest, thickness, friction, contact, fixed)
+                              masks, nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp)
+        # one Gauss-Seidel pass per substep, more on the last: the frame's output is what must hold
+        for _ in range(1 if k < n_sub - 1 else limit_passes):
+            limit_stretch(x, v, inv_mass, si, sj, rest, n_structural, max_strain)
 
 
 @njit(cache=True)
@@ -88,9 +91,11 @@ def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh
     nearest_vertices(x, body_x, nearest, body.regions, masks)
     contact = np.zeros(len(x), dtype=np.uint8)
     free = np.zeros(len(x), dtype=np.uint8)
+    face_n, face_stamp = face_cache(len(body.triangles))
     for _ in range(iterations):
         collide_particles(x, v, body_x, v, body.nbr_start, body.nbr_ids, body.triangles, body.tri_start,
-                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free)
+                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free, face_n,
+                          face_stamp, 0)
     return x
 
 
@@ -126,10 +131,12 @@ class ClothStats:
 class ClothState:
     """Everything that changes per frame, preallocated."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, n_body_faces: int):
         self.x = np.zeros((n, 3))  # positions, m
         self.v = np.zeros((n, 3))  # velocities, m/s
-        self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex
+        self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
+        self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
+        self.q = np.zeros(3)
         self.face = np.zeros(n, dtype=np.int32)  # body face of the relative coordinates
         self.bary = np.zeros((n, 3))  # barycentric coordinates on that face
         self.height = np.zeros(n)  # offset along the face normal, m
@@ -141,13 +148,15 @@ class ClothState:
         self.normals = np.zeros((n, 3))  # particle normals of this frame (air drag)
         self.bad = np.zeros(n, dtype=np.uint8)
         self.work = np.zeros((9, n, 3))
+        self.face_n, self.face_stamp = face_cache(n_body_faces)  # body face normals, valid for one frame
+        self.stamp = 0  # frame stamp of the body positions in use
 
 
 class ClothSim:
     def __init__(self, model: ClothModel, body: BodyMesh, body_vertices: np.ndarray):
         self.model = model
         self.body = body
-        self.state = ClothState(model.n_particles)
+        self.state = ClothState(model.n_particles, len(body.triangles))
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
         self.reset(body_vertices)
@@ -166,10 +175,12 @@ class ClothSim:
         s.v[:] = 0.0
         s.body_vel[:] = 0.0
         s.carrier[:] = 0.0
+        s.stamp += 1
         nearest_vertices(s.x, body_x, s.nearest, b.regions, m.region_mask)
+        nearest_vertices(s.x, body_x, s.nearest_any, b.regions, np.full(m.n_particles, 255, dtype=np.uint8))
         free = np.zeros_like(m.grip)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, free, s.face, s.bary,
-                       s.height, s.anchor)
+                       s.height, s.anchor, s.face_n, s.face_stamp, s.stamp)
         s.followed[:] = s.x
         self.stats = ClothStats()
 
@@ -178,32 +189,41 @@ class ClothSim:
         s, m, b, st = self.state, self.model, self.body, self.model.settings
         f = m.fabric
         body_x = self._body(body_vertices)
+        s.stamp += 1
         follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
-                    1.0 / dt, st.follow_near, st.follow_far, s.followed)
+                    1.0 / dt, st.follow_near, st.follow_far, s.followed, s.face_n, s.face_stamp, s.stamp)
         particle_normals(s.x, m.triangles, s.normals)
         n_sub = m.substeps_for(dt)
         h = dt / n_sub
         g = -st.gravity
         if profile:
             t_int = t_col = 0.0
-            for k in range(n_sub):
+            for k in range(n_sub):  # the same order as simulate_substeps, timed per stage
                 t0 = time.perf_counter()
-                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length, m.k_stretch,
-                            m.k_compress, m.c_stretch, m.c_compress, s.work)
+                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length,
+                            m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work)
                 t1 = time.perf_counter()
                 if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
                     collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
                                       b.tri_ids, b.regions, m.region_mask, s.nearest, f.thickness, f.friction,
-                                      s.contact, m.grip)
-                t_int += t1 - t0
-                t_col += time.perf_counter() - t1
+                                      s.contact, m.grip, s.face_n, s.face_stamp, s.stamp)
+                t2 = time.perf_counter()
+                for _ in range(1 if k < n_sub - 1 else st.limit_passes):
+                    limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
+                                  f.max_strain)
+                t_int += (t1 - t0) + (time.perf_counter() - t2)
+                t_col += t2 - t1
             self.stage_seconds[0] = t_int
             self.stage_seconds[1] = t_col
         else:
             simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length,
-                              m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work, body_x, s.carrier,
+                              m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work, m.n_structural,
+                              f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
-                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip)
+                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, s.face_n,
+                              s.face_stamp, s.stamp)
+        resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
+                         b.regions, s.nearest_any, f.thickness, m.grip, s.face_n, s.face_stamp, s.stamp, s.q)
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
                                  m.spring_kind, st.max_speed, st.max_stretch, s.bad)
         if n_bad:
@@ -215,7 +235,7 @@ class ClothSim:
             nearest_vertices(s.x[idx], body_x, near, b.regions, m.region_mask[idx])
             s.nearest[idx] = near
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
-                       s.height, s.anchor)
+                       s.height, s.anchor, s.face_n, s.face_stamp, s.stamp)
         self.stats.frames += 1
         self.stats.last_substeps = n_sub
         return s.x

@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import BodyMesh, attach_to_body, collide_particles, follow_body
-from cloth.dynamics import rk4_substep, spring_forces, stable_time_step
+from cloth.collision import BodyMesh, attach_to_body, collide_particles, face_cache, follow_body, resolve_contacts
+from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 
 G = 9.81
@@ -160,7 +160,8 @@ def collide_once(points, verts, tris, thickness):
     masks = np.full(len(x), 255, dtype=np.uint8)
     free = np.zeros(len(x), dtype=np.uint8)
     collide_particles(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
-                      mesh.tri_ids, mesh.regions, masks, nearest, thickness, 0.5, contact, free)
+                      mesh.tri_ids, mesh.regions, masks, nearest, thickness, 0.5, contact, free,
+                      *face_cache(len(tris)), 0)
     return x, contact
 
 
@@ -190,6 +191,44 @@ def test_particle_inside_a_box_is_pushed_out_to_the_nearest_face():
     np.testing.assert_allclose(x[1], [-0.303, 0.0, 0.12], atol=1e-9)
 
 
+def test_resolve_contacts_pushes_out_of_any_body_part():
+    """The end-of-step pass walks over every body region: a particle inside a box of another region
+    than its own is put on the nearest face plus thickness, and loses its inward velocity."""
+    verts, tris = box(0.3)
+    regions = np.full(len(verts), 2, dtype=np.uint8)  # the box is "another limb"
+    mesh = BodyMesh.build(tris, len(verts), regions)
+    x = np.array([[0.1, 0.28, -0.05], [0.0, 0.45, 0.0]])
+    v = np.array([[0.0, -1.0, 0.5], [0.0, -1.0, 0.0]])
+    resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                     mesh.tri_ids, mesh.regions, np.zeros(2, np.int32), 0.003, np.zeros(2, np.uint8),
+                     *face_cache(len(tris)), 0, np.zeros(3))
+    np.testing.assert_allclose(x[0], [0.1, 0.303, -0.05], atol=1e-9)
+    np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
+    np.testing.assert_array_equal(x[1], [0.0, 0.45, 0.0])  # outside: untouched
+    np.testing.assert_array_equal(v[1], [0.0, -1.0, 0.0])
+
+
+def test_strain_limit_caps_an_edge_by_inverse_mass_and_keeps_momentum():
+    x = np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [3.0, 0.0, 0.0], [3.5, 0.0, 0.0]])
+    v = np.array([[-2.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+    inv_mass = np.array([1.0, 1.0 / 3.0, 0.0, 1.0])
+    si, sj = np.array([0, 2], np.int32), np.array([1, 3], np.int32)
+    rest = np.array([1.0, 0.25])
+    limit_stretch(x, v, inv_mass, si, sj, rest, 2, 0.1)
+    # 0.4 too long; the light particle moves 3 times as far as the heavy one
+    np.testing.assert_allclose(x[0], [0.3, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(x[1], [1.4, 0.0, 0.0], atol=1e-12)
+    # separating velocity removed, momentum kept: (1 * -2 + 3 * 1) / 4 = 0.25 each
+    np.testing.assert_allclose(v[:2, 0], [0.25, 0.25], atol=1e-12)
+    # a kinematic end (inverse mass 0) stays; the other end takes the whole correction
+    np.testing.assert_array_equal(x[2], [3.0, 0.0, 0.0])
+    np.testing.assert_allclose(x[3], [3.275, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(v[3], [0.0, 0.0, 0.0], atol=1e-12)
+    before = x.copy()
+    limit_stretch(x, v, inv_mass, si, sj, rest, 2, 0.1)  # within the limit now: untouched
+    np.testing.assert_array_equal(x, before)
+
+
 def rotation(axis, angle):
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
@@ -207,7 +246,9 @@ def test_body_following_moves_an_attached_particle_rigidly():
     nearest_vertices(x, verts, nearest, mesh.regions, np.full(n, 255, np.uint8))
     face, bary, height, anchor = np.zeros(n, np.int32), np.zeros((n, 3)), np.zeros(n), np.zeros((n, 3))
     free = np.zeros(n, np.uint8)
-    attach_to_body(x, verts, mesh.triangles, mesh.tri_start, mesh.tri_ids, nearest, free, face, bary, height, anchor)
+    face_n, face_stamp = face_cache(len(tris))
+    attach_to_body(x, verts, mesh.triangles, mesh.tri_start, mesh.tri_ids, nearest, free, face, bary, height, anchor,
+                   face_n, face_stamp, 0)
     np.testing.assert_allclose(height, [0.005, 0.02, 0.2], atol=1e-12)
     R = rotation([0.3, 1.0, -0.2], 0.7)
     t = np.array([0.4, -0.1, 0.25])
@@ -216,7 +257,7 @@ def test_body_following_moves_an_attached_particle_rigidly():
     x0 = x.copy()
     dt = 1 / 60
     follow_body(x, moved, mesh.triangles, free, face, bary, height, anchor, body_vel, carrier, 1 / dt,
-                0.01, 0.04, followed)
+                0.01, 0.04, followed, face_n, face_stamp, 1)
     rigid = x0 @ R.T + t
     np.testing.assert_allclose(followed, rigid, atol=1e-12)  # relative coordinates are preserved
     np.testing.assert_allclose(x[0], rigid[0], atol=1e-12)  # within `near`: follows fully
@@ -235,7 +276,7 @@ def test_fabric_presets_and_errors(tmp_path):
     assert fabric("denim").density > fabric("silk").density
     table = {k: getattr(fabric("cotton"), k) for k in ("stretch_stiffness", "compression_stiffness", "shear_stiffness",
                                                         "bending_stiffness", "damping_ratio", "density", "friction",
-                                                        "air_drag", "thickness")}
+                                                        "air_drag", "thickness", "max_strain")}
     with pytest.raises(FabricError, match=r"\[wool\]\.density"):
         fabric_from_table("wool", {**table, "density": -1.0}, "user.toml")
     with pytest.raises(FabricError, match="unknown key"):
