@@ -269,21 +269,26 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
 
 @njit(cache=True)
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, nearest_any,
-                     thickness, fixed, face_n, face_stamp, stamp, q):
+                     thickness, fixed, face_n, face_stamp, stamp, q, cell, grid_start, grid_ids):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
     body regions the particle lay near at rest; it misses a particle that a concave fold of the
-    body (armpit, crotch) or another limb swung into. Here each particle walks to its nearest
-    body vertex over the whole body, takes the exact closest point on the faces around it, and
+    body (armpit, crotch) or another limb swung into. Here each particle finds its nearest body
+    vertex over the whole body (the vertex grid, then a walk over every region), takes the
+    exact closest point on the faces around it, and
     one inside or closer than `thickness` is put at that point plus thickness along the surface
     normal there (the face normal, or the vertex normal at an edge or corner), its inward velocity
-    relative to the body removed. q: (3,) scratch."""
+    relative to the body removed. q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid`
+    built for this pose."""
     for i in range(x.shape[0]):
         if fixed[i]:
             continue
         p = x[i]
-        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
+        vtx = nearest_any[i]
+        d2 = (body_x[vtx, 0] - p[0]) ** 2 + (body_x[vtx, 1] - p[1]) ** 2 + (body_x[vtx, 2] - p[2]) ** 2
+        vtx, d2 = grid_nearest(p, body_x, cell, grid_start, grid_ids, vtx, d2)
+        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, vtx, regions, 255)
         nearest_any[i] = vtx
         best = np.inf
         best_t = -1
@@ -327,3 +332,67 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             v[i, 0] -= vn * nx
             v[i, 1] -= vn * ny
             v[i, 2] -= vn * nz
+
+
+class VertexGrid:
+    """The body's vertices bucketed in a hashed uniform grid, rebuilt once per body pose.
+
+    It answers "which body vertex is nearest to this point" over the whole body, where a
+    walk over the mesh can only reach vertices connected to where it starts (a thigh cannot
+    walk to the other thigh). One grid serves every garment on the same body pose."""
+
+    def __init__(self, n_vertices: int, cell: float = 0.03, table_bits: int = 15):
+        self.cell = cell
+        self.start = np.zeros((1 << table_bits) + 1, dtype=np.int64)
+        self.ids = np.zeros(n_vertices, dtype=np.int32)
+        self.counts = np.zeros(1 << table_bits, dtype=np.int64)
+
+    def update(self, body_x: np.ndarray) -> None:
+        build_vertex_grid(body_x, self.cell, self.start, self.ids, self.counts)
+
+
+@njit(cache=True, inline="always")
+def _cell_hash(i, j, k, mask):
+    return ((i * 73856093) ^ (j * 19349663) ^ (k * 83492791)) & mask
+
+
+@njit(cache=True)
+def build_vertex_grid(body_x, cell, start, ids, counts):
+    """Counting sort of the body vertices by hashed cell (CSR: start, ids)."""
+    mask = counts.shape[0] - 1
+    counts[:] = 0
+    n = ids.shape[0]
+    for u in range(n):
+        c = _cell_hash(int(math.floor(body_x[u, 0] / cell)), int(math.floor(body_x[u, 1] / cell)),
+                       int(math.floor(body_x[u, 2] / cell)), mask)
+        counts[c] += 1
+    start[0] = 0
+    for c in range(counts.shape[0]):
+        start[c + 1] = start[c] + counts[c]
+        counts[c] = 0
+    for u in range(n):
+        c = _cell_hash(int(math.floor(body_x[u, 0] / cell)), int(math.floor(body_x[u, 1] / cell)),
+                       int(math.floor(body_x[u, 2] / cell)), mask)
+        ids[start[c] + counts[c]] = u
+        counts[c] += 1
+
+
+@njit(cache=True, inline="always")
+def grid_nearest(p, body_x, cell, start, ids, best, best_d2):
+    """Nearest body vertex to p among the 27 grid cells around it, if nearer than best_d2
+    (returns (vertex, squared distance); (best, best_d2) when none is nearer)."""
+    mask = start.shape[0] - 2
+    ci = int(math.floor(p[0] / cell))
+    cj = int(math.floor(p[1] / cell))
+    ck = int(math.floor(p[2] / cell))
+    for i in range(ci - 1, ci + 2):
+        for j in range(cj - 1, cj + 2):
+            for k in range(ck - 1, ck + 2):
+                c = _cell_hash(i, j, k, mask)
+                for e in range(start[c], start[c + 1]):
+                    u = ids[e]
+                    d = (body_x[u, 0] - p[0]) ** 2 + (body_x[u, 1] - p[1]) ** 2 + (body_x[u, 2] - p[2]) ** 2
+                    if d < best_d2:
+                        best_d2 = d
+                        best = u
+    return best, best_d2

@@ -18,7 +18,8 @@ import numpy as np
 from numba import njit
 
 from .coarsen import coarsen
-from .collision import BodyMesh, attach_to_body, collide_particles, face_cache, follow_body, resolve_contacts
+from .collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_cache, follow_body,
+                        resolve_contacts)
 from .dynamics import limit_stretch, particle_normals, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
@@ -159,6 +160,7 @@ class ClothSim:
         self.state = ClothState(model.n_particles, len(body.triangles))
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
+        self.grid = VertexGrid(body.n_vertices)
         self.reset(body_vertices)
 
     def _body(self, body_vertices: np.ndarray) -> np.ndarray:
@@ -184,8 +186,12 @@ class ClothSim:
         s.followed[:] = s.x
         self.stats = ClothStats()
 
-    def step(self, body_vertices: np.ndarray, dt: float, profile: bool = False) -> np.ndarray:
-        """Advance one frame of length dt against the body's new vertices; returns positions (n, 3)."""
+    def step(self, body_vertices: np.ndarray, dt: float, profile: bool = False,
+             body_grid: VertexGrid | None = None) -> np.ndarray:
+        """Advance one frame of length dt against the body's new vertices; returns positions (n, 3).
+
+        body_grid: a `VertexGrid` already updated for these vertices, shared by every garment on
+        the body; None: the simulation keeps and updates its own."""
         s, m, b, st = self.state, self.model, self.body, self.model.settings
         f = m.fabric
         body_x = self._body(body_vertices)
@@ -222,8 +228,12 @@ class ClothSim:
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
                               m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, s.face_n,
                               s.face_stamp, s.stamp)
+        if body_grid is None:
+            body_grid = self.grid
+            body_grid.update(body_x)
         resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                         b.regions, s.nearest_any, f.thickness, m.grip, s.face_n, s.face_stamp, s.stamp, s.q)
+                         b.regions, s.nearest_any, f.thickness, m.grip, s.face_n, s.face_stamp, s.stamp, s.q,
+                         body_grid.cell, body_grid.start, body_grid.ids)
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
                                  m.spring_kind, st.max_speed, st.max_stretch, s.bad)
         if n_bad:

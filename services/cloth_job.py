@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from cloth.collision import BodyMesh
+from cloth.collision import BodyMesh, VertexGrid
 from cloth.fabric import Fabric, fabric as fabric_preset
 from cloth.garment import Garment, load_outfit
 from cloth.model import ClothModel, SimSettings
@@ -95,15 +95,17 @@ class OutfitSession:
     def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit):
         self.body, self.animator, self.outfit = body, animator, outfit
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
+        self.grid = VertexGrid(body_mesh.n_vertices)  # one per body pose, shared by the garments
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))
 
     def step_cloth(self, body_vertices: np.ndarray, dt: float) -> list[np.ndarray]:
         out = []
+        self.grid.update(np.ascontiguousarray(body_vertices[: self.grid.ids.shape[0]], dtype=np.float64))
         for k, sim in enumerate(self.sims):
             t0 = time.perf_counter()
-            out.append(sim.step(body_vertices, dt, profile=self.profile))
+            out.append(sim.step(body_vertices, dt, profile=self.profile, body_grid=self.grid))
             self.cloth_seconds[k] = time.perf_counter() - t0
             self.stage_seconds[k] = sim.stage_seconds
         return out

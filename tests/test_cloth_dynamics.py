@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import BodyMesh, attach_to_body, collide_particles, face_cache, follow_body, resolve_contacts
+from cloth.collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_cache, follow_body,
+                             resolve_contacts)
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 
@@ -192,19 +193,25 @@ def test_particle_inside_a_box_is_pushed_out_to_the_nearest_face():
 
 
 def test_resolve_contacts_pushes_out_of_any_body_part():
-    """The end-of-step pass walks over every body region: a particle inside a box of another region
-    than its own is put on the nearest face plus thickness, and loses its inward velocity."""
-    verts, tris = box(0.3)
-    regions = np.full(len(verts), 2, dtype=np.uint8)  # the box is "another limb"
-    mesh = BodyMesh.build(tris, len(verts), regions)
-    x = np.array([[0.1, 0.28, -0.05], [0.0, 0.45, 0.0]])
+    """The end-of-step pass finds the nearest body part over the whole body: a particle inside a
+    second, unconnected box (another limb, which no walk over the mesh reaches from the first)
+    is put on that box's nearest face plus thickness, and loses its inward velocity."""
+    verts1, tris1 = box(0.3)
+    verts = np.concatenate([verts1, verts1 + [2.0, 0.0, 0.0]])
+    tris = np.concatenate([tris1, tris1 + len(verts1)]).astype(np.int32)
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[2.1, 0.28, -0.05], [2.0, 0.45, 0.0]])
     v = np.array([[0.0, -1.0, 0.5], [0.0, -1.0, 0.0]])
+    grid = VertexGrid(len(verts))
+    grid.update(verts)
+    start = np.zeros(2, np.int32)  # both walks would start on the first box
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
-                     mesh.tri_ids, mesh.regions, np.zeros(2, np.int32), 0.003, np.zeros(2, np.uint8),
-                     *face_cache(len(tris)), 0, np.zeros(3))
-    np.testing.assert_allclose(x[0], [0.1, 0.303, -0.05], atol=1e-9)
+                     mesh.tri_ids, mesh.regions, start, 0.003, np.zeros(2, np.uint8),
+                     *face_cache(len(tris)), 0, np.zeros(3), grid.cell, grid.start, grid.ids)
+    assert start[0] >= len(verts1)
+    np.testing.assert_allclose(x[0], [2.1, 0.303, -0.05], atol=1e-9)
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
-    np.testing.assert_array_equal(x[1], [0.0, 0.45, 0.0])  # outside: untouched
+    np.testing.assert_array_equal(x[1], [2.0, 0.45, 0.0])  # outside: untouched
     np.testing.assert_array_equal(v[1], [0.0, -1.0, 0.0])
 
 
