@@ -21,6 +21,7 @@ test: setup
 bench: setup
 	$(BIN)/python bench/bench_body.py
 	$(BIN)/python bench/bench_body.py --every 2
+	$(BIN)/python bench/bench_cloth.py
 
 clean:
 	rm -rf $(VENV) out
