@@ -65,10 +65,6 @@ class ClothModel:
     def n_particles(self) -> int:
         return len(self.rest_positions)
 
-    @property
-    def structural(self) -> np.ndarray:
-        return np.flatnonzero(self.spring_kind == STRUCTURAL)
-
     def substeps_for(self, dt: float) -> int:
         """Configured substeps, or more if a longer frame would be unstable."""
         return max(self.substeps, math.ceil(dt / self.stable_dt - 1e-9))

@@ -5,8 +5,9 @@
     x = sim.step(body_vertices, dt)                                          # every frame
 
 A frame: body following (relative coordinates to the nearest face, distance-blended), then
-`substeps` × (RK4 step, vertex collision), then the instability check (NaN, speed, runaway
-stretch → reset to the body-following positions, counted), then the new relative coordinates.
+`substeps` × (RK4 step, vertex collision, strain limiting), then the contact pass over the
+whole body, the instability check (NaN, speed, runaway stretch → reset to the
+body-following positions, counted), and the new relative coordinates.
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ from .dynamics import limit_stretch, particle_normals, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
 from .geometry import nearest_vertices, region_masks
-from .model import STRUCTURAL, ClothModel, SimSettings, build_cloth_model
+from .model import ClothModel, SimSettings, build_cloth_model
 
 
 @njit(cache=True)
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs,
-                      cc, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
-                      nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp):
+                      cc, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
+                      tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n,
+                      face_stamp, stamp):
     """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
     call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
@@ -44,20 +46,18 @@ def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, g
 
 
 @njit(cache=True)
-def recover_unstable(x, v, followed, si, sj, rest, kind, max_speed, max_stretch, bad):
+def recover_unstable(x, v, followed, si, sj, rest, n_structural, max_speed, max_stretch, bad):
     """Reset exploded particles to their body-following positions; returns how many were reset.
 
     Exploded: a non-finite position or velocity, a speed above max_speed, or a structural
-    spring longer than max_stretch × its rest length (both ends)."""
+    spring (the first n_structural) longer than max_stretch × its rest length (both ends)."""
     n = x.shape[0]
     lim2 = max_speed * max_speed
     for i in range(n):
         s2 = v[i, 0] ** 2 + v[i, 1] ** 2 + v[i, 2] ** 2
         ok = np.isfinite(x[i, 0]) and np.isfinite(x[i, 1]) and np.isfinite(x[i, 2]) and np.isfinite(s2)
         bad[i] = 0 if (ok and s2 <= lim2) else 1
-    for s in range(si.shape[0]):
-        if kind[s] != STRUCTURAL:
-            continue
+    for s in range(n_structural):
         i = si[s]
         j = sj[s]
         d2 = (x[i, 0] - x[j, 0]) ** 2 + (x[i, 1] - x[j, 1]) ** 2 + (x[i, 2] - x[j, 2]) ** 2
@@ -137,7 +137,7 @@ class ClothState:
         self.v = np.zeros((n, 3))  # velocities, m/s
         self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
         self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
-        self.q = np.zeros(3)
+        self.q = np.zeros(3)  # contact pass scratch
         self.face = np.zeros(n, dtype=np.int32)  # body face of the relative coordinates
         self.bary = np.zeros((n, 3))  # barycentric coordinates on that face
         self.height = np.zeros(n)  # offset along the face normal, m
@@ -160,7 +160,7 @@ class ClothSim:
         self.state = ClothState(model.n_particles, len(body.triangles))
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
-        self.grid = VertexGrid(body.n_vertices)
+        self.grid: VertexGrid | None = None  # own body vertex grid, made when none is shared
         self.reset(body_vertices)
 
     def _body(self, body_vertices: np.ndarray) -> np.ndarray:
@@ -222,20 +222,22 @@ class ClothSim:
             self.stage_seconds[0] = t_int
             self.stage_seconds[1] = t_col
         else:
-            simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length,
-                              m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work, m.n_structural,
-                              f.max_strain, st.limit_passes, body_x, s.carrier,
+            simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_i,
+                              m.spring_j, m.rest_length, m.k_stretch, m.k_compress, m.c_stretch, m.c_compress,
+                              s.work, m.n_structural, f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
                               m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, s.face_n,
                               s.face_stamp, s.stamp)
         if body_grid is None:
+            if self.grid is None:
+                self.grid = VertexGrid(b.n_vertices)
             body_grid = self.grid
             body_grid.update(body_x)
         resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.regions, s.nearest_any, f.thickness, m.grip, s.face_n, s.face_stamp, s.stamp, s.q,
                          body_grid.cell, body_grid.start, body_grid.ids)
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
-                                 m.spring_kind, st.max_speed, st.max_stretch, s.bad)
+                                 m.n_structural, st.max_speed, st.max_stretch, s.bad)
         if n_bad:
             self.stats.reset_particles += n_bad
             self.stats.reset_frames += 1
@@ -252,4 +254,4 @@ class ClothSim:
 
 
 __all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",
-           "recover_unstable", "STRUCTURAL", "SimSettings"]
+           "recover_unstable", "SimSettings"]

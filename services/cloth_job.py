@@ -93,7 +93,7 @@ class OutfitSession:
     """Body animator + one ClothSim per garment; `frame()` advances everything by one frame."""
 
     def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit):
-        self.body, self.animator, self.outfit = body, animator, outfit
+        self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
         self.grid = VertexGrid(body_mesh.n_vertices)  # one per body pose, shared by the garments
         self.profile = False
@@ -102,7 +102,7 @@ class OutfitSession:
 
     def step_cloth(self, body_vertices: np.ndarray, dt: float) -> list[np.ndarray]:
         out = []
-        self.grid.update(np.ascontiguousarray(body_vertices[: self.grid.ids.shape[0]], dtype=np.float64))
+        self.grid.update(np.ascontiguousarray(body_vertices[: self.body_mesh.n_vertices], dtype=np.float64))
         for k, sim in enumerate(self.sims):
             t0 = time.perf_counter()
             out.append(sim.step(body_vertices, dt, profile=self.profile, body_grid=self.grid))
