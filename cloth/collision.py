@@ -267,6 +267,46 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
             anchor[i, k] = a
 
 
+@njit(cache=True, inline="always")
+def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp, q):
+    """Signed distance from p to the faces around body vertex vtx (negative inside).
+
+    The exact closest point q over those faces; the sign from the surface normal there (the
+    face normal inside a face, the area-weighted vertex normal on an edge or corner).
+    Returns (distance, nx, ny, nz, qx, qy, qz); a zero normal when vtx has no usable face.
+    q: (3,) scratch."""
+    best = np.inf
+    best_t = -1
+    interior = False
+    qx = qy = qz = 0.0
+    wx = wy = wz = 0.0
+    for k in range(tri_start[vtx], tri_start[vtx + 1]):
+        t = tri_ids[k]
+        cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
+        wx += face_n[t, 3] * face_n[t, 0]
+        wy += face_n[t, 3] * face_n[t, 1]
+        wz += face_n[t, 3] * face_n[t, 2]
+        bv, bw = closest_point_triangle(p, body_x[tris[t, 0]], body_x[tris[t, 1]], body_x[tris[t, 2]], q)
+        d = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+        if d < best:
+            best = d
+            best_t = t
+            qx, qy, qz = q[0], q[1], q[2]
+            interior = bv > 1e-9 and bw > 1e-9 and bv + bw < 1.0 - 1e-9
+    if best_t < 0:
+        return np.inf, 0.0, 0.0, 0.0, qx, qy, qz
+    if interior:
+        nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
+    else:
+        wl = math.sqrt(wx * wx + wy * wy + wz * wz)
+        if wl == 0.0:
+            return np.inf, 0.0, 0.0, 0.0, qx, qy, qz
+        nx, ny, nz = wx / wl, wy / wl, wz / wl
+    side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
+    dist = math.sqrt(best)
+    return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz
+
+
 @njit(cache=True)
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, nearest_any,
                      thickness, fixed, face_n, face_stamp, stamp, q, cell, grid_start, grid_ids):
@@ -285,40 +325,18 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
         if fixed[i]:
             continue
         p = x[i]
-        vtx = nearest_any[i]
+        # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
+        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
         d2 = (body_x[vtx, 0] - p[0]) ** 2 + (body_x[vtx, 1] - p[1]) ** 2 + (body_x[vtx, 2] - p[2]) ** 2
-        vtx, d2 = grid_nearest(p, body_x, cell, grid_start, grid_ids, vtx, d2)
-        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, vtx, regions, 255)
+        found, d2 = grid_nearest(p, body_x, cell, grid_start, grid_ids, vtx, d2)
+        if found != vtx:
+            vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, found, regions, 255)
         nearest_any[i] = vtx
-        best = np.inf
-        best_t = -1
-        interior = False
-        qx = qy = qz = 0.0
-        wx = wy = wz = 0.0
-        for k in range(tri_start[vtx], tri_start[vtx + 1]):
-            t = tri_ids[k]
-            cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
-            wx += face_n[t, 3] * face_n[t, 0]
-            wy += face_n[t, 3] * face_n[t, 1]
-            wz += face_n[t, 3] * face_n[t, 2]
-            bv, bw = closest_point_triangle(p, body_x[tris[t, 0]], body_x[tris[t, 1]], body_x[tris[t, 2]], q)
-            d = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
-            if d < best:
-                best = d
-                best_t = t
-                qx, qy, qz = q[0], q[1], q[2]
-                interior = bv > 1e-9 and bw > 1e-9 and bv + bw < 1.0 - 1e-9
-        if best_t < 0:
+        side, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n,
+                                                            face_stamp, stamp, q)
+        if nx == 0.0 and ny == 0.0 and nz == 0.0:
             continue
-        if interior:
-            nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
-        else:
-            wl = math.sqrt(wx * wx + wy * wy + wz * wz)
-            if wl == 0.0:
-                continue
-            nx, ny, nz = wx / wl, wy / wl, wz / wl
-        side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
-        dist = math.sqrt(best)
+        dist = abs(side)
         if side >= 0.0 and dist >= thickness:
             continue
         p[0] = qx + thickness * nx
@@ -379,15 +397,21 @@ def build_vertex_grid(body_x, cell, start, ids, counts):
 
 @njit(cache=True, inline="always")
 def grid_nearest(p, body_x, cell, start, ids, best, best_d2):
-    """Nearest body vertex to p among the 27 grid cells around it, if nearer than best_d2
-    (returns (vertex, squared distance); (best, best_d2) when none is nearer)."""
+    """Nearest body vertex to p within one grid cell of it, if nearer than best_d2 (returns
+    (vertex, squared distance); (best, best_d2) when none is nearer). Only the cells that the
+    ball of radius sqrt(best_d2) around p overlaps are visited: for a particle in contact
+    that is a few cells, not 27."""
     mask = start.shape[0] - 2
-    ci = int(math.floor(p[0] / cell))
-    cj = int(math.floor(p[1] / cell))
-    ck = int(math.floor(p[2] / cell))
-    for i in range(ci - 1, ci + 2):
-        for j in range(cj - 1, cj + 2):
-            for k in range(ck - 1, ck + 2):
+    r = min(math.sqrt(best_d2), cell)
+    i0 = int(math.floor((p[0] - r) / cell))
+    i1 = int(math.floor((p[0] + r) / cell))
+    j0 = int(math.floor((p[1] - r) / cell))
+    j1 = int(math.floor((p[1] + r) / cell))
+    k0 = int(math.floor((p[2] - r) / cell))
+    k1 = int(math.floor((p[2] + r) / cell))
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(k0, k1 + 1):
                 c = _cell_hash(i, j, k, mask)
                 for e in range(start[c], start[c + 1]):
                     u = ids[e]

@@ -11,7 +11,7 @@ def dot3(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def closest_point_triangle(p, a, b, c, out):
     """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5).
 

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .coarsen import CoarseMesh, coarsen
-from .dynamics import stable_time_step
+from .dynamics import spring_table, stable_time_step
 from .fabric import Fabric
 from .garment import Garment
 from .topology import boundary_loops, triangulate, unique_edges
@@ -53,6 +53,8 @@ class ClothModel:
     k_compress: np.ndarray  # (s,) N/m
     c_stretch: np.ndarray  # (s,) N·s/m
     c_compress: np.ndarray  # (s,) N·s/m
+    spring_pairs: np.ndarray  # (s, 2) int32: the force kernel's packed copy (see dynamics.spring_table)
+    spring_params: np.ndarray  # (s, 5)
     substeps: int
     stable_dt: float
     n_structural: int  # the structural springs come first in the spring arrays (strain limiting)
@@ -162,10 +164,12 @@ def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | 
     dt = stable_time_step(verts, inv_mass, si, sj, ks)
     substeps = settings.substeps or max(1, math.ceil(1.0 / settings.frame_rate / dt))
     tris, _ = triangulate(faces, verts)
+    pairs_packed, params_packed = spring_table(si, sj, rest, ks, kc, cs, cc)
     return ClothModel(
         name=garment.name, fabric=fabric, settings=settings, rest_positions=verts.copy(), faces=faces,
         triangles=tris, mass=mass, inv_mass=inv_mass, drag=fabric.air_drag * area, spring_i=si, spring_j=sj,
         spring_kind=kind, rest_length=rest, k_stretch=ks, k_compress=kc, c_stretch=cs, c_compress=cc,
+        spring_pairs=pairs_packed, spring_params=params_packed,
         substeps=substeps, stable_dt=dt, n_structural=int(np.sum(kind == STRUCTURAL)), grip=np.zeros(len(verts), dtype=np.uint8),
         region_mask=np.full(len(verts), 255, dtype=np.uint8), boundary_loops=boundary_loops(faces), coarse=coarse,
     )

@@ -29,14 +29,14 @@ from .model import ClothModel, SimSettings, build_cloth_model
 
 
 @njit(cache=True)
-def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs,
-                      cc, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
+def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj,
+                      rest, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
                       tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n,
                       face_stamp, stamp):
     """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
     call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
-        rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, si, sj, rest, ks, kc, cs, cc, work)
+        rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
             collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
                               masks, nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp)
@@ -206,8 +206,7 @@ class ClothSim:
             t_int = t_col = 0.0
             for k in range(n_sub):  # the same order as simulate_substeps, timed per stage
                 t0 = time.perf_counter()
-                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_i, m.spring_j, m.rest_length,
-                            m.k_stretch, m.k_compress, m.c_stretch, m.c_compress, s.work)
+                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_pairs, m.spring_params, s.work)
                 t1 = time.perf_counter()
                 if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
                     collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
@@ -222,9 +221,8 @@ class ClothSim:
             self.stage_seconds[0] = t_int
             self.stage_seconds[1] = t_col
         else:
-            simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_i,
-                              m.spring_j, m.rest_length, m.k_stretch, m.k_compress, m.c_stretch, m.c_compress,
-                              s.work, m.n_structural, f.max_strain, st.limit_passes, body_x, s.carrier,
+            simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_pairs,
+                              m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.work, m.n_structural, f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
                               m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, s.face_n,
                               s.face_stamp, s.stamp)

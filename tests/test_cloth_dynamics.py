@@ -7,7 +7,7 @@ import pytest
 
 from cloth.collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_cache, follow_body,
                              resolve_contacts)
-from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, stable_time_step
+from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 
 G = 9.81
@@ -16,8 +16,8 @@ G = 9.81
 def springs(pairs, rest, ks, kc, cs=0.0, cc=0.0):
     s = len(pairs)
     p = np.asarray(pairs, dtype=np.int32)
-    return (p[:, 0].copy(), p[:, 1].copy(), np.full(s, rest, float), np.full(s, ks, float), np.full(s, kc, float),
-            np.full(s, cs, float), np.full(s, cc, float))
+    return spring_table(p[:, 0], p[:, 1], np.full(s, rest, float), np.full(s, ks, float), np.full(s, kc, float),
+                        np.full(s, cs, float), np.full(s, cc, float))
 
 
 def run_rk4(x, v, inv_mass, spring_args, dt, steps, gravity=0.0, drag=None, normals=None):
