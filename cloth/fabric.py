@@ -27,10 +27,15 @@ class Fabric:
     air_drag: float  # N·s/m³
     thickness: float  # m
     max_strain: float  # structural springs are capped at (1 + max_strain) * rest length
+    # detailed surface (S104-S106)
+    k_out_plane: float  # m/(N·s): how fast a particle moves along its normal per unit normal force
+    h_normal: float  # m: height at which the shading normal is fully the deformed surface's
+    max_neighbour_ratio: float  # detailed neighbours at most this times their rest distance apart
+    transfer_exponent: float  # force transfer rate along the surface: max(cos θ, 0) ** exponent
 
 
 _KEYS = [f.name for f in fields(Fabric) if f.name != "name"]
-_POSITIVE = {"stretch_stiffness", "density"}
+_POSITIVE = {"stretch_stiffness", "density", "h_normal", "max_neighbour_ratio"}
 
 
 def fabric_from_table(name: str, table: dict, source: str = "<table>") -> Fabric:
@@ -51,6 +56,9 @@ def fabric_from_table(name: str, table: dict, source: str = "<table>") -> Fabric
     if values["compression_stiffness"] > values["stretch_stiffness"]:
         raise FabricError(f"{source}: [{name}]: compression_stiffness must not exceed stretch_stiffness "
                           "(cloth resists stretch, not compression)")
+    if values["max_neighbour_ratio"] < 1.0:
+        raise FabricError(f"{source}: [{name}].max_neighbour_ratio: must be >= 1 (rest distances must be allowed), "
+                          f"got {values['max_neighbour_ratio']}")
     return Fabric(name=name, **values)
 
 

@@ -161,6 +161,7 @@ class ClothSim:
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
         self.grid: VertexGrid | None = None  # own body vertex grid, made when none is shared
+        self.body_x: np.ndarray | None = None
         self.reset(body_vertices)
 
     def _body(self, body_vertices: np.ndarray) -> np.ndarray:
@@ -195,6 +196,7 @@ class ClothSim:
         s, m, b, st = self.state, self.model, self.body, self.model.settings
         f = m.fabric
         body_x = self._body(body_vertices)
+        self.body_x = body_x  # the frame's body, for the detailed surface stage
         s.stamp += 1
         follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
                     1.0 / dt, st.follow_near, st.follow_far, s.followed, s.face_n, s.face_stamp, s.stamp)

@@ -19,6 +19,7 @@ from cloth.fabric import Fabric, fabric as fabric_preset
 from cloth.garment import Garment, load_outfit
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
+from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
 from skinning.body import Body, body_regions
 from skinning.source import BVHSource
@@ -78,9 +79,11 @@ class ClothReport:
     substeps: list[int] = field(default_factory=list)
     stage_ms: dict[str, list[float]] = field(default_factory=dict)  # per garment-frame: whole S101 step
     split_ms: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # (integration, collision), profile
+    surface_ms: dict[str, list[tuple[float, float, float]]] = field(default_factory=dict)  # PN, collision, deformation
     nan_frames: int = 0
     resets: list[int] = field(default_factory=list)  # particles reset per garment
     snapshots: list[tuple[int, np.ndarray, list[np.ndarray]]] = field(default_factory=list)
+    detailed_snapshots: list[list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=list)  # per snapshot
     models: list[ClothModel] = field(default_factory=list)
 
     def summary(self) -> str:
@@ -92,9 +95,14 @@ class ClothReport:
 class OutfitSession:
     """Body animator + one ClothSim per garment; `frame()` advances everything by one frame."""
 
-    def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit):
+    def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit,
+                 surface: SurfaceSettings | None = None):
+        """surface: also build each garment's detailed surface (S102-S106) at these settings."""
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
+        self.surfaces = [DetailedSurface(build_surface_model(m, surface)) for m in outfit.models] if surface else []
+        self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
+        self.surface_seconds = np.zeros((len(self.sims), 3))
         self.grid = VertexGrid(body_mesh.n_vertices)  # one per body pose, shared by the garments
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
@@ -108,6 +116,13 @@ class OutfitSession:
             out.append(sim.step(body_vertices, dt, profile=self.profile, body_grid=self.grid))
             self.cloth_seconds[k] = time.perf_counter() - t0
             self.stage_seconds[k] = sim.stage_seconds
+        if self.surfaces:
+            self.detailed = []
+            for k, (sim, surf) in enumerate(zip(self.sims, self.surfaces)):
+                st = sim.state
+                self.detailed.append(surf.step(out[k], st.nearest_any, sim.body_x, self.body_mesh, st.face_n,
+                                               st.face_stamp, st.stamp, dt))
+                self.surface_seconds[k] = surf.stage_seconds
         return out
 
     def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5):
@@ -125,14 +140,15 @@ class OutfitSession:
 
 def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max_frames: int | None = None,
                    snapshot_frames: list[int] | None = None, settings: SimSettings | None = None,
-                   fabrics=None, profile: bool = False, on_frame=None) -> ClothReport:
+                   fabrics=None, profile: bool = False, on_frame=None,
+                   surface: SurfaceSettings | None = None) -> ClothReport:
     """Run an outfit through a clip. on_frame(index, session, body_frame, positions) sees every frame."""
     wanted = set(snapshot_frames or [])
     with BVHSource(clip, every=every, max_frames=max_frames) as source:
         animator = BodyAnimator(body, source.skeleton)
         body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body))
         outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)
-        session = OutfitSession(body, animator, body_mesh, outfit)
+        session = OutfitSession(body, animator, body_mesh, outfit, surface)
         session.profile = profile
         report = ClothReport(Path(clip).stem, outfit.name, [m.name for m in outfit.models], models=outfit.models)
         stage = {f"{g}": [] for g in report.garments}
@@ -151,6 +167,8 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
                 stage[name].append(sec * 1000)
                 if profile:
                     report.split_ms.setdefault(name, []).append(tuple(session.stage_seconds[k] * 1000))
+                if surface is not None:
+                    report.surface_ms.setdefault(name, []).append(tuple(session.surface_seconds[k] * 1000))
             if not all(np.isfinite(p).all() for p in positions):
                 report.nan_frames += 1
             if on_frame is not None:
@@ -158,6 +176,7 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
             if frame.index in wanted:
                 report.snapshots.append((frame.index, body_frame.vertices[: body.n_visible].copy(),
                                          [p.copy() for p in positions]))
+                report.detailed_snapshots.append([(p.copy(), n.copy()) for p, n in session.detailed])
             report.frames += 1
         report.stage_ms = {k: np.array(v) for k, v in stage.items()}
         report.substeps = [s.stats.last_substeps for s in session.sims]

@@ -1,5 +1,6 @@
 """S101 kernels on cases whose answers are known."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -281,15 +282,15 @@ def test_fabric_presets_and_errors(tmp_path):
     for f in presets.values():
         assert f.compression_stiffness < f.stretch_stiffness
     assert fabric("denim").density > fabric("silk").density
-    table = {k: getattr(fabric("cotton"), k) for k in ("stretch_stiffness", "compression_stiffness", "shear_stiffness",
-                                                        "bending_stiffness", "damping_ratio", "density", "friction",
-                                                        "air_drag", "thickness", "max_strain")}
+    table = {k: v for k, v in dataclasses.asdict(fabric("cotton")).items() if k != "name"}
     with pytest.raises(FabricError, match=r"\[wool\]\.density"):
         fabric_from_table("wool", {**table, "density": -1.0}, "user.toml")
     with pytest.raises(FabricError, match="unknown key"):
         fabric_from_table("wool", {**table, "stiffness": 3.0}, "user.toml")
     with pytest.raises(FabricError, match="missing key"):
         fabric_from_table("wool", {k: v for k, v in table.items() if k != "friction"}, "user.toml")
+    with pytest.raises(FabricError, match=r"\[wool\]\.max_neighbour_ratio: must be >= 1"):
+        fabric_from_table("wool", {**table, "max_neighbour_ratio": 0.5}, "user.toml")
     bad = tmp_path / "bad.toml"
     bad.write_text("[wool\nfriction = 1\n")
     with pytest.raises(FabricError, match="bad.toml: not valid TOML"):

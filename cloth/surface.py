@@ -1,0 +1,174 @@
+"""The detailed surface of a garment (SPEC.md S102-S106), built on its coarse cloth.
+
+    surface_model = build_surface_model(cloth_model, SurfaceSettings(level=6))   # once
+    surface = DetailedSurface(surface_model)                                      # per session
+    p, n = surface.step(x, nearest_any, body_x, body_mesh, face_n, face_stamp, stamp, dt)
+
+One frame: S102 PN triangles → S103 penetration avoidance → S104 normal force → S105 length
+displacement → S106 deformation, constraints and shading normals. Δh carries to the next frame.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .collision import BodyMesh
+from .dynamics import spring_forces
+from .model import ClothModel
+from .pn import Tessellation, build_tessellation, pn_surface
+from .topology import unique_edges
+from .wrinkles import (apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights, elastic_forces,
+                       length_displacement, normal_force, penetration_floor, shading_normals)
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    level: int = 6  # PN tessellation level L: L² detailed triangles per coarse triangle
+    clearance: float = 0.001  # m: S103 lifts a detailed particle this far out of the body
+    contact_margin: float = 0.005  # m: S103 tests a face / a finer particle only near a particle this close
+    penetration_iterations: int = 4  # S103 lifts per particle (one suffices on a flat body)
+    max_lift: float = 0.05  # m: S103 lifts a particle at most this far per frame
+    constraint_passes: int = 3  # S106 maximum-neighbour-distance rounds
+
+
+@dataclass
+class SurfaceModel:
+    """What does not change: the tessellation, rest arc lengths, neighbour limits, material."""
+
+    tess: Tessellation
+    settings: SurfaceSettings
+    cloth: ClothModel
+    edge_rest: np.ndarray  # (E,) m: detailed arc length along each coarse edge at rest (S105 L_rest,e)
+    edge_rest_coarse: np.ndarray  # (E,) m: straight length of each coarse edge at rest
+    vertex_edge_count: np.ndarray  # (n_coarse,) coarse edges per coarse vertex
+    d_edges: np.ndarray  # (D, 2) int32 detailed mesh edges
+    d_max: np.ndarray  # (D,) m: maximum neighbour distance per detailed edge
+    k_out_plane: float
+    h_normal: float
+    transfer_exponent: float
+
+    @property
+    def n_vertices(self) -> int:
+        return self.tess.n_vertices
+
+
+def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = None) -> SurfaceModel:
+    settings = settings or SurfaceSettings()
+    n = cloth.n_particles
+    tess = build_tessellation(cloth.triangles, n, settings.level)
+    # the rest surface: PN over the rest particles, no heights
+    x = np.ascontiguousarray(cloth.rest_positions, dtype=np.float64)
+    p_rest = np.zeros((tess.n_vertices, 3))
+    n_rest = np.zeros_like(p_rest)
+    T = len(tess.coarse_triangles)
+    pn_surface(tess, x, np.zeros((n, 3)), np.zeros((T, 10, 3)), np.zeros((T, 6, 3)), p_rest, n_rest)
+    seg = np.linalg.norm(np.diff(p_rest[tess.edge_ids], axis=1), axis=2)
+    edge_rest = seg.sum(axis=1)
+    count = np.bincount(tess.coarse_edges.ravel(), minlength=n).astype(np.float64)
+    d_edges, _ = unique_edges(tess.triangles)
+    d_edges = d_edges.astype(np.int32)
+    rest_len = np.linalg.norm(p_rest[d_edges[:, 0]] - p_rest[d_edges[:, 1]], axis=1)
+    f = cloth.fabric
+    straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)
+    return SurfaceModel(tess, settings, cloth, edge_rest, straight, count, d_edges,
+                        f.max_neighbour_ratio * rest_len, f.k_out_plane, f.h_normal, f.transfer_exponent)
+
+
+class SurfaceState:
+    """Per-frame arrays of the detailed surface, preallocated."""
+
+    def __init__(self, m: SurfaceModel):
+        N, n, E, T = m.n_vertices, m.tess.n_coarse, len(m.tess.coarse_edges), len(m.tess.coarse_triangles)
+        L1 = m.tess.level + 1
+        self.p_smoothed = np.zeros((N, 3))  # S102 reference positions, m
+        self.n_pn = np.zeros((N, 3))  # S102 PN normals
+        self.p = np.zeros((N, 3))  # final positions, m
+        self.normals = np.zeros((N, 3))  # S106 shading normals
+        self.dh = np.zeros(N)  # Δh, carried to the next frame (Δh_last_frame)
+        self.dh_pen = np.zeros(N)  # S103 Δh_penetration
+        self.sd = np.zeros(N)  # S103 signed distance of tested particles (inf: untested)
+        self.nearest = np.full(N, -1, dtype=np.int32)  # S103 nearest body vertex per particle
+        self.floor = np.zeros(N)
+        self.ef = np.zeros((N, 3))  # S104 elastic force, N
+        self.vf = np.zeros(N)  # S104 normal force, N
+        self.required = np.zeros(N)  # S105 ΔL_required,i, m
+        self.edge_required = np.zeros(E)  # S105 ΔLE_required,e, m
+        self.vertex_required = np.zeros(n)
+        self.dh_def = np.zeros(N)  # S106 Δh_deformation
+        self.coarse_normals = np.zeros((n, 3))
+        self.coarse_force = np.zeros((n, 3))
+        self.zero_v = np.zeros((n, 3))
+        self.edge_force = np.zeros((E, 2, 3))
+        self.ctrl = np.zeros((T, 10, 3))
+        self.nctrl = np.zeros((T, 6, 3))
+        self.n_deform = np.zeros((N, 3))
+        self.rates = np.zeros(L1)
+        self.f1 = np.zeros(3)
+        self.fn = np.zeros(3)
+        self.ids = np.zeros(L1, dtype=np.int32)
+        self.q = np.zeros(3)
+
+
+class DetailedSurface:
+    def __init__(self, model: SurfaceModel):
+        self.model = model
+        self.state = SurfaceState(model)
+        self.stage_seconds = np.zeros(3)  # PN, collision (S103), deformation (S104-S106)
+        self.tested = 0  # particles S103 tested in the last frame
+
+    def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
+             body: BodyMesh | None, face_n: np.ndarray | None, face_stamp: np.ndarray | None, stamp: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """One frame of S102-S106 from the coarse positions x (n, 3); returns (positions, normals)
+        of the detailed mesh (views of the state arrays, valid until the next step).
+
+        coarse_nearest: each coarse particle's nearest body vertex (the S103 walk seeds);
+        face_n, face_stamp, stamp: the body face normal cache of this frame (see collision.face_cache)."""
+        m, s, t, st = self.model, self.state, self.model.tess, self.model.settings
+        c = m.cloth
+        t0 = time.perf_counter()
+        # S102: reference surface, then the last frame's heights
+        pn_surface(t, x, s.coarse_normals, s.ctrl, s.nctrl, s.p_smoothed, s.n_pn)
+        np.multiply(s.n_pn, s.dh[:, None], out=s.p)
+        s.p += s.p_smoothed
+        t1 = time.perf_counter()
+        # S103: penetration avoidance (body None: no body, nothing to avoid)
+        if body is None:
+            s.sd[:] = np.inf
+            s.dh_pen[:] = 0.0
+            self.tested = 0
+        else:
+            self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, t.face_ids, t.order, t.parents,
+                                            coarse_nearest, body_x, body.nbr_start, body.nbr_ids, body.regions,
+                                            body.triangles, body.tri_start, body.tri_ids, s.nearest, face_n,
+                                            face_stamp, stamp, s.q, st.clearance, st.contact_margin,
+                                            st.penetration_iterations, st.max_lift)
+        penetration_floor(s.dh, s.sd, st.clearance, s.floor)
+        t2 = time.perf_counter()
+        # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
+        s.coarse_force[:] = 0.0
+        spring_forces(x, s.zero_v, c.spring_pairs, c.spring_params, s.coarse_force)
+        np.negative(s.coarse_force, out=s.coarse_force)
+        coarse_edge_forces(x, t.coarse_edges, m.edge_rest_coarse, c.fabric.stretch_stiffness,
+                           c.fabric.compression_stiffness, s.edge_force)
+        elastic_forces(s.p, s.coarse_force, s.edge_force, t.edge_ids, t.face_ids, t.lines, t.line_length,
+                       t.interior_local, m.transfer_exponent, s.rates, s.f1, s.fn, s.ids, s.ef)
+        normal_force(s.p, s.ef, t.nbr_start, t.nbr_ids, s.vf)
+        # S105: length displacement
+        length_displacement(s.p, t.edge_ids, m.edge_rest, t.coarse_triangles, t.owner_face, t.owner_weights,
+                            s.edge_required, s.vertex_required, m.vertex_edge_count, s.required)
+        # S106: deformation, constraints, positions, shading normals
+        deformation_heights(s.vf, s.dh, s.required, t.nbr_start, t.nbr_ids, t.n_coarse, m.k_out_plane, dt,
+                            s.dh_def)
+        s.dh += s.dh_def
+        apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
+                          t.interior_local, m.d_edges, m.d_max, st.constraint_passes, s.p)
+        shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
+        t3 = time.perf_counter()
+        self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)
+        return s.p, s.normals
+
+
+__all__ = ["DetailedSurface", "SurfaceModel", "SurfaceSettings", "SurfaceState", "build_surface_model"]

@@ -1,0 +1,447 @@
+"""S103-S106 kernels on the detailed surface: penetration avoidance, normal force, length
+displacement, surface deformation and shading normals (numba, preallocated arrays).
+
+Each kernel is one step of SPEC.md with its formula number in a comment; `surface.py`
+holds the arrays and calls them in order.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .collision import ring_signed_distance, walk_nearest
+
+UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
+
+
+# ---------------------------------------------------------------- S103 penetration avoidance
+
+@njit(cache=True, inline="always")
+def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, nearest,
+                            face_n, face_stamp, stamp, q):
+    """Signed distance of detailed particle i (at p) to the body, by a nearest-vertex walk from
+    the nearer of its own last nearest vertex and `seed` (a coarse particle's), then the exact
+    closest point on the faces around that vertex."""
+    own = nearest[i]
+    start = seed
+    if own >= 0:
+        d_own = (body_x[own, 0] - p[0]) ** 2 + (body_x[own, 1] - p[1]) ** 2 + (body_x[own, 2] - p[2]) ** 2
+        d_seed = (body_x[seed, 0] - p[0]) ** 2 + (body_x[seed, 1] - p[1]) ** 2 + (body_x[seed, 2] - p[2]) ** 2
+        if d_own < d_seed:
+            start = own
+    vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, 255)
+    nearest[i] = vtx
+    return ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp, q)
+
+
+@njit(cache=True, inline="always")
+def _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift):
+    dh[vid] += lift - dh_pen[vid]
+    dh_pen[vid] = lift
+    pi[0] = b0 + lift * normals[vid, 0]
+    pi[1] = b1 + lift * normals[vid, 1]
+    pi[2] = b2 + lift * normals[vid, 2]
+
+
+@njit(cache=True)
+def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
+              tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance, max_iterations, max_lift):
+    """The smallest lift along n_i that puts particle vid `clearance` outside the body (S103).
+
+    Along n_i the signed distance grows at the rate n_i . n_body, so where the body faces n_i
+    one step of (clearance - d) / rate reaches the surface of a locally flat body and a few
+    settle a curved one. Where it does not (the nearest surface is a side wall, a fold), the
+    lift doubles until outside and is then bisected. Lifts are capped at max_lift per frame;
+    a particle no lift gets out of (caught where body parts intersect) keeps its height.
+    Returns the signed distance at the end."""
+    b0, b1, b2 = pi[0], pi[1], pi[2]
+    it = 0
+    while d < clearance and it < max_iterations:
+        rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
+        if rate < 0.2:
+            break  # n_i runs along the body here: a linear step would overshoot
+        lift = min(dh_pen[vid] + (clearance - d) / rate, max_lift)
+        if lift <= dh_pen[vid]:
+            break
+        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift)
+        d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
+                                                            tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q)
+        it += 1
+    if d >= clearance:
+        return d
+    lo = dh_pen[vid]
+    hi = lo
+    step = max(clearance - d, 0.002)
+    found = False
+    while hi < max_lift:
+        hi = min(hi + step, max_lift)
+        step *= 2.0
+        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
+        d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
+                                                            tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q)
+        if d >= clearance:
+            found = True
+            break
+        lo = hi
+    if not found:
+        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
+        return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                                       nearest, face_n, face_stamp, stamp, q)[0]
+    for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
+        mid = 0.5 * (lo + hi)
+        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, mid)
+        dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                                     nearest, face_n, face_stamp, stamp, q)[0]
+        if dm >= clearance:
+            hi = mid
+            d = dm
+        else:
+            lo = mid
+    _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
+    return d
+
+
+@njit(cache=True)
+def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
+                      nbr_ids, regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance,
+                      margin, max_iterations, max_lift):
+    """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
+    along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
+    p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
+
+    Hierarchical: a coarse face none of whose corners (the coarse particles) is within
+    `margin` of the body is skipped; inside a face the lattice is visited top-down (`order`),
+    and a finer particle is tested only if one of its coarser parents was within `margin`.
+    p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out); sd: signed
+    distance of each tested particle after lifting (UNTESTED otherwise).
+    Along n_i the signed distance grows at the rate n_i . n_body, so one move of
+    (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
+    `_lift_out` for the other cases). Returns the number of particles tested."""
+    n = p.shape[0]
+    n_coarse = coarse_nearest.shape[0]
+    for i in range(n):
+        sd[i] = UNTESTED
+        dh_pen[i] = 0.0
+    tested = 0
+    for f in range(face_ids.shape[0]):
+        near = False
+        for k in range(order.shape[0]):
+            loc = order[k]
+            vid = face_ids[f, loc]
+            if parents[loc, 0] >= 0:
+                if not near:
+                    break  # no corner near the body: skip the face (corners come first in order)
+                hit = False
+                for m in range(3):
+                    par = parents[loc, m]
+                    if par >= 0 and sd[face_ids[f, par]] < margin:
+                        hit = True
+                if not hit:
+                    continue
+            if sd[vid] == UNTESTED:
+                tested += 1
+                seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
+                pi = p[vid]
+                d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids,
+                                                                    regions, tris, tri_start, tri_ids, nearest,
+                                                                    face_n, face_stamp, stamp, q)
+                if d < clearance:
+                    d = _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids,
+                                  regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance,
+                                  max_iterations, max_lift)
+                sd[vid] = d
+            if parents[loc, 0] < 0 and sd[vid] < margin:
+                near = True
+    return tested
+
+
+# ---------------------------------------------------------------- S104 normal force
+
+@njit(cache=True, inline="always")
+def transfer_rate(p, i, k, j, exponent):
+    """S104 step 2: c_k = cos θ = (p_k - p_i).(p_j - p_k) / (|p_k - p_i| |p_j - p_k|), mapped by the
+    fabric's transfer curve max(c, 0)^exponent (exponent 1: the patent's plain cosine)."""
+    ax, ay, az = p[k, 0] - p[i, 0], p[k, 1] - p[i, 1], p[k, 2] - p[i, 2]
+    bx, by, bz = p[j, 0] - p[k, 0], p[j, 1] - p[k, 1], p[j, 2] - p[k, 2]
+    den = math.sqrt((ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz))
+    if den == 0.0:
+        return 1.0
+    c = (ax * bx + ay * by + az * bz) / den
+    if c <= 0.0:
+        return 0.0
+    return c ** exponent
+
+
+@njit(cache=True, inline="always")
+def _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, weight, accumulate):
+    """S104 step 3 along one chain ids[0..count-1] whose end forces are f1, fn:
+    ef_i = f_1 + (Σ_{j=2}^{i-1} c_j + 0.5 c_i) / (Σ_{j=2}^{n-1} c_j) (f_n - f_1).
+    accumulate: add weight * ef_i (face lines, averaged) instead of storing it (edges)."""
+    total = 0.0
+    for m in range(1, count - 1):
+        rates[m] = transfer_rate(p, ids[m - 1], ids[m], ids[m + 1], exponent)
+        total += rates[m]
+    run = 0.0
+    for m in range(1, count - 1):
+        if total > 1e-12:
+            s = (run + 0.5 * rates[m]) / total
+        else:  # a chain folded flat everywhere transmits nothing: split evenly
+            s = (m - 0.5) / (count - 2)
+        run += rates[m]
+        i = ids[m]
+        for a in range(3):
+            val = f1[a] + s * (fn[a] - f1[a])
+            if accumulate:
+                ef[i, a] += weight * val
+            else:
+                ef[i, a] = val
+
+
+@njit(cache=True)
+def coarse_edge_forces(x, edges, rest, k_stretch, k_compress, out):
+    """S104 step 1 on each coarse edge: the elastic force of the edge at its two ends, as S101's
+    springs define it (k_stretch longer than rest, k_compress shorter), taken as the reaction on
+    the surroundings: a compressed edge pushes inward, along itself, at both ends.
+    Every edge of the triangulation gets the fabric's structural stiffness, the diagonal of a
+    split quad included (its S101 spring is a shear spring, which would make diagonals
+    dominate). out (E, 2, 3): force at the edge's low and high vertex, N."""
+    for e in range(edges.shape[0]):
+        a, b = edges[e, 0], edges[e, 1]
+        dx, dy, dz = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+        length = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if length == 0.0:
+            for k in range(3):
+                out[e, 0, k] = 0.0
+                out[e, 1, k] = 0.0
+            continue
+        ext = length - rest[e]
+        tension = (k_stretch if ext > 0.0 else k_compress) * ext  # > 0 stretched
+        # the edge pulls a towards b with +tension (b - a)/length; the reaction is its negative
+        fx, fy, fz = -tension * dx / length, -tension * dy / length, -tension * dz / length
+        out[e, 0, 0], out[e, 0, 1], out[e, 0, 2] = fx, fy, fz
+        out[e, 1, 0], out[e, 1, 1], out[e, 1, 2] = -fx, -fy, -fz
+
+
+@njit(cache=True)
+def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_length, interior_local, exponent,
+                   rates, f1, fn, ids, ef):
+    """S104 steps 1-4: elastic force ef_i of every detailed particle.
+
+    Coarse-vertex particles take the coarse elastic force (coarse_force, reaction sign);
+    particles on a coarse edge interpolate between the edge's end forces with the transfer
+    rates (step 3); face-interior particles interpolate the same way along the lattice
+    lines through them, from the edge values at the lines' ends, and average the three
+    directions (step 4: a triangle's lattice has three grid directions).
+    rates (L + 1,), f1 (3,), fn (3,), ids (L + 1,) int32: scratch."""
+    n_coarse = coarse_force.shape[0]
+    for i in range(n_coarse):
+        for a in range(3):
+            ef[i, a] = coarse_force[i, a]
+    L1 = edge_ids.shape[1]
+    for e in range(edge_ids.shape[0]):
+        _interpolate_line(p, edge_ids[e], L1, edge_force[e, 0], edge_force[e, 1], exponent, rates, ef, 1.0, False)
+    third = 1.0 / 3.0
+    for f in range(face_ids.shape[0]):
+        for k in range(interior_local.shape[0]):
+            vid = face_ids[f, interior_local[k]]
+            for a in range(3):
+                ef[vid, a] = 0.0
+        for d in range(3):
+            for m in range(line_length.shape[1]):
+                cnt = line_length[d, m]
+                if cnt < 3:
+                    continue
+                for r in range(cnt):
+                    ids[r] = face_ids[f, lines[d, m, r]]
+                for a in range(3):
+                    f1[a] = ef[ids[0], a]
+                    fn[a] = ef[ids[cnt - 1], a]
+                _interpolate_line(p, ids, cnt, f1, fn, exponent, rates, ef, third, True)
+
+
+@njit(cache=True)
+def normal_force(p, ef, nbr_start, nbr_ids, vf):
+    """S104 step 5: vf_i = Σ_j (p_i - p_j)/|p_i - p_j| . ef_j over the detailed neighbours j.
+    vf > 0: pushed by its surroundings (relief grows); vf < 0: pulled (the surface flattens)."""
+    for i in range(p.shape[0]):
+        s = 0.0
+        for k in range(nbr_start[i], nbr_start[i + 1]):
+            j = nbr_ids[k]
+            dx, dy, dz = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1], p[i, 2] - p[j, 2]
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if d > 0.0:
+                s += (dx * ef[j, 0] + dy * ef[j, 1] + dz * ef[j, 2]) / d
+        vf[i] = s
+
+
+# ---------------------------------------------------------------- S105 length displacement
+
+@njit(cache=True)
+def length_displacement(p, edge_ids, edge_rest, coarse_tris, owner_face, owner_weights, edge_required,
+                        vertex_required, vertex_count, required):
+    """S105: per coarse edge ΔLE_required,e = L_rest,e - L_e (L_e: the detailed arc length along
+    it; > 0 when compressed); per coarse vertex the mean over its edges; then interpolated
+    linearly along the edges and inside the faces (plain interpolation: for values linear
+    along the edges this is the barycentric interpolation of the corner values, used here).
+    vertex_count: how many coarse edges meet at each coarse vertex (built once)."""
+    n_coarse = vertex_required.shape[0]
+    for v in range(n_coarse):
+        vertex_required[v] = 0.0
+    L1 = edge_ids.shape[1]
+    for e in range(edge_ids.shape[0]):
+        length = 0.0
+        for m in range(L1 - 1):
+            a, b = edge_ids[e, m], edge_ids[e, m + 1]
+            length += math.sqrt((p[b, 0] - p[a, 0]) ** 2 + (p[b, 1] - p[a, 1]) ** 2 + (p[b, 2] - p[a, 2]) ** 2)
+        dl = edge_rest[e] - length
+        edge_required[e] = dl
+        vertex_required[edge_ids[e, 0]] += dl
+        vertex_required[edge_ids[e, L1 - 1]] += dl
+    for v in range(n_coarse):
+        if vertex_count[v] > 0:
+            vertex_required[v] /= vertex_count[v]
+    for i in range(p.shape[0]):
+        t = owner_face[i]
+        required[i] = (owner_weights[i, 0] * vertex_required[coarse_tris[t, 0]]
+                       + owner_weights[i, 1] * vertex_required[coarse_tris[t, 1]]
+                       + owner_weights[i, 2] * vertex_required[coarse_tris[t, 2]])
+
+
+# ---------------------------------------------------------------- S106 surface deformation
+
+@njit(cache=True)
+def deformation_heights(vf, dh, required, nbr_start, nbr_ids, n_coarse, k_out, dt, out):
+    """S106 steps 1-4: Δh_deformation per detailed particle.
+
+    1. ΔL_expected,i = Σ_j ±k_out |vf_i - vf_j|, + when (vf_i - vf_j)(Δh_i - Δh_j) >= 0.
+    2. Δh_length,i from ΔL_required,i / ΔL_expected,i when their product is > 0, else 0.
+    3. Δh_out-plane_force,i = k_out vf_i Δt.
+    4. The smaller in magnitude (the force term is a clamp).
+    Units (Decision): k_out is a speed per unit normal force (m/(N·s)), so ΔL_expected is the
+    rate at which the surface around i lengthens when every particle moves at k_out vf, and
+    ΔL_required / ΔL_expected is the time that takes; Δh_length is the height reached moving
+    at k_out vf_i for that time, and the clamp limits it to one frame's motion. Coarse-vertex
+    particles keep Δh_deformation = 0: S101 has placed them."""
+    for i in range(vf.shape[0]):
+        if i < n_coarse:
+            out[i] = 0.0
+            continue
+        expected = 0.0
+        for k in range(nbr_start[i], nbr_start[i + 1]):
+            j = nbr_ids[k]
+            dv = vf[i] - vf[j]
+            term = k_out * abs(dv)
+            expected += term if dv * (dh[i] - dh[j]) >= 0.0 else -term
+        speed = k_out * vf[i]
+        if required[i] * expected > 0.0:
+            h_length = speed * (required[i] / expected)
+        else:
+            h_length = 0.0
+        h_force = speed * dt
+        out[i] = h_length if abs(h_length) < abs(h_force) else h_force
+
+
+@njit(cache=True)
+def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, interior_local,
+                      d_edges, d_max, passes, p):
+    """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
+
+    Δh_i >= floor_i (0, or the height S103 needs to keep it out of the body); in a coarse face
+    all of whose edges are stretched (ΔLE_required < 0) the interior is flat (Δh = floor);
+    neighbours no farther apart than d_max (per detailed edge): the higher one comes down
+    towards its floor, and if that is not enough the lower one goes up (`passes` rounds)."""
+    for i in range(dh.shape[0]):
+        if dh[i] < floor[i]:
+            dh[i] = floor[i]
+    for f in range(face_ids.shape[0]):
+        if (edge_required[face_edges[f, 0]] < 0.0 and edge_required[face_edges[f, 1]] < 0.0
+                and edge_required[face_edges[f, 2]] < 0.0):
+            for k in range(interior_local.shape[0]):
+                vid = face_ids[f, interior_local[k]]
+                dh[vid] = floor[vid]
+    for i in range(dh.shape[0]):
+        for a in range(3):
+            p[i, a] = p_smoothed[i, a] + dh[i] * n_pn[i, a]
+    for _ in range(passes):
+        for e in range(d_edges.shape[0]):
+            i, j = d_edges[e, 0], d_edges[e, 1]
+            lim = d_max[e]
+            d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
+            if d2 <= lim * lim:
+                continue
+            hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
+            # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
+            t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
+            if t >= floor[hi]:
+                _set_height(p_smoothed, n_pn, dh, p, hi, t)
+                continue
+            _set_height(p_smoothed, n_pn, dh, p, hi, max(floor[hi], min(t, dh[hi])))
+            t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
+            if t > dh[lo]:
+                _set_height(p_smoothed, n_pn, dh, p, lo, t)
+
+
+@njit(cache=True, inline="always")
+def _set_height(p_smoothed, n_pn, dh, p, i, h):
+    dh[i] = h
+    for a in range(3):
+        p[i, a] = p_smoothed[i, a] + h * n_pn[i, a]
+
+
+@njit(cache=True, inline="always")
+def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
+    """The height t of particle i along its normal with |p_s,i + t n_i - p_j| = lim, the root
+    nearest `current`; if none exists (the reference points alone are too far apart), the
+    height nearest to p_j (the closest approach)."""
+    ax = p_smoothed[i, 0] - p[j, 0]
+    ay = p_smoothed[i, 1] - p[j, 1]
+    az = p_smoothed[i, 2] - p[j, 2]
+    an = ax * n_pn[i, 0] + ay * n_pn[i, 1] + az * n_pn[i, 2]
+    disc = an * an - (ax * ax + ay * ay + az * az) + lim * lim
+    if disc < 0.0:
+        return -an
+    r = math.sqrt(disc)
+    t1, t2 = -an - r, -an + r
+    return t1 if abs(t1 - current) < abs(t2 - current) else t2
+
+
+@njit(cache=True)
+def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
+    """S106 step 7: n_i = normalize(α n_deform + (1 - α) n_pnt), α = min(1, Δh_i / h_normal);
+    n_deform: area-weighted normals of the deformed detailed mesh."""
+    n_deform[:] = 0.0
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        ux, uy, uz = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
+        vx, vy, vz = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        for q in (a, b, c):
+            n_deform[q, 0] += nx
+            n_deform[q, 1] += ny
+            n_deform[q, 2] += nz
+    for i in range(p.shape[0]):
+        norm = math.sqrt(n_deform[i, 0] ** 2 + n_deform[i, 1] ** 2 + n_deform[i, 2] ** 2)
+        alpha = 1.0 if dh[i] >= h_normal else max(dh[i], 0.0) / h_normal
+        inv = alpha / norm if norm > 0.0 else 0.0
+        x = inv * n_deform[i, 0] + (1.0 - alpha) * n_pn[i, 0]
+        y = inv * n_deform[i, 1] + (1.0 - alpha) * n_pn[i, 1]
+        z = inv * n_deform[i, 2] + (1.0 - alpha) * n_pn[i, 2]
+        m = math.sqrt(x * x + y * y + z * z)
+        m = 1.0 / m if m > 0.0 else 0.0
+        out[i, 0] = x * m
+        out[i, 1] = y * m
+        out[i, 2] = z * m
+
+
+@njit(cache=True)
+def penetration_floor(dh, sd, clearance, floor):
+    """The lowest height S106 may give each particle without undoing S103: a tested particle
+    may come down by its distance beyond the clearance, an untested one to the reference."""
+    for i in range(dh.shape[0]):
+        if sd[i] == UNTESTED:
+            floor[i] = 0.0
+        else:
+            floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - clearance))
