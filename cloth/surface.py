@@ -30,7 +30,8 @@ class SurfaceSettings:
     clearance: float = 0.001  # m: S103 lifts a detailed particle this far out of the body
     contact_margin: float = 0.005  # m: S103 tests a face / a finer particle only near a particle this close
     penetration_iterations: int = 4  # S103 lifts per particle (one suffices on a flat body)
-    max_lift: float = 0.05  # m: S103 lifts a particle at most this far per frame
+    max_lift: float = 0.02  # m: S103 lifts a particle at most this far per frame
+    max_height: float = 0.03  # m: Δh never exceeds this (wrinkles and lifts together)
     constraint_passes: int = 3  # S106 maximum-neighbour-distance rounds
 
 
@@ -144,7 +145,7 @@ class DetailedSurface:
                                             coarse_nearest, body_x, body.nbr_start, body.nbr_ids, body.regions,
                                             body.triangles, body.tri_start, body.tri_ids, s.nearest, face_n,
                                             face_stamp, stamp, s.q, st.clearance, st.contact_margin,
-                                            st.penetration_iterations, st.max_lift)
+                                            st.penetration_iterations, st.max_lift, st.max_height)
         penetration_floor(s.dh, s.sd, st.clearance, s.floor)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
@@ -164,7 +165,7 @@ class DetailedSurface:
                             s.dh_def)
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
-                          t.interior_local, m.d_edges, m.d_max, st.constraint_passes, s.p)
+                          t.interior_local, m.d_edges, m.d_max, st.constraint_passes, st.max_height, s.p)
         shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
         self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)

@@ -107,7 +107,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
 @njit(cache=True)
 def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
                       nbr_ids, regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance,
-                      margin, max_iterations, max_lift):
+                      margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
@@ -149,9 +149,11 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
                                                                     regions, tris, tri_start, tri_ids, nearest,
                                                                     face_n, face_stamp, stamp, q)
                 if d < clearance:
-                    d = _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids,
-                                  regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance,
-                                  max_iterations, max_lift)
+                    cap = min(max_lift, max_height - dh[vid])  # Δh never exceeds max_height
+                    if cap > 0.0:
+                        d = _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
+                                      nbr_ids, regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp,
+                                      q, clearance, max_iterations, cap)
                 sd[vid] = d
             if parents[loc, 0] < 0 and sd[vid] < margin:
                 near = True
@@ -346,16 +348,16 @@ def deformation_heights(vf, dh, required, nbr_start, nbr_ids, n_coarse, k_out, d
 
 @njit(cache=True)
 def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, interior_local,
-                      d_edges, d_max, passes, p):
+                      d_edges, d_max, passes, max_height, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
 
-    Δh_i >= floor_i (0, or the height S103 needs to keep it out of the body); in a coarse face
+    floor_i <= Δh_i <= max_height (floor: 0, or the height S103 needs to keep it out of the
+    body; max_height bounds what S103 lifts pile up where the coarse cloth is deep in the body); in a coarse face
     all of whose edges are stretched (ΔLE_required < 0) the interior is flat (Δh = floor);
     neighbours no farther apart than d_max (per detailed edge): the higher one comes down
     towards its floor, and if that is not enough the lower one goes up (`passes` rounds)."""
     for i in range(dh.shape[0]):
-        if dh[i] < floor[i]:
-            dh[i] = floor[i]
+        dh[i] = max(floor[i], min(dh[i], max_height))
     for f in range(face_ids.shape[0]):
         if (edge_required[face_edges[f, 0]] < 0.0 and edge_required[face_edges[f, 1]] < 0.0
                 and edge_required[face_edges[f, 2]] < 0.0):

@@ -63,6 +63,7 @@ def cmd_body(args) -> int:
 
 def cmd_cloth(args) -> int:
     from cloth.fabric import fabric as fabric_by_name
+    from cloth.surface import SurfaceSettings
     from skinning.body import load_body
 
     from .body_job import SHOWCASE_FRAMES
@@ -71,6 +72,7 @@ def cmd_cloth(args) -> int:
     data, out_dir, renderer = _start(args)
     body = load_body(data)
     fabrics = fabric_by_name(args.fabric, args.fabrics) if args.fabric else None
+    surface = None if args.coarse_only else SurfaceSettings(level=args.level)
     for outfit in args.outfit or list(OUTFITS):
         outfit_dir = Path(outfit) if Path(outfit).is_dir() else data / "garments" / outfit
         if not outfit_dir.is_dir():
@@ -79,7 +81,7 @@ def cmd_cloth(args) -> int:
             frames = [f for f in SHOWCASE_FRAMES.get(clip.stem, [0, 100, 200, 300]) if f % args.every == 0]
             frames = [max(f, args.every) for f in frames]  # frame 0 is skipped (converter T-pose)
             report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
-                                    snapshot_frames=frames, fabrics=fabrics)
+                                    snapshot_frames=frames, fabrics=fabrics, surface=surface)
             print(report.summary())
             if renderer is not None and report.snapshots:
                 print(f"  snapshots: {render_cloth_snapshots(body, report, report.models, out_dir, renderer)}")
@@ -99,7 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
     p.set_defaults(func=cmd_body)
-    p = sub.add_parser("cloth", help="coarse cloth (S101) of outfits on motion clips; timings and PNG snapshots")
+    p = sub.add_parser("cloth", help="cloth (S101-S106) of outfits on motion clips; timings and PNG snapshots")
+    p.add_argument("--level", type=int, default=6, help="PN tessellation level of the detailed surface (default 6)")
+    p.add_argument("--coarse-only", action="store_true", help="only the coarse cloth (S101), no detailed surface")
     p.add_argument("--outfit", action="append", help="outfit folder name in <data>/garments or a path (default all)")
     p.add_argument("--clip", action="append", help="clip name in <data>/mocap or a BVH path (default all)")
     p.add_argument("--fabric", help="one fabric for every garment (default: a preset per garment)")

@@ -84,10 +84,14 @@ class ClothReport:
     resets: list[int] = field(default_factory=list)  # particles reset per garment
     snapshots: list[tuple[int, np.ndarray, list[np.ndarray]]] = field(default_factory=list)
     detailed_snapshots: list[list[tuple[np.ndarray, np.ndarray]]] = field(default_factory=list)  # per snapshot
+    surface_triangles: list[np.ndarray] = field(default_factory=list)  # per garment, detailed mesh
     models: list[ClothModel] = field(default_factory=list)
 
     def summary(self) -> str:
         ms = "  ".join(f"{k} {np.median(v):.3f}" for k, v in self.stage_ms.items())
+        if self.surface_ms:
+            ms += " | surface PN/collision/deformation: " + "  ".join(
+                f"{k} " + "/".join(f"{x:.2f}" for x in np.median(np.array(v), axis=0)) for k, v in self.surface_ms.items())
         return (f"{self.clip} × {self.outfit}: {self.frames} frames, substeps {self.substeps} | "
                 f"median ms per garment-frame: {ms} | NaN frames {self.nan_frames} | resets {self.resets}")
 
@@ -151,6 +155,7 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
         session = OutfitSession(body, animator, body_mesh, outfit, surface)
         session.profile = profile
         report = ClothReport(Path(clip).stem, outfit.name, [m.name for m in outfit.models], models=outfit.models)
+        report.surface_triangles = [sf.model.tess.triangles for sf in session.surfaces]
         stage = {f"{g}": [] for g in report.garments}
         dt = source.frame_time
         started = False
@@ -202,10 +207,15 @@ def render_cloth_snapshots(body: Body, report: ClothReport, models: list[ClothMo
     own = renderer is None
     renderer = renderer or Renderer(360, 480)
     images = []
-    for _, verts, garments in report.snapshots:
+    for s, (_, verts, garments) in enumerate(report.snapshots):
         meshes = [MeshDraw(verts, body.triangles, vertex_normals(verts, body.triangles), SKIN)]
+        detailed = report.detailed_snapshots[s] if s < len(report.detailed_snapshots) else []
         for k, (m, x) in enumerate(zip(models, garments)):
-            meshes.append(MeshDraw(x, m.triangles, vertex_normals(x, m.triangles), GARMENT_COLORS[k % 4]))
+            if detailed and report.surface_triangles:
+                p, n = detailed[k]  # the detailed surface with its S106 shading normals
+                meshes.append(MeshDraw(p, report.surface_triangles[k], n, GARMENT_COLORS[k % 4]))
+            else:
+                meshes.append(MeshDraw(x, m.triangles, vertex_normals(x, m.triangles), GARMENT_COLORS[k % 4]))
         centre = np.array([verts[:, 0].mean(), verts[:, 1].min() + 0.5 * np.ptp(verts[:, 1]), verts[:, 2].mean()])
         for az in azimuths:
             images.append(renderer.render(meshes, orbit_camera(centre, az, distance=3.6, height=0.2)))
