@@ -22,6 +22,7 @@ bench: setup
 	$(BIN)/python bench/bench_body.py
 	$(BIN)/python bench/bench_body.py --every 2
 	$(BIN)/python bench/bench_cloth.py
+	$(BIN)/python bench/bench_surface.py
 
 clean:
 	rm -rf $(VENV) out

@@ -1,0 +1,85 @@
+"""Measure the detailed surface (S102-S106) of an outfit through a clip, with checks that
+share no code with cloth/: the independent signed distance of tests/signed_distance.py.
+
+Per garment and frame: the deepest detailed vertex, NaN, detailed edges longer than the
+maximum neighbour distance (or than the reference surface's own edge, where the coarse
+cloth is already stretched beyond it), and on coarse edges compressed by more than 2 %
+the share of their arc-length deficit the wrinkles recovered.
+Run directly for a table: python -m tests.surface_acceptance [clip ...]
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from cloth.surface import SurfaceSettings
+from services.cloth_job import OUTFITS, run_cloth_clip
+from tests.signed_distance import SignedDistance
+
+
+@dataclass
+class SurfaceRecord:
+    name: str
+    depth: list[float] = field(default_factory=list)  # per frame: most negative signed distance, m
+    nan_frames: int = 0
+    long_edges: int = 0  # edge-frames over the limit
+    edges: int = 0
+    recovered: list[float] = field(default_factory=list)  # per frame: median recovered share of the deficit
+    max_height: float = 0.0
+
+
+def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int | None = None):
+    sd = SignedDistance(body.triangles, body.n_visible)
+    records: list[SurfaceRecord] = []
+
+    def on_frame(index, session, body_frame, positions):
+        if not records:
+            records.extend(SurfaceRecord(s.model.cloth.name) for s in session.surfaces)
+        skin = body_frame.vertices[: body.n_visible]
+        for rec, surf, (p, _) in zip(records, session.surfaces, session.detailed):
+            if not np.isfinite(p).all():
+                rec.nan_frames += 1
+                continue
+            m, s = surf.model, surf.state
+            rec.depth.append(float(sd(skin, p).min()))
+            length = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
+            ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
+            rec.long_edges += int(np.sum(length > np.maximum(m.d_max, ref) * (1 + 1e-9)))
+            rec.edges += len(length)
+            rec.max_height = max(rec.max_height, float(s.dh.max()))
+            ids = m.tess.edge_ids
+            arc_ref = np.linalg.norm(np.diff(s.p_smoothed[ids], axis=1), axis=2).sum(axis=1)
+            arc = np.linalg.norm(np.diff(p[ids], axis=1), axis=2).sum(axis=1)
+            deficit = m.edge_rest - arc_ref
+            comp = deficit > 0.02 * m.edge_rest
+            if comp.any():
+                rec.recovered.append(float(np.median((arc[comp] - arc_ref[comp]) / deficit[comp])))
+
+    report = run_cloth_clip(body, data / "garments" / outfit, data / "mocap" / f"{clip}.bvh", every=every,
+                            max_frames=max_frames, on_frame=on_frame, surface=SurfaceSettings())
+    return records, report
+
+
+def main() -> None:
+    from skinning.body import load_body
+    from skinning.data import data_dir
+
+    data = data_dir()
+    body = load_body(data)
+    clips = sys.argv[1:] or ["cmu_npybvh_example_75f", "cmu_131_01_walk_3dsmax", "cmu_13_29_jumping_jacks"]
+    for clip in clips:
+        for outfit in OUTFITS:
+            records, _ = measure(body, data, outfit, clip)
+            for r in records:
+                d = np.array(r.depth)
+                print(f"{clip:26s} {r.name:28s} frames {len(d):5d} deepest {d.min() * 1000:7.1f} mm "
+                      f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}) long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
+                      f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
+                      f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
