@@ -79,27 +79,6 @@ def accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, out):
 
 
 @njit(cache=True)
-def particle_normals(x, triangles, out):
-    """Area-weighted unit normals of the cloth at its particles (once per frame, for air drag)."""
-    out[:] = 0.0
-    for t in range(triangles.shape[0]):
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ux, uy, uz = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
-        vx, vy, vz = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
-        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
-        for p in (a, b, c):
-            out[p, 0] += nx
-            out[p, 1] += ny
-            out[p, 2] += nz
-    for i in range(x.shape[0]):
-        norm = math.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2 + out[i, 2] ** 2)
-        if norm > 0.0:
-            out[i, 0] /= norm
-            out[i, 1] /= norm
-            out[i, 2] /= norm
-
-
-@njit(cache=True)
 def _axpy(out, base, h, d):
     for i in range(out.shape[0]):
         for k in range(3):

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from .geometry import vertex_normals
 from .topology import unique_edges
 
 
@@ -188,27 +189,6 @@ def _hierarchy(lat: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
         parents[k, : len(cand)] = cand
     order = np.argsort(level_of, kind="stable").astype(np.int32)
     return order, parents
-
-
-@njit(cache=True)
-def vertex_normals(x, triangles, out):
-    """Area-weighted unit normals of a triangle mesh at its vertices (S102 step 1: coarse N_i)."""
-    out[:] = 0.0
-    for t in range(triangles.shape[0]):
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ux, uy, uz = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
-        vx, vy, vz = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
-        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
-        for p in (a, b, c):
-            out[p, 0] += nx
-            out[p, 1] += ny
-            out[p, 2] += nz
-    for i in range(out.shape[0]):
-        norm = math.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2 + out[i, 2] ** 2)
-        if norm > 0.0:
-            out[i, 0] /= norm
-            out[i, 1] /= norm
-            out[i, 2] /= norm
 
 
 @njit(cache=True)

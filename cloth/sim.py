@@ -21,10 +21,10 @@ from numba import njit
 from .coarsen import coarsen
 from .collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_cache, follow_body,
                         resolve_contacts)
-from .dynamics import limit_stretch, particle_normals, rk4_substep
+from .dynamics import limit_stretch, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
-from .geometry import nearest_vertices, region_masks
+from .geometry import nearest_vertices, region_masks, vertex_normals
 from .model import ClothModel, SimSettings, build_cloth_model
 
 
@@ -200,7 +200,7 @@ class ClothSim:
         s.stamp += 1
         follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
                     1.0 / dt, st.follow_near, st.follow_far, s.followed, s.face_n, s.face_stamp, s.stamp)
-        particle_normals(s.x, m.triangles, s.normals)
+        vertex_normals(s.x, m.triangles, s.normals)  # for air drag
         n_sub = m.substeps_for(dt)
         h = dt / n_sub
         g = -st.gravity

@@ -21,7 +21,8 @@ from .model import ClothModel
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import unique_edges
 from .wrinkles import (apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights, elastic_forces,
-                       length_displacement, normal_force, penetration_floor, shading_normals)
+                       length_displacement, normal_force, offset_along_normals, penetration_floor,
+                       shading_normals)
 
 
 @dataclass(frozen=True)
@@ -132,8 +133,7 @@ class DetailedSurface:
         t0 = time.perf_counter()
         # S102: reference surface, then the last frame's heights
         pn_surface(t, x, s.coarse_normals, s.ctrl, s.nctrl, s.p_smoothed, s.n_pn)
-        np.multiply(s.n_pn, s.dh[:, None], out=s.p)
-        s.p += s.p_smoothed
+        offset_along_normals(s.p_smoothed, s.n_pn, s.dh, s.p)
         t1 = time.perf_counter()
         # S103: penetration avoidance (body None: no body, nothing to avoid)
         if body is None:

@@ -13,6 +13,7 @@ import numpy as np
 from numba import njit
 
 from .collision import ring_signed_distance, walk_nearest
+from .geometry import vertex_normals
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -364,9 +365,7 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
             for k in range(interior_local.shape[0]):
                 vid = face_ids[f, interior_local[k]]
                 dh[vid] = floor[vid]
-    for i in range(dh.shape[0]):
-        for a in range(3):
-            p[i, a] = p_smoothed[i, a] + dh[i] * n_pn[i, a]
+    offset_along_normals(p_smoothed, n_pn, dh, p)
     for _ in range(passes):
         for e in range(d_edges.shape[0]):
             i, j = d_edges[e, 0], d_edges[e, 1]
@@ -384,6 +383,14 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
             t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
             if t > dh[lo]:
                 _set_height(p_smoothed, n_pn, dh, p, lo, t)
+
+
+@njit(cache=True)
+def offset_along_normals(p_smoothed, n_pn, dh, p):
+    """p_i = p_smoothed,i + Δh_i n_i (S102 step 4, S106 step 6)."""
+    for i in range(dh.shape[0]):
+        for a in range(3):
+            p[i, a] = p_smoothed[i, a] + dh[i] * n_pn[i, a]
 
 
 @njit(cache=True, inline="always")
@@ -414,23 +421,12 @@ def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
 def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
     """S106 step 7: n_i = normalize(α n_deform + (1 - α) n_pnt), α = min(1, Δh_i / h_normal);
     n_deform: area-weighted normals of the deformed detailed mesh."""
-    n_deform[:] = 0.0
-    for t in range(triangles.shape[0]):
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ux, uy, uz = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
-        vx, vy, vz = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
-        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
-        for q in (a, b, c):
-            n_deform[q, 0] += nx
-            n_deform[q, 1] += ny
-            n_deform[q, 2] += nz
+    vertex_normals(p, triangles, n_deform)
     for i in range(p.shape[0]):
-        norm = math.sqrt(n_deform[i, 0] ** 2 + n_deform[i, 1] ** 2 + n_deform[i, 2] ** 2)
         alpha = 1.0 if dh[i] >= h_normal else max(dh[i], 0.0) / h_normal
-        inv = alpha / norm if norm > 0.0 else 0.0
-        x = inv * n_deform[i, 0] + (1.0 - alpha) * n_pn[i, 0]
-        y = inv * n_deform[i, 1] + (1.0 - alpha) * n_pn[i, 1]
-        z = inv * n_deform[i, 2] + (1.0 - alpha) * n_pn[i, 2]
+        x = alpha * n_deform[i, 0] + (1.0 - alpha) * n_pn[i, 0]
+        y = alpha * n_deform[i, 1] + (1.0 - alpha) * n_pn[i, 1]
+        z = alpha * n_deform[i, 2] + (1.0 - alpha) * n_pn[i, 2]
         m = math.sqrt(x * x + y * y + z * z)
         m = 1.0 / m if m > 0.0 else 0.0
         out[i, 0] = x * m

@@ -9,7 +9,8 @@ from cloth.collision import BodyMesh, face_cache
 from cloth.fabric import fabric
 from cloth.garment import Garment
 from cloth.model import SimSettings, build_cloth_model
-from cloth.pn import build_tessellation, pn_control_points, pn_evaluate, vertex_normals
+from cloth.geometry import vertex_normals
+from cloth.pn import build_tessellation, pn_control_points, pn_evaluate
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from tests.test_cloth_dynamics import box, uv_sphere
 
