@@ -121,7 +121,7 @@ def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n, face_stam
     return best, best_t
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
                       nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp):
     """S101 collision: update each particle's nearest body vertex by a walk; if the particle is
@@ -185,7 +185,7 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
         v[i, 2] = body_vel[i, 2] + rz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, bary, height, anchor, face_n,
                    face_stamp, stamp):
     """Store each particle's coordinates relative to its nearest body face (S101 body following).
@@ -234,7 +234,7 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
                             + bary[i, 2] * body_x[tris[t, 2], k])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, carrier, inv_dt, near, far,
                 followed, face_n, face_stamp, stamp):
     """S101 body following, before a step, after the body moved (with the Decision's distance blend).
@@ -307,7 +307,7 @@ def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, nearest_any,
                      thickness, fixed, face_n, face_stamp, stamp, q, cell, grid_start, grid_ids):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
@@ -374,7 +374,7 @@ def _cell_hash(i, j, k, mask):
     return ((i * 73856093) ^ (j * 19349663) ^ (k * 83492791)) & mask
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def build_vertex_grid(body_x, cell, start, ids, counts):
     """Counting sort of the body vertices by hashed cell (CSR: start, ids)."""
     mask = counts.shape[0] - 1

@@ -57,7 +57,7 @@ def closest_point_triangle(p, a, b, c, out):
     return v, w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def region_masks(points, vertices, regions, radius, out):
     """OR of the regions of every vertex within radius of each point (at least the nearest one's)."""
     r2 = radius * radius
@@ -76,7 +76,7 @@ def region_masks(points, vertices, regions, radius, out):
         out[i] = mask | regions[nearest]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
     """Brute force: the closest triangle to each point and the point's barycentric coordinates there.
 
@@ -98,7 +98,7 @@ def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
                 bary_out[i, 2] = w
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def nearest_vertices(points, vertices, out, regions, masks):
     """Brute force nearest vertex per point among vertices of its regions (setup and recovery only)."""
     for i in range(points.shape[0]):
@@ -113,7 +113,7 @@ def nearest_vertices(points, vertices, out, regions, masks):
                 out[i] = j
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def vertex_normals(x, triangles, out):
     """Area-weighted unit normals of a triangle mesh at its vertices (the cloth's air drag, S102's
     coarse N_i, S106's n_deform)."""

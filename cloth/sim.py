@@ -28,7 +28,7 @@ from .geometry import nearest_vertices, region_masks, vertex_normals
 from .model import ClothModel, SimSettings, build_cloth_model
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj,
                       rest, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
                       tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n,
@@ -45,7 +45,7 @@ def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, g
             limit_stretch(x, v, inv_mass, si, sj, rest, n_structural, max_strain)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def recover_unstable(x, v, followed, si, sj, rest, n_structural, max_speed, max_stretch, bad):
     """Reset exploded particles to their body-following positions; returns how many were reset.
 

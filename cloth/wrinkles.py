@@ -47,7 +47,7 @@ def _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift):
     pi[2] = b2 + lift * normals[vid, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
               tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance, max_iterations, max_lift):
     """The smallest lift along n_i that puts particle vid `clearance` outside the body (S103).
@@ -105,7 +105,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
     return d
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
                       nbr_ids, regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance,
                       margin, max_iterations, max_lift, max_height):
@@ -203,7 +203,7 @@ def _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, weight, accumu
                 ef[i, a] = val
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def coarse_edge_forces(x, edges, rest, k_stretch, k_compress, out):
     """S104 step 1 on each coarse edge: the elastic force of the edge at its two ends, as S101's
     springs define it (k_stretch longer than rest, k_compress shorter), taken as the reaction on
@@ -228,7 +228,7 @@ def coarse_edge_forces(x, edges, rest, k_stretch, k_compress, out):
         out[e, 1, 0], out[e, 1, 1], out[e, 1, 2] = -fx, -fy, -fz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_length, interior_local, exponent,
                    rates, f1, fn, ids, ef):
     """S104 steps 1-4: elastic force ef_i of every detailed particle.
@@ -265,7 +265,7 @@ def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_
                 _interpolate_line(p, ids, cnt, f1, fn, exponent, rates, ef, third, True)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def normal_force(p, ef, nbr_start, nbr_ids, vf):
     """S104 step 5: vf_i = Σ_j (p_i - p_j)/|p_i - p_j| . ef_j over the detailed neighbours j.
     vf > 0: pushed by its surroundings (relief grows); vf < 0: pulled (the surface flattens)."""
@@ -282,7 +282,7 @@ def normal_force(p, ef, nbr_start, nbr_ids, vf):
 
 # ---------------------------------------------------------------- S105 length displacement
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def length_displacement(p, edge_ids, edge_rest, coarse_tris, owner_face, owner_weights, edge_required,
                         vertex_required, vertex_count, required):
     """S105: per coarse edge ΔLE_required,e = L_rest,e - L_e (L_e: the detailed arc length along
@@ -315,7 +315,7 @@ def length_displacement(p, edge_ids, edge_rest, coarse_tris, owner_face, owner_w
 
 # ---------------------------------------------------------------- S106 surface deformation
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def deformation_heights(vf, dh, required, nbr_start, nbr_ids, n_coarse, k_out, dt, out):
     """S106 steps 1-4: Δh_deformation per detailed particle.
 
@@ -347,7 +347,7 @@ def deformation_heights(vf, dh, required, nbr_start, nbr_ids, n_coarse, k_out, d
         out[i] = h_length if abs(h_length) < abs(h_force) else h_force
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, interior_local,
                       d_edges, d_max, passes, max_height, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
@@ -385,7 +385,7 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
                 _set_height(p_smoothed, n_pn, dh, p, lo, t)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def offset_along_normals(p_smoothed, n_pn, dh, p):
     """p_i = p_smoothed,i + Δh_i n_i (S102 step 4, S106 step 6)."""
     for i in range(dh.shape[0]):
@@ -417,7 +417,7 @@ def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
     return t1 if abs(t1 - current) < abs(t2 - current) else t2
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
     """S106 step 7: n_i = normalize(α n_deform + (1 - α) n_pnt), α = min(1, Δh_i / h_normal);
     n_deform: area-weighted normals of the deformed detailed mesh."""
@@ -434,7 +434,7 @@ def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
         out[i, 2] = z * m
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def penetration_floor(dh, sd, clearance, floor):
     """The lowest height S106 may give each particle without undoing S103: a tested particle
     may come down by its distance beyond the clearance, an untested one to the reference."""

@@ -90,6 +90,212 @@ def cmd_cloth(args) -> int:
     return 0
 
 
+def _logging(args) -> None:
+    import logging
+
+    logging.basicConfig(level=logging.DEBUG if getattr(args, "verbose", False) else logging.INFO,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
+
+
+def _spec(args):
+    from .cloth_service import OutfitSpec
+
+    return OutfitSpec(args.outfit, args.fabric, None if args.coarse_only else args.level)
+
+
+def _wait(stop_check=None) -> None:
+    """Block until Ctrl-C (or stop_check() is true)."""
+    try:
+        while stop_check is None or not stop_check():
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+
+
+def cmd_session(args) -> int:
+    from skinning.body import load_body
+
+    from .bus import bus_config_from_args, check_session_name
+    from .session import run_session
+
+    data = data_dir(args.data)
+    session = check_session_name(args.session)
+    clip = _clips(data, [args.clip])[0]
+    cfg = bus_config_from_args(args)
+    if args.serve and not args.listen:
+        cfg.listen = ["tcp/0.0.0.0:7447"]  # remote displays and services connect here
+    body = load_body(data)
+    frames = [int(f) for f in args.snapshot_frames.split(",")] if args.snapshot_frames else []
+    print(f"session {session}: {clip.stem} × {args.outfit} (level {args.level if not args.coarse_only else 'coarse'}), "
+          f"bus {cfg.mode} listening on {', '.join(cfg.listen) or 'nothing'}")
+    if args.serve:
+        print(f"  serving: rerun viewer `rerun --connect rerun+http://<this-host>:{args.port}/proxy`; "
+              f"zenoh displays connect to {cfg.listen[0]}; Ctrl-C to stop")
+    result = run_session(body, data, clip, session, Path(args.out), _spec(args), every=args.every,
+                         max_frames=args.max_frames, bus_config=cfg,
+                         serve_port=args.port if args.serve else None,
+                         web_port=args.web_port if args.serve else None, record=not args.no_record,
+                         snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None)
+    print(result.summary())
+    return 0
+
+
+def cmd_ingest(args) -> int:
+    from skinning.body import load_body
+    from skinning.source import BVHSource
+
+    from .bus import Stats, bus_config_from_args, check_session_name
+    from .cloth_job import START_FRAME
+    from .ingest import BusPoseSource, IngestService
+
+    _logging(args)
+    data = data_dir(args.data)
+    session = check_session_name(args.session)
+    body = load_body(data)
+    with bus_config_from_args(args).open() as bus:
+        if args.live:
+            source = BusPoseSource(bus, session, Stats("ingest", session), wait_skeleton=args.wait)
+            start = 0
+        else:
+            source = BVHSource(_clips(data, [args.clip])[0], pace=args.pace, loop=args.loop, every=args.every,
+                               max_frames=args.max_frames)
+            start = START_FRAME
+        desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
+                "clip": "live" if args.live else Path(source.path).stem}
+        svc = IngestService(bus, session, body, source, desc)
+        if args.wait_subscribers:
+            time.sleep(args.wait_subscribers)
+        try:
+            n = svc.run(start_frame=start)
+        except KeyboardInterrupt:
+            n = svc.frames
+        finally:
+            time.sleep(0.2)
+            svc.close()
+            source.close()
+        print(f"ingest {session}: {n} body frames published; {svc.stats.snapshot()['counts']}")
+    return 0
+
+
+def cmd_cloth_service(args) -> int:
+    from skinning.body import load_body
+
+    from .bus import bus_config_from_args
+    from .cloth_service import ClothService
+
+    _logging(args)
+    data = data_dir(args.data)
+    body = load_body(data)
+    with bus_config_from_args(args).open() as bus:
+        svc = ClothService(bus, body, data, _spec(args), idle_seconds=args.idle).start()
+        print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)
+        _wait()
+        svc.stop()
+    return 0
+
+
+def cmd_viewer(args) -> int:
+    from .bus import bus_config_from_args, check_session_name
+    from .viewer import RecordingSink, ViewerBridge
+
+    _logging(args)
+    session = check_session_name(args.session)
+    if not (args.save or args.spawn or args.serve):
+        raise ValueError("viewer: choose at least one of --save FILE.rrd, --spawn, --serve")
+    with bus_config_from_args(args).open() as bus:
+        sink = RecordingSink(session, rrd=args.save, spawn=args.spawn, serve_port=args.port if args.serve else None,
+                             web_port=args.web_port)
+        bridge = ViewerBridge(bus, session, sink).start()
+        if sink.url:
+            print(f"viewer: serving {sink.url}", flush=True)
+        _wait(lambda: args.until_end and bridge.ended.is_set())
+        time.sleep(0.3)
+        bridge.stop()
+        path = sink.close()
+        print(f"viewer {session}: {bridge.stats.snapshot()['counts']}" + (f"; wrote {path}" if path else ""))
+    return 0
+
+
+def cmd_record(args) -> int:
+    from .bus import bus_config_from_args, check_session_name, key
+    from .protocol import MessageError, decode
+    from .recorder import Recorder
+
+    _logging(args)
+    session = check_session_name(args.session)
+    ended = []
+    with bus_config_from_args(args).open() as bus:
+        rec = Recorder(bus, session, args.out)
+
+        def on_control(sample):
+            try:
+                m = decode(sample.payload.to_bytes(), str(sample.key_expr), session, "control")
+                if m.meta.get("event") == "end" and m.meta.get("from") == "ingest":
+                    ended.append(time.monotonic())
+            except MessageError:
+                pass
+
+        sub = bus.declare_subscriber(key(session, "control"), on_control)
+        print(f"recording {key(session, '**')} -> {args.out}; Ctrl-C to stop", flush=True)
+        # after the end of the body stream, wait for the garments still being computed
+        _wait(lambda: bool(ended) and time.monotonic() - ended[0] > args.linger)
+        sub.undeclare()
+        path = rec.close()
+        print(f"recorder {session}: {rec.messages} messages -> {path}")
+    return 0
+
+
+def cmd_replay(args) -> int:
+    from .bus import bus_config_from_args
+    from .recorder import replay
+
+    _logging(args)
+    kinds = set(args.only.split(",")) if args.only else None
+    with bus_config_from_args(args).open() as bus:
+        if args.wait_subscribers:
+            time.sleep(args.wait_subscribers)
+        n = replay(bus, args.recording, session=args.session, speed=args.speed, kinds=kinds, linger=args.linger)
+        print(f"replay: {n} messages from {args.recording}")
+    return 0
+
+
+def cmd_capture(args) -> int:
+    from skinning.source import BVHSource
+
+    from .bus import bus_config_from_args, check_session_name
+    from .cloth_job import START_FRAME
+    from .ingest import publish_capture
+
+    data = data_dir(args.data)
+    session = check_session_name(args.session)
+    with bus_config_from_args(args).open() as bus, \
+            BVHSource(_clips(data, [args.clip])[0], pace=args.pace, every=args.every,
+                      max_frames=args.max_frames) as source:
+        if args.wait_subscribers:
+            time.sleep(args.wait_subscribers)
+        n = publish_capture(bus, session, source, start_frame=START_FRAME)
+        print(f"capture {session}: {n} poses published")
+    return 0
+
+
+def cmd_router(args) -> int:
+    from .bus import BusConfig
+
+    cfg = BusConfig(mode="router", listen=args.listen or ["tcp/0.0.0.0:7447"], connect=args.connect or [],
+                    config_file=args.zenoh_config)
+    with cfg.open() as bus:
+        print(f"zenoh router {bus.info.zid()} listening on {', '.join(cfg.listen)}; Ctrl-C to stop", flush=True)
+        _wait()
+    return 0
+
+
+def _outfit_arguments(p, level_default: int = 6) -> None:
+    p.add_argument("--outfit", default="female_casualsuit01", help="outfit folder in <data>/garments or a path")
+    p.add_argument("--fabric", help="one fabric preset for every garment (default: a preset per garment)")
+    p.add_argument("--level", type=int, default=level_default, help="PN tessellation level (default 6)")
+    p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="tryon", description="Real-time virtual try-on.")
     parser.add_argument("--data", help=f"data folder (default: ${ENV_VAR} or ../shared/data)")
@@ -113,10 +319,97 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
     p.set_defaults(func=cmd_cloth)
+
+    from .bus import add_bus_arguments
+
+    p = sub.add_parser("session", help="a whole try-on session in one process: ingest, cloth, viewer (.rrd), "
+                                       "recording (.mcap), PNG snapshots, timings")
+    p.add_argument("--clip", default="cmu_131_01_walk_3dsmax", help="clip name in <data>/mocap or a BVH path")
+    _outfit_arguments(p)
+    p.add_argument("--session", default="demo", help="session name (default demo)")
+    p.add_argument("--out", default="out", help="output folder (default out/)")
+    p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    p.add_argument("--snapshot-frames", default="60,150,240,330,420",
+                   help="frames to render as PNG (comma-separated; default 60,150,240,330,420)")
+    p.add_argument("--serve", action="store_true", help="stay live: clip at its own pace, looped; rerun served "
+                                                         "for remote viewers; bus on tcp/0.0.0.0:7447; Ctrl-C stops")
+    p.add_argument("--port", type=int, default=9876, help="rerun gRPC port with --serve (default 9876)")
+    p.add_argument("--web-port", type=int, default=None, help="also serve rerun's web viewer on this port")
+    p.add_argument("--no-record", action="store_true", help="do not write the bus recording")
+    p.add_argument("--no-png", action="store_true", help="skip the PNG snapshots")
+    p.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_session)
+
+    p = sub.add_parser("ingest", help="mocap-ingest service: BVH file or live pose stream -> tryon/<s>/body")
+    p.add_argument("--session", default="demo")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--clip", default="cmu_131_01_walk_3dsmax", help="BVH clip (name or path)")
+    src.add_argument("--live", action="store_true", help="read tryon/<s>/skeleton + tryon/<s>/pose from the bus")
+    p.add_argument("--wait", type=float, default=30.0, help="--live: seconds to wait for the skeleton")
+    p.add_argument("--pace", default="realtime", choices=("realtime", "fast"), help="BVH pacing (default realtime)")
+    p.add_argument("--loop", action="store_true", help="loop the clip")
+    p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--wait-subscribers", type=float, default=0.0, help="seconds to wait before the first frame")
+    _outfit_arguments(p)
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_ingest)
+
+    p = sub.add_parser("cloth-service", help="cloth service: tryon/*/body -> tryon/<s>/garment/<name>, every session")
+    _outfit_arguments(p)
+    p.add_argument("--idle", type=float, default=60.0, help="drop a session silent for this many seconds")
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_cloth_service)
+
+    p = sub.add_parser("viewer", help="viewer bridge: a session -> rerun (.rrd file, local viewer, or served)")
+    p.add_argument("--session", default="demo")
+    p.add_argument("--save", help="write the rerun recording to this .rrd file")
+    p.add_argument("--spawn", action="store_true", help="spawn a local rerun viewer")
+    p.add_argument("--serve", action="store_true", help="serve over gRPC for remote rerun viewers")
+    p.add_argument("--port", type=int, default=9876, help="gRPC port with --serve (default 9876)")
+    p.add_argument("--web-port", type=int, default=None, help="also serve rerun's web viewer on this port")
+    p.add_argument("--until-end", action="store_true", help="stop when the session's body stream ends")
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_viewer)
+
+    p = sub.add_parser("record", help="record every bus message of a session to an MCAP file")
+    p.add_argument("--session", default="demo")
+    p.add_argument("--out", required=True, help="the .mcap file")
+    p.add_argument("--linger", type=float, default=2.0, help="seconds to keep recording after the body stream ends")
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser("replay", help="replay an MCAP recording onto the bus")
+    p.add_argument("recording")
+    p.add_argument("--session", help="publish under this session name (default: the recorded one)")
+    p.add_argument("--speed", type=float, default=1.0, help="1 original pace, 2 twice as fast, 0 as fast as possible")
+    p.add_argument("--only", help="only these kinds, e.g. session,topology,body (feeds a fresh cloth service)")
+    p.add_argument("--linger", type=float, default=2.0, help="keep answering topology queries this long at the end")
+    p.add_argument("--wait-subscribers", type=float, default=0.0, help="seconds to wait before the first message")
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("capture", help="publish a BVH clip as a live pose stream (reference capture publisher)")
+    p.add_argument("--session", default="demo")
+    p.add_argument("--clip", default="cmu_131_01_walk_3dsmax")
+    p.add_argument("--pace", default="realtime", choices=("realtime", "fast"))
+    p.add_argument("--every", type=int, default=2)
+    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--wait-subscribers", type=float, default=0.0, help="seconds to wait before the first pose")
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_capture)
+
+    p = sub.add_parser("router", help="a zenoh router for several machines")
+    p.add_argument("--listen", action="append", help="endpoint (default tcp/0.0.0.0:7447)")
+    p.add_argument("--connect", action="append", help="another router to connect to")
+    p.add_argument("--zenoh-config", help="zenoh JSON5 config file")
+    p.set_defaults(func=cmd_router)
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (FileNotFoundError, ValueError) as exc:
+    except (FileNotFoundError, ValueError, TimeoutError) as exc:
         print(f"tryon: {exc}", file=sys.stderr)
         return 2
 

@@ -100,11 +100,14 @@ class OutfitSession:
     """Body animator + one ClothSim per garment; `frame()` advances everything by one frame."""
 
     def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit,
-                 surface: SurfaceSettings | None = None):
-        """surface: also build each garment's detailed surface (S102-S106) at these settings."""
+                 surface: SurfaceSettings | None = None, surface_models: list | None = None):
+        """surface: also build each garment's detailed surface (S102-S106) at these settings;
+        surface_models: the garments' surface models, already built (shared between sessions)."""
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
-        self.surfaces = [DetailedSurface(build_surface_model(m, surface)) for m in outfit.models] if surface else []
+        if surface_models is None and surface is not None:
+            surface_models = [build_surface_model(m, surface) for m in outfit.models]
+        self.surfaces = [DetailedSurface(sm) for sm in surface_models or []]
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
         self.grid = VertexGrid(body_mesh.n_vertices)  # one per body pose, shared by the garments

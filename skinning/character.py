@@ -36,7 +36,7 @@ def build_model(skeleton: Skeleton) -> tuple[pin.Model, np.ndarray]:
     return model, joint_ids
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def local_to_configuration(local_rot, root_position, idx_q, q):
     """Local bone rotations + root position -> Pinocchio configuration q (in place)."""
     q[0] = root_position[0]
@@ -46,7 +46,7 @@ def local_to_configuration(local_rot, root_position, idx_q, q):
         matrix_to_quaternion_xyzw(local_rot[b], q[idx_q[b]: idx_q[b] + 4])
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def quaternion_to_matrix(x, y, z, w, out):
     out[0, 0] = 1 - 2 * (y * y + z * z)
     out[0, 1] = 2 * (x * y - z * w)
@@ -59,7 +59,7 @@ def quaternion_to_matrix(x, y, z, w, out):
     out[2, 2] = 1 - 2 * (x * x + y * y)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def configuration_to_local(q, idx_q, local_rot, root_position):
     """Pinocchio configuration -> local bone rotations (n, 3, 3) and root position (3,)."""
     for a in range(3):

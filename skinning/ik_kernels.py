@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def mat3_mul(a, b, out):
     """out = a @ b for 3x3 matrices (out may not alias a or b)."""
     for i in range(3):
@@ -14,7 +14,7 @@ def mat3_mul(a, b, out):
             out[i, j] = a[i, 0] * b[0, j] + a[i, 1] * b[1, j] + a[i, 2] * b[2, j]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def mat3_tmul(a, b, out):
     """out = a.T @ b for 3x3 matrices."""
     for i in range(3):
@@ -22,7 +22,7 @@ def mat3_tmul(a, b, out):
             out[i, j] = a[0, i] * b[0, j] + a[1, i] * b[1, j] + a[2, i] * b[2, j]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def copy_rotations(person_global, person_index, align, parents, char_global, char_local):
     """Character bone rotations from the person's: G_b = R_person_b A_b (bones the person lacks keep
     their aligned rest rotation relative to the parent); local L_b = G_parent^T G_b."""
@@ -43,7 +43,7 @@ def copy_rotations(person_global, person_index, align, parents, char_global, cha
             char_local[b] = char_global[b]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def rotation_log(r, out):
     """Axis-angle vector of a rotation matrix (log map), robust near 0 and pi."""
     c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
@@ -76,7 +76,7 @@ def rotation_log(r, out):
     out[2] = f * vz
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def pose_error(target_rot, target_pos, rot, pos, out):
     """6-vector [target_pos - pos, log(target_rot rot^T)] in world axes."""
     for a in range(3):
@@ -92,7 +92,7 @@ def pose_error(target_rot, target_pos, rot, pos, out):
     out[5] = tmp[2]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def weighted_cost(error, weights):
     s = 0.0
     for i in range(error.shape[0]):
@@ -100,7 +100,7 @@ def weighted_cost(error, weights):
     return s
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def solve_spd(a, b, out):
     """Solve a x = b for a small symmetric positive definite a (Cholesky, no pivoting)."""
     n = a.shape[0]
@@ -127,7 +127,7 @@ def solve_spd(a, b, out):
         out[i] = s / low[i, i]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def dls_step(jac, error, weights, lam, posture, posture_gain, max_step, out):
     """Damped least-squares step with a null-space pull towards a posture.
 
@@ -168,7 +168,7 @@ def dls_step(jac, error, weights, lam, posture, posture_gain, max_step, out):
             out[j] *= max_step / biggest
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lowest_sole_point(points, on_toe, foot_rot, foot_pos, foot_head, toe_local, toe_head):
     """Lowest world height of the sole points when the foot joint is at (foot_rot, foot_pos) and the
     toe joint rotates by toe_local relative to the foot (points are rest positions)."""

@@ -6,7 +6,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def axis_rotation(axis: int, degrees: float, out: np.ndarray) -> None:
     """Rotation matrix about x (0), y (1) or z (2) by an angle in degrees, written into out (3, 3)."""
     a = np.deg2rad(degrees)
@@ -35,7 +35,7 @@ def axis_rotation(axis: int, degrees: float, out: np.ndarray) -> None:
         out[1, 1] = c
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def channels_to_local(values, chan_joint, chan_kind, unit, rot_out, pos_out):
     """BVH channel values of one frame -> local rotation per joint and root translation.
 
@@ -67,7 +67,7 @@ def channels_to_local(values, chan_joint, chan_kind, unit, rot_out, pos_out):
             rot_out[j] = tmp
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def forward_kinematics(parents, offsets, root_position, local_rot, global_rot, global_pos):
     """Global rotation and joint position of every bone (parents listed before children).
 
@@ -117,7 +117,7 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + vx + vx @ vx * ((1 - c) / (s * s))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def matrix_to_quaternion_xyzw(r, out):
     """Rotation matrix -> unit quaternion (x, y, z, w), Pinocchio's storage order."""
     tr = r[0, 0] + r[1, 1] + r[2, 2]

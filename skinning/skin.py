@@ -28,7 +28,7 @@ class SkinWeights:
         return cls(start, bones[keep].astype(np.int64), values[keep].astype(np.float64))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def skin_matrices(global_rot, global_pos, rest_heads, out):
     """Bone skinning transforms (B, 3, 4): x -> R_b (x - head_b) + p_b.
 
@@ -45,7 +45,7 @@ def skin_matrices(global_rot, global_pos, rest_heads, out):
             out[b, a, 3] = t
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def linear_blend_skinning(rest, start, bones, weights, matrices, out):
     """out_v = sum_k w_vk M_{b_vk} [rest_v; 1] for every vertex."""
     for v in prange(rest.shape[0]):
@@ -75,7 +75,7 @@ def vertex_faces(triangles: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np
     return start, (order // 3).astype(np.int64)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def face_normals(vertices, triangles, out):
     """Unnormalised face normals (cross products: length = twice the area)."""
     for t in prange(triangles.shape[0]):
@@ -93,7 +93,7 @@ def face_normals(vertices, triangles, out):
         out[t, 2] = e1x * e2y - e1y * e2x
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, nogil=True, parallel=True)
 def vertex_normals(vertices, triangles, adj_start, adj_faces, face_scratch, out):
     """Area-weighted unit vertex normals into out (n, 3); vertices without faces get 0.
 

@@ -1,0 +1,299 @@
+"""cloth: subscribe to every session's body frames, run S101-S106 per garment, publish the meshes.
+
+One worker thread consumes the body frames of all sessions in arrival order (each session keeps
+its own simulation state). Frames are never skipped: when the service falls behind, the queue
+holds the backlog and the service catches up at full speed with the same fixed time step, so the
+simulation sees exactly the frames it would have seen in real time (and a replayed body stream
+gives bit-identical garments).
+
+A session starts on its first body frame: the service reads the latched session description
+(outfit, fabric, level), fits the outfit on the rest body and settles it into the frame's pose
+(pre-roll), then publishes tryon/<s>/garment/<name> per frame and latches each garment's topology.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from cloth.collision import BodyMesh
+from cloth.fabric import fabric as fabric_preset
+from cloth.geometry import vertex_normals
+from cloth.surface import SurfaceSettings, build_surface_model
+from skinning.animate import BodyAnimator
+from skinning.body import Body, body_regions
+
+from .bus import Latched, Stats, fetch_latched, key, parse_key
+from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, load_outfit_models
+from .protocol import Message, MessageError, decode, encode
+
+log = logging.getLogger("tryon.cloth")
+
+
+@dataclass(frozen=True)
+class OutfitSpec:
+    outfit: str
+    fabric: str | None = None  # one preset for every garment; None: a preset per garment
+    level: int | None = 6  # PN tessellation level; None: coarse cloth only
+
+    @staticmethod
+    def from_description(d: dict, default: "OutfitSpec", key_expr: str) -> "OutfitSpec":
+        outfit = d.get("outfit", default.outfit)
+        fabric = d.get("fabric", default.fabric)
+        level = d.get("level", default.level)
+        if not isinstance(outfit, str) or not outfit:
+            raise MessageError(key_expr, f"session 'outfit' must be a name, got {outfit!r}")
+        if fabric is not None and not isinstance(fabric, str):
+            raise MessageError(key_expr, f"session 'fabric' must be a preset name or null, got {fabric!r}")
+        if level is not None and (not isinstance(level, int) or not 1 <= level <= 16):
+            raise MessageError(key_expr, f"session 'level' must be an integer 1-16 or null, got {level!r}")
+        return OutfitSpec(outfit, fabric, level)
+
+
+class GarmentSession:
+    """One session's cloth: its own simulation state, publishers and stats."""
+
+    def __init__(self, service: "ClothService", session: str, spec: OutfitSpec, frame_time: float):
+        self.service, self.session, self.spec, self.dt = service, session, spec, frame_time
+        outfit, surface_models = service.outfit_models(spec)
+        self.sim = OutfitSession(service.body, service.animator, service.body_mesh, outfit,
+                                 surface_models=surface_models)
+        self.names = [m.name for m in outfit.models]
+        self.stats = Stats(ClothService.SERVICE, session)
+        self.stats.values["garments"] = len(self.names)
+        bus = service.bus
+        self.latched = Latched(bus)
+        # a display that lags must not hold the cloth back: garment frames are dropped for it
+        self.publishers = [bus.declare_publisher(key(session, "garment", n),
+                                                 congestion_control=zenoh.CongestionControl.DROP)
+                           for n in self.names]
+        self._coarse_normals = [np.empty((m.n_particles, 3)) for m in outfit.models]
+        n_out = [sf.state.p.shape[0] for sf in self.sim.surfaces] \
+            if self.sim.surfaces else [m.n_particles for m in outfit.models]
+        self._p32 = [np.empty((n, 3), np.float32) for n in n_out]  # wire buffers, reused every frame
+        self._n32 = [np.empty((n, 3), np.float32) for n in n_out]
+        self.body_x = np.empty((service.body.n_visible, 3))
+        self.last_frame = -1
+        self.started = False
+        self.end_frame: int | None = None  # set by the session's end message
+        self.last_seen = time.monotonic()
+        for k, (n, m) in enumerate(zip(self.names, outfit.models)):
+            tris = self.sim.surfaces[k].model.tess.triangles if self.sim.surfaces else m.triangles
+            topo = Message("topology", session, arrays={"triangles": np.ascontiguousarray(tris, dtype=np.int32)},
+                           meta={"what": "garment", "garment": n, "fabric": m.fabric.name,
+                                 "color": list(GARMENT_COLORS[k % len(GARMENT_COLORS)]),
+                                 "level": spec.level, "n_vertices": int(tris.max()) + 1})
+            self.latched.publish(key(session, "topology", "garment", n), encode(topo))
+
+    def on_body(self, msg: Message, key_expr: str) -> None:
+        svc = self.service
+        v, q = msg.arrays["vertices"], msg.arrays["q"]
+        if v.shape[0] != svc.body.n_visible:
+            raise MessageError(key_expr, f"body has {v.shape[0]} vertices, this service's body has {svc.body.n_visible}")
+        if q.shape[0] != svc.animator.character.model.nq:
+            raise MessageError(key_expr, f"q has {q.shape[0]} values, the character needs {svc.animator.character.model.nq}")
+        if msg.frame <= self.last_frame:
+            raise MessageError(key_expr, f"frame {msg.frame} arrives after frame {self.last_frame}")
+        if self.last_frame >= 0 and msg.frame != self.last_frame + 1:
+            self.stats.add("gaps")
+        self.last_frame = msg.frame
+        self.body_x[:] = v
+        first = not self.started
+        if first:  # settle the garments from the rest pose into this first pose
+            t0 = time.perf_counter()
+            self.sim.preroll(np.array(q, dtype=np.float64), self.dt)
+            self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
+            self.started = True
+        t0 = time.perf_counter()
+        positions = self.sim.step_cloth(self.body_x, self.dt)
+        step_ms = (time.perf_counter() - t0) * 1000
+        for k, name in enumerate(self.names):
+            if self.sim.detailed:
+                p, n = self.sim.detailed[k]
+            else:
+                p = positions[k]
+                n = self._coarse_normals[k]
+                vertex_normals(p, self.sim.outfit.models[k].triangles, n)
+            meta = {"garment": name, "s101_ms": round(float(self.sim.cloth_seconds[k]) * 1000, 4),
+                    "resets": int(self.sim.sims[k].stats.reset_particles)}
+            if first:
+                meta["preroll_s"] = self.stats.values["preroll_s"]
+            if self.sim.detailed:
+                pn, col, deform = (float(x) * 1000 for x in self.sim.surface_seconds[k])
+                meta.update(pn_ms=round(pn, 4), collision_ms=round(col, 4), deformation_ms=round(deform, 4))
+            self._p32[k][:] = p
+            self._n32[k][:] = n
+            out = Message("garment", self.session, msg.frame, msg.time,
+                          {"positions": self._p32[k], "normals": self._n32[k]}, meta,
+                          origin_ns=msg.stamp_ns)
+            self.publishers[k].put(encode(out))
+            self.stats.add("published")
+        self.stats.add("received")
+        self.stats.values.update(step_ms=round(step_ms, 3), backlog=svc.backlog(),
+                                 latency_ms=round((time.time_ns() - msg.stamp_ns) / 1e6, 3))
+        self.stats.publish(svc.bus)
+
+    def close(self) -> None:
+        self.stats.publish(self.service.bus, force=True)
+        for p in self.publishers:
+            p.undeclare()
+        self.latched.close()
+
+
+class ClothService:
+    """Serves every session seen on tryon/*/body (see the module docstring)."""
+
+    SERVICE = "cloth"
+
+    def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
+                 queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*"):
+        self.bus, self.body, self.data, self.default = bus, body, Path(data), default
+        self.idle_seconds = idle_seconds
+        self.animator = BodyAnimator(body)
+        self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body))
+        self.sessions: dict[str, GarmentSession] = {}
+        self.failed: dict[str, str] = {}  # session -> why it cannot be served
+        self.ended: dict[str, int] = {}  # session -> stamp_ns of its end message
+        self.closed_stats: dict[str, dict] = {}  # final stats of the sessions that ended
+        self.stats = Stats(self.SERVICE, "_service")  # rejections of messages with no usable session
+        self._models: dict[OutfitSpec, tuple[Outfit, list | None]] = {}
+        self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
+        self._subs = [bus.declare_subscriber(key(sessions, "body"), self._queue.put),
+                      bus.declare_subscriber(key(sessions, "control"), self._queue.put)]
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.frames_done = 0
+        self.done = threading.Condition()
+
+    # -- models shared by sessions with the same outfit, fabric and level (built once) --
+    def outfit_models(self, spec: OutfitSpec):
+        if spec not in self._models:
+            outfit_dir = Path(spec.outfit) if Path(spec.outfit).is_dir() else self.data / "garments" / spec.outfit
+            if not outfit_dir.is_dir():
+                raise FileNotFoundError(f"outfit {spec.outfit!r} not found (looked for {outfit_dir})")
+            fabrics = fabric_preset(spec.fabric) if spec.fabric else None
+            outfit = load_outfit_models(self.body, self.animator, self.body_mesh, outfit_dir, fabrics)
+            surfaces = None
+            if spec.level is not None:
+                surfaces = [build_surface_model(m, SurfaceSettings(level=spec.level)) for m in outfit.models]
+            self._models[spec] = (outfit, surfaces)
+        return self._models[spec]
+
+    def backlog(self) -> int:
+        return self._queue.qsize()
+
+    def start(self) -> "ClothService":
+        self._thread = threading.Thread(target=self.serve, name="cloth-service", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        self.close()
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._subs.clear()
+        for gs in self.sessions.values():
+            gs.close()
+        self.sessions.clear()
+
+    def serve(self) -> None:
+        """Consume body frames until stop(); every error is logged and counted, never fatal."""
+        while not self._stop.is_set():
+            try:
+                sample = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                self._drop_idle()
+                continue
+            try:
+                self.handle(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:  # noqa: BLE001 - a bug in one session must not stop the others
+                log.exception("cloth: failed on %s", sample.key_expr)
+                self.stats.add("errors")
+            with self.done:
+                self.frames_done += 1
+                self.done.notify_all()
+
+    def handle(self, key_expr: str, payload: bytes) -> None:
+        try:
+            session, rest = parse_key(key_expr)
+            msg = decode(payload, key_expr, session, rest[0] if rest[0] in ("body", "control") else None)
+        except MessageError as err:
+            gs = self.sessions.get(parse_key(key_expr)[0]) if key_expr.startswith("tryon/") else None
+            (gs.stats if gs else self.stats).reject(err)
+            return
+        if msg.kind == "control":
+            if msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
+                last = msg.meta.get("last_frame", -1)
+                self.ended[session] = msg.stamp_ns
+                gs = self.sessions.get(session)
+                if gs is not None:  # frames still on their way (other key, other order) finish it
+                    gs.end_frame = last if isinstance(last, int) else -1
+                    self._close_if_done(session)
+            return
+        gs = self.sessions.get(session)
+        if gs is None and msg.stamp_ns <= self.ended.get(session, -1):
+            self.stats.reject(MessageError(key_expr, f"frame {msg.frame} arrives after the session's end"))
+            return
+        if gs is None:
+            if session in self.failed:
+                self.stats.reject(MessageError(key_expr, self.failed[session]))
+                return
+            try:
+                gs = self._open(session, key_expr)
+            except (MessageError, FileNotFoundError, ValueError) as err:
+                self.failed[session] = f"session cannot be served: {err}"
+                self.stats.reject(MessageError(key_expr, self.failed[session]))
+                return
+        gs.last_seen = time.monotonic()
+        try:
+            gs.on_body(msg, key_expr)
+        except MessageError as err:
+            gs.stats.reject(err)
+            gs.stats.publish(self.bus)
+        self._close_if_done(session)
+
+    def _close_if_done(self, session: str) -> None:
+        gs = self.sessions.get(session)
+        if gs is not None and gs.end_frame is not None and gs.last_frame >= gs.end_frame:
+            log.info("cloth: session %s ended after frame %d", session, gs.last_frame)
+            self.sessions.pop(session).close()
+            self.closed_stats[session] = gs.stats.snapshot()
+
+    def _open(self, session: str, key_expr: str) -> GarmentSession:
+        found = fetch_latched(self.bus, key(session, "session"), timeout=2.0, stats=self.stats)
+        desc = next(iter(found.values())).meta if found else {}
+        if not found:
+            log.warning("cloth: session %s has no description on %s; using the defaults", session,
+                        key(session, "session"))
+        spec = OutfitSpec.from_description(desc, self.default, key(session, "session"))
+        ft = desc.get("frame_time", 1 / 60)
+        if not isinstance(ft, (int, float)) or not 0 < ft < 1:
+            raise MessageError(key(session, "session"), f"'frame_time' must be seconds in (0, 1), got {ft!r}")
+        log.info("cloth: session %s: outfit %s, fabric %s, level %s, dt %.4f s", session, spec.outfit,
+                 spec.fabric or "presets", spec.level, ft)
+        gs = GarmentSession(self, session, spec, float(ft))
+        self.sessions[session] = gs
+        return gs
+
+    def _drop_idle(self) -> None:
+        now = time.monotonic()
+        for s in [s for s, gs in self.sessions.items() if now - gs.last_seen > self.idle_seconds]:
+            log.info("cloth: session %s idle for %.0f s, dropped", s, self.idle_seconds)
+            self.sessions.pop(s).close()
+
+    def wait_processed(self, n: int, timeout: float | None = None) -> bool:
+        """Block until n messages have been handled (flow control for offline runs)."""
+        with self.done:
+            return self.done.wait_for(lambda: self.frames_done >= n, timeout)

@@ -1,0 +1,263 @@
+"""mocap-ingest: a motion source (BVH file or live pose stream) -> retarget -> skin -> tryon/<s>/body.
+
+Live pose stream (what a capture system publishes; see README "Bus contract"):
+  tryon/<s>/skeleton  kind "skeleton", latched: meta {"names": [...], "frame_time": s};
+                      arrays parents <i4 (n,), heads <f8 (n,3) rest joint positions in metres
+                      (Y up, floor y = 0), tails <f8 (n,3) far end of each bone.
+                      Names are the CMU bone names (skinning/skeleton.py CMU_BONES).
+  tryon/<s>/pose      kind "pose" per frame: local_rotations <f8|<f4 (n,4) unit quaternions
+                      (x, y, z, w), each joint relative to its parent, identity = rest pose;
+                      root_position <f8|<f4 (3,) metres. frame numbers increase.
+  tryon/<s>/control   {"event": "end", "from": "capture"} ends the stream.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import zenoh
+
+from skinning.animate import STAGES, BodyAnimator
+from skinning.body import Body
+from skinning.skeleton import Skeleton
+from skinning.source import PoseFrame
+
+from .bus import Latched, Stats, fetch_latched, key, parse_key
+from .protocol import Message, MessageError, decode, encode
+
+log = logging.getLogger("tryon.ingest")
+
+
+def quaternions_to_matrices(q: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """(n, 4) quaternions (x, y, z, w), normalised here, -> (n, 3, 3) rotation matrices."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    x, y, z, w = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    out[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    out[:, 0, 1] = 2 * (x * y - z * w)
+    out[:, 0, 2] = 2 * (x * z + y * w)
+    out[:, 1, 0] = 2 * (x * y + z * w)
+    out[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    out[:, 1, 2] = 2 * (y * z - x * w)
+    out[:, 2, 0] = 2 * (x * z - y * w)
+    out[:, 2, 1] = 2 * (y * z + x * w)
+    out[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return out
+
+
+def matrices_to_quaternions(m: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) rotation matrices -> (n, 4) quaternions (x, y, z, w) (for capture publishers)."""
+    out = np.empty((len(m), 4))
+    for i, r in enumerate(m):
+        t = np.trace(r)
+        if t > 0:
+            s = 2.0 * np.sqrt(1.0 + t)
+            out[i] = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, 0.25 * s]
+        else:
+            k = int(np.argmax(np.diag(r)))
+            a, b = (k + 1) % 3, (k + 2) % 3
+            s = 2.0 * np.sqrt(max(1e-300, 1.0 + r[k, k] - r[a, a] - r[b, b]))
+            v = np.empty(3)
+            v[k] = 0.25 * s
+            v[a] = (r[a, k] + r[k, a]) / s
+            v[b] = (r[b, k] + r[k, b]) / s
+            out[i, :3] = v
+            out[i, 3] = (r[b, a] - r[a, b]) / s
+    return out
+
+
+def skeleton_message(session: str, skeleton: Skeleton, frame_time: float) -> Message:
+    return Message("skeleton", session, arrays={"parents": skeleton.parents.astype(np.int32),
+                                                "heads": skeleton.heads, "tails": skeleton.tails},
+                   meta={"names": list(skeleton.names), "frame_time": frame_time})
+
+
+def skeleton_from_message(msg: Message, key_expr: str) -> tuple[Skeleton, float]:
+    names = msg.meta.get("names")
+    n = len(msg.arrays["parents"])
+    if not isinstance(names, list) or len(names) != n or not all(isinstance(s, str) for s in names):
+        raise MessageError(key_expr, f"meta 'names' must list {n} bone names")
+    parents = msg.arrays["parents"]
+    if msg.arrays["heads"].shape[0] != n or msg.arrays["tails"].shape[0] != n:
+        raise MessageError(key_expr, f"heads/tails must have {n} rows, one per bone")
+    if parents[0] != -1 or any(not (-1 <= p < b) for b, p in enumerate(parents[1:], 1)):
+        raise MessageError(key_expr, "parents must list the root first (-1) and every parent before its children")
+    ft = msg.meta.get("frame_time")
+    if not isinstance(ft, (int, float)) or not 0 < ft < 1:
+        raise MessageError(key_expr, f"meta 'frame_time' must be seconds in (0, 1), got {ft!r}")
+    sk = Skeleton(tuple(names), parents.astype(np.int32), msg.arrays["heads"].astype(np.float64),
+                  msg.arrays["tails"].astype(np.float64))
+    return sk, float(ft)
+
+
+class BusPoseSource:
+    """A live pose stream on tryon/<s>/pose as a motion source (see the module docstring).
+
+    Iteration ends on a control "end" message, or after `idle_timeout` seconds without a pose.
+    Malformed poses are rejected, counted in `stats` and skipped."""
+
+    def __init__(self, bus: zenoh.Session, session: str, stats: Stats, wait_skeleton: float = 10.0,
+                 idle_timeout: float = 5.0):
+        self.bus, self.session, self.stats, self.idle_timeout = bus, session, stats, idle_timeout
+        self._q: queue.Queue = queue.Queue()
+        self._subs = [bus.declare_subscriber(key(session, "pose"), self._q.put),
+                      bus.declare_subscriber(key(session, "control"), self._q.put)]
+        deadline = time.monotonic() + wait_skeleton
+        self.skeleton = None
+        while self.skeleton is None:
+            found = fetch_latched(bus, key(session, "skeleton"), timeout=1.0, stats=stats)
+            for k, msg in found.items():
+                try:
+                    self.skeleton, self.frame_time = skeleton_from_message(msg, k)
+                except MessageError as err:
+                    stats.reject(err)
+            if self.skeleton is None and time.monotonic() > deadline:
+                raise TimeoutError(f"no valid skeleton on {key(session, 'skeleton')} within {wait_skeleton:.0f} s")
+        n = len(self.skeleton.names)
+        self._rot = np.empty((n, 3, 3))
+        self._pos = np.empty(3)
+        self.origin_ns = 0
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self._subs.clear()
+
+    def __iter__(self) -> Iterator[PoseFrame]:
+        n = len(self.skeleton.names)
+        last = -1
+        while True:
+            try:
+                sample = self._q.get(timeout=self.idle_timeout)
+            except queue.Empty:
+                return
+            k = str(sample.key_expr)
+            try:
+                msg = decode(sample.payload.to_bytes(), k, self.session)
+                if msg.kind == "control":
+                    if msg.meta.get("event") == "end" and msg.meta.get("from") == "capture":
+                        return
+                    continue
+                if msg.kind != "pose":
+                    raise MessageError(k, f"kind {msg.kind!r} where 'pose' is expected")
+                rot = msg.arrays["local_rotations"]
+                if rot.shape[0] != n:
+                    raise MessageError(k, f"local_rotations has {rot.shape[0]} rows, the skeleton has {n} bones")
+                if msg.frame <= last:
+                    raise MessageError(k, f"frame {msg.frame} arrives after frame {last}")
+            except MessageError as err:
+                self.stats.reject(err)
+                continue
+            self.stats.add("received")
+            last = msg.frame
+            quaternions_to_matrices(rot.astype(np.float64), self._rot)
+            self._pos[:] = msg.arrays["root_position"]
+            self.origin_ns = msg.origin_ns
+            yield PoseFrame(msg.frame, msg.time, self._rot, self._pos)
+
+
+class IngestService:
+    """Retarget + skin each pose of `source` and publish tryon/<s>/body.
+
+    description: the session's description, latched on tryon/<s>/session (outfit, fabrics, level...)."""
+
+    SERVICE = "ingest"
+
+    def __init__(self, bus: zenoh.Session, session: str, body: Body, source, description: dict):
+        self.bus, self.session, self.body, self.source = bus, session, body, source
+        self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
+        self.animator = BodyAnimator(body, source.skeleton)
+        self.latched = Latched(bus)
+        self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible)
+        self.publisher = bus.declare_publisher(key(session, "body"), congestion_control=zenoh.CongestionControl.BLOCK,
+                                               reliability=zenoh.Reliability.RELIABLE)
+        self.frames = 0
+        self.last_index = -1  # index of the last frame published
+        self._verts = np.empty((body.n_visible, 3), np.float32)
+        self._normals = np.empty((body.n_visible, 3), np.float32)
+
+    def announce(self) -> None:
+        """Latch the session description and the body's topology."""
+        self.latched.publish(key(self.session, "session"), encode(Message("session", self.session,
+                                                                          meta=self.description)))
+        topo = Message("topology", self.session, arrays={"triangles": self.body.triangles.astype(np.int32)},
+                       meta={"what": "body", "n_vertices": self.body.n_visible, "color": [0.86, 0.69, 0.58]})
+        self.latched.publish(key(self.session, "topology", "body"), encode(topo))
+
+    def publish(self, frame: PoseFrame, origin_ns: int = 0) -> None:
+        out = self.animator(frame.local_rot, frame.root_position)
+        self._verts[:] = out.vertices[: self.body.n_visible]
+        self._normals[:] = out.normals
+        st = self.animator.stage_seconds
+        meta = {f"{s}_ms": round(float(st[i]) * 1000, 4) for i, s in enumerate(STAGES)}
+        meta["ankle_error_mm"] = round(float(out.retarget.ankle_position_error.max()) * 1000, 4)
+        msg = Message("body", self.session, frame.index, frame.time,
+                      {"vertices": self._verts, "normals": self._normals, "q": out.retarget.q}, meta,
+                      origin_ns=origin_ns)
+        self.publisher.put(encode(msg))
+        self.frames += 1
+        self.last_index = frame.index
+        self.stats.add("published")
+        self.stats.values.update(meta)
+        self.stats.publish(self.bus)
+
+    def run(self, start_frame: int = 0, before_frame: Callable[[int], bool] | None = None,
+            stop: threading.Event | None = None) -> int:
+        """Publish every frame of the source; before_frame(index) may wait (flow control) or return
+        False to stop. Ends with a control "end" message. Returns the number of frames published."""
+        self.announce()
+        try:
+            for frame in self.source:
+                if stop is not None and stop.is_set():
+                    break
+                if frame.index < start_frame:
+                    continue
+                if before_frame is not None and before_frame(frame.index) is False:
+                    break
+                self.publish(frame, getattr(self.source, "origin_ns", 0))
+        finally:
+            self.end()
+        return self.frames
+
+    def end(self) -> None:
+        self.bus.put(key(self.session, "control"), encode(Message("control", self.session, self.frames,
+                                                                  meta={"event": "end", "from": "ingest",
+                                                                        "frames": self.frames,
+                                                                        "last_frame": self.last_index})))
+        self.stats.publish(self.bus, force=True)
+
+    def close(self) -> None:
+        self.publisher.undeclare()
+        self.latched.close()
+
+
+def publish_capture(bus: zenoh.Session, session: str, source, start_frame: int = 0,
+                    stop: threading.Event | None = None) -> int:
+    """Play a motion source onto the bus as a live capture system would (skeleton + pose stream):
+    the reference publisher for capture vendors, and the live input of the tests."""
+    latched = Latched(bus)
+    latched.publish(key(session, "skeleton"), encode(skeleton_message(session, source.skeleton, source.frame_time)))
+    pub = bus.declare_publisher(key(session, "pose"), congestion_control=zenoh.CongestionControl.BLOCK)
+    n = 0
+    try:
+        for frame in source:
+            if stop is not None and stop.is_set():
+                break
+            if frame.index < start_frame:
+                continue
+            msg = Message("pose", session, frame.index, frame.time,
+                          {"local_rotations": matrices_to_quaternions(frame.local_rot),
+                           "root_position": frame.root_position.copy()})
+            pub.put(encode(msg))
+            n += 1
+    finally:
+        bus.put(key(session, "control"), encode(Message("control", session, n, meta={"event": "end", "from": "capture"})))
+        pub.undeclare()
+        time.sleep(0.2)  # let late skeleton queries be answered before the queryable goes
+        latched.close()
+    return n
+

@@ -1,0 +1,231 @@
+"""`tryon session`: a whole try-on session in one process on the embedded bus.
+
+mocap-ingest (a BVH clip) -> cloth -> viewer bridge (.rrd) + recorder (.mcap) + PNG snapshots,
+all talking over one zenoh peer session exactly as separate processes would. Offline, the
+ingest waits for the cloth service (at most `window` frames ahead) so that no frame queues up;
+with `serve`, the clip plays at its own pace, looped, for remote displays until Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from skinning.body import Body
+from skinning.source import BVHSource
+
+from .bus import BusConfig, key, parse_key
+from .cloth_job import START_FRAME
+from .cloth_service import ClothService, OutfitSpec
+from .ingest import IngestService
+from .protocol import MessageError, decode
+from .recorder import Recorder
+from .viewer import RecordingSink, ViewerBridge
+
+
+class SessionTap:
+    """Sees every body and garment message of a session (in order, none dropped): per-stage timings,
+    end-to-end latency, and copies of the frames wanted as snapshots."""
+
+    def __init__(self, bus, session: str, snapshot_frames: set[int]):
+        self.session = session
+        self.wanted = snapshot_frames
+        self.timings: dict[str, list[float]] = {}
+        self.latency_ms: list[float] = []
+        self.frames: dict[int, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+        self.garment_frames = 0
+        self.last_garment_frame = -1
+        self.rejected = 0
+        self._lock = threading.Lock()
+        self._subs = [bus.declare_subscriber(key(session, "body"), self),
+                      bus.declare_subscriber(key(session, "garment", "*"), self)]
+
+    def __call__(self, sample) -> None:
+        now = time.time_ns()
+        k = str(sample.key_expr)
+        try:
+            _, parts = parse_key(k)
+            msg = decode(sample.payload.to_bytes(), k, self.session, parts[0])
+        except MessageError:
+            self.rejected += 1
+            return
+        with self._lock:
+            for name, v in msg.meta.items():
+                if name.endswith("_ms"):
+                    self.timings.setdefault(name if msg.kind == "body" else f"{parts[-1]}:{name}", []).append(v)
+            if msg.kind == "garment" and "preroll_s" not in msg.meta:  # the first frame waits for the pre-roll
+                self.latency_ms.append((now - msg.origin_ns) / 1e6)
+                self.garment_frames += 1
+                self.last_garment_frame = max(self.last_garment_frame, msg.frame)
+            if msg.frame in self.wanted:
+                pos = msg.arrays["vertices" if msg.kind == "body" else "positions"]
+                self.frames.setdefault(msg.frame, {})["/".join(parts)] = (pos.copy(), msg.arrays["normals"].copy())
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+
+
+@dataclass
+class SessionResult:
+    session: str
+    frames: int
+    seconds: float
+    rrd: Path | None
+    recording: Path | None
+    snapshots: Path | None
+    stats: dict = field(default_factory=dict)
+    timings: dict[str, float] = field(default_factory=dict)  # median ms
+    latency_ms: tuple[float, float] = (0.0, 0.0)  # p50, p99
+
+    def summary(self) -> str:
+        lines = [f"session {self.session}: {self.frames} frames in {self.seconds:.1f} s "
+                 f"({self.frames / max(self.seconds, 1e-9):.1f} frames/s)"]
+        body = {k: v for k, v in self.timings.items() if ":" not in k}
+        lines.append("  body   median ms/frame: " + "  ".join(f"{k[:-3]} {v:.2f}" for k, v in body.items()))
+        garments = sorted({k.split(":")[0] for k in self.timings if ":" in k})
+        for g in garments:
+            lines.append(f"  {g}  median ms/frame: " + "  ".join(
+                f"{k.split(':')[1][:-3]} {v:.2f}" for k, v in self.timings.items() if k.startswith(g + ":")))
+        lines.append(f"  body frame published -> garment mesh received (offline, one frame queued): p50 {self.latency_ms[0]:.1f} ms, "
+                     f"p99 {self.latency_ms[1]:.1f} ms")
+        for what, s in self.stats.items():
+            c = s["counts"]
+            lines.append(f"  {what}: " + ", ".join(f"{k} {v}" for k, v in c.items()))
+        for label, p in (("rerun", self.rrd), ("recording", self.recording), ("snapshots", self.snapshots)):
+            if p is not None:
+                lines.append(f"  {label}: {p}")
+        return "\n".join(lines)
+
+
+class Progress:
+    """A one-line progress bar on stderr (only when it is a terminal, or when forced)."""
+
+    def __init__(self, total: int | None, enabled: bool | None = None):
+        self.total = total
+        self.enabled = sys.stderr.isatty() if enabled is None else enabled
+        self.start = time.perf_counter()
+        self._last = 0.0
+
+    def update(self, n: int, force: bool = False) -> None:
+        now = time.perf_counter()
+        if not self.enabled or (not force and now - self._last < 0.25):
+            return
+        self._last = now
+        rate = n / max(now - self.start, 1e-9)
+        if self.total:
+            done = int(30 * min(n, self.total) / self.total)
+            bar = f"[{'#' * done}{'.' * (30 - done)}] {n}/{self.total}"
+        else:
+            bar = f"{n} frames"
+        sys.stderr.write(f"\r  {bar}  {rate:5.1f} frames/s ")
+        sys.stderr.flush()
+
+    def finish(self, n: int) -> None:
+        if self.enabled:
+            self.update(n, force=True)
+            sys.stderr.write("\n")
+
+
+def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: Path) -> Path | None:
+    from .render import MeshDraw, Renderer, contact_sheet, orbit_camera, save_png
+
+    frames = [f for f in sorted(tap.frames) if "body" in tap.frames[f] and len(tap.frames[f]) > 1]
+    if not frames:
+        return None
+    renderer = Renderer(360, 480)
+    images = []
+    try:
+        for f in frames:
+            meshes = []
+            for name, (pos, normals) in sorted(tap.frames[f].items()):
+                ent = "world/" + name
+                if ent not in topology:
+                    continue
+                color = topology[ent].get("color", (0.7, 0.7, 0.7))
+                meshes.append(MeshDraw(pos.astype(np.float64), topology[ent]["triangles"], normals.astype(np.float64),
+                                       tuple(color)))
+            verts = tap.frames[f]["body"][0]
+            centre = np.array([verts[:, 0].mean(), verts[:, 1].min() + 0.5 * np.ptp(verts[:, 1]), verts[:, 2].mean()])
+            for az in (0.0, 150.0):
+                images.append(renderer.render(meshes, orbit_camera(centre, az, distance=3.6, height=0.2)))
+    finally:
+        renderer.release()
+    save_png(out, contact_sheet(images, columns=4))
+    return out
+
+
+def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path, spec: OutfitSpec,
+                every: int = 2, max_frames: int | None = None, bus_config: BusConfig | None = None,
+                serve_port: int | None = None, web_port: int | None = None, record: bool = True,
+                snapshot_frames: list[int] | None = None, png: bool = True, progress: bool | None = None,
+                window: int = 1, stop: threading.Event | None = None) -> SessionResult:
+    """Run one session end to end in this process (see the module docstring)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    serve = serve_port is not None
+    bus = (bus_config or BusConfig()).open()
+    t_start = time.perf_counter()
+    cloth = viewer = recorder = tap = None
+    try:
+        cloth = ClothService(bus, body, data, spec, sessions=session).start()
+        sink = RecordingSink(session, rrd=out_dir / f"{session}.rrd", serve_port=serve_port, web_port=web_port)
+        viewer = ViewerBridge(bus, session, sink, lossless=not serve).start()
+        recorder = Recorder(bus, session, out_dir / f"{session}.mcap") if record else None
+        tap = SessionTap(bus, session, set(snapshot_frames or []) if png else set())
+        source = BVHSource(clip, pace="realtime" if serve else "fast", loop=serve, every=every,
+                           max_frames=max_frames)
+        total = None if serve else -(-source.header.n_frames // every) - START_FRAME
+        if total and max_frames:
+            total = min(total, max_frames - START_FRAME)
+        bar = Progress(total, progress)
+        description = {"outfit": spec.outfit, "fabric": spec.fabric, "level": spec.level, "clip": clip.stem}
+        ingest = IngestService(bus, session, body, source, description)
+        # one description + the body topology are latched before the first frame
+
+        def before_frame(index: int) -> bool:
+            if not serve:  # flow control: stay at most `window` frames ahead of the cloth
+                cloth.wait_processed(ingest.frames - window)
+            bar.update(ingest.frames)
+            return True
+
+        try:
+            ingest.run(start_frame=START_FRAME, before_frame=before_frame, stop=stop)
+        except KeyboardInterrupt:
+            ingest.end()
+        # everything published so far is simulated, shown and recorded before the files close
+        cloth.wait_processed(ingest.frames + 1, timeout=120)
+        deadline = time.monotonic() + 10
+        while tap.last_garment_frame < ingest.last_index and time.monotonic() < deadline:
+            time.sleep(0.02)
+        bar.finish(ingest.frames)
+        seconds = time.perf_counter() - t_start
+        stats = {"ingest": ingest.stats.snapshot()}
+        gs = cloth.sessions.get(session)
+        stats["cloth"] = gs.stats.snapshot() if gs is not None else cloth.closed_stats.get(session, {"counts": {}})
+        time.sleep(0.1)
+        viewer.stop()
+        stats["viewer"] = viewer.stats.snapshot()
+        rrd = sink.close()
+        rec_path = recorder.close() if recorder else None
+        if recorder:
+            stats["recorder"] = recorder.stats.snapshot()
+        snap = None
+        if png:
+            snap = render_session_snapshots(body, tap, viewer.topology, out_dir / f"{session}.png")
+        lat = np.array(tap.latency_ms) if tap.latency_ms else np.zeros(1)
+        timings = {k: float(np.median(v)) for k, v in tap.timings.items()}
+        ingest.close()
+        return SessionResult(session, ingest.frames, seconds, rrd, rec_path, snap, stats, timings,
+                             (float(np.percentile(lat, 50)), float(np.percentile(lat, 99))))
+    finally:
+        for part in (tap, cloth):
+            if part is not None:
+                part.close() if part is tap else part.stop()
+        if recorder is not None:
+            recorder.close()
+        bus.close()

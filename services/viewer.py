@@ -1,0 +1,201 @@
+"""viewer bridge: a session's body and garments on the bus -> rerun (file, local viewer, or served).
+
+Topology (triangles, colour) is fetched from the latched tryon/<s>/topology/** and logged once as
+static data; per frame only vertex positions and normals are logged. The bridge keeps only the
+latest message per key: a viewer that lags shows the newest frame, and every frame overwritten
+before it was shown is counted as dropped (stats `dropped`) - it never holds the pipeline back.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import rerun as rr
+import zenoh
+
+from .bus import Stats, fetch_latched, key, parse_key
+from .protocol import MessageError, decode
+
+log = logging.getLogger("tryon.viewer")
+
+
+class RecordingSink:
+    """Where the rerun stream goes: an .rrd file (written as <file>.part, renamed when complete),
+    a spawned local viewer, and/or a gRPC server that remote viewers connect to."""
+
+    def __init__(self, session: str, rrd: str | Path | None = None, spawn: bool = False,
+                 serve_port: int | None = None, web_port: int | None = None):
+        self.rec = rr.RecordingStream("tryon", recording_id=session)
+        self.rrd = Path(rrd) if rrd else None
+        self.url = None
+        sinks = []
+        if self.rrd is not None:
+            self.rrd.parent.mkdir(parents=True, exist_ok=True)
+            self._part = self.rrd.with_name(self.rrd.name + ".part")
+            sinks.append(rr.FileSink(str(self._part)))
+        if serve_port is not None:
+            sinks.append(rr.GrpcServerSink(port=serve_port))
+            self.url = f"rerun+http://127.0.0.1:{serve_port}/proxy"
+        if spawn:  # a local viewer process, fed over gRPC beside the other sinks
+            rr.spawn(connect=False)
+            sinks.append(rr.GrpcSink())
+        if sinks:
+            self.rec.set_sinks(*sinks)
+        if web_port is not None and self.url is not None:
+            rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=self.url)
+        self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
+
+    def close(self) -> Path | None:
+        self.rec.flush()
+        self.rec.disconnect()
+        if self.rrd is not None and self._part.exists():
+            self._part.replace(self.rrd)
+            return self.rrd
+        return None
+
+
+class LatestPerKey:
+    """A subscriber callback that keeps the newest sample per key expression."""
+
+    def __init__(self, stats: Stats):
+        self.stats = stats
+        self.latest: dict[str, zenoh.Sample] = {}
+        self.cond = threading.Condition()
+
+    def __call__(self, sample) -> None:
+        k = str(sample.key_expr)
+        with self.cond:
+            if k in self.latest:
+                self.stats.add("dropped")
+            self.latest[k] = sample
+            self.cond.notify()
+
+    def take(self, timeout: float) -> dict:
+        with self.cond:
+            if not self.latest:
+                self.cond.wait(timeout)
+            out, self.latest = self.latest, {}
+        return out
+
+
+class EveryFrame(LatestPerKey):
+    """Keeps every sample in arrival order (offline sessions: the .rrd gets every frame)."""
+
+    def __call__(self, sample) -> None:
+        with self.cond:
+            self.latest.setdefault("", []).append(sample)
+            self.cond.notify()
+
+    def take(self, timeout: float) -> dict:
+        with self.cond:
+            if not self.latest:
+                self.cond.wait(timeout)
+            out, self.latest = self.latest.get("", []), {}
+        return {i: s for i, s in enumerate(out)}
+
+
+class ViewerBridge:
+    SERVICE = "viewer"
+
+    def __init__(self, bus: zenoh.Session, session: str, sink: RecordingSink, log_stats: bool = True,
+                 lossless: bool = False):
+        """lossless: show every frame (offline runs) instead of only the latest (live displays)."""
+        self.bus, self.session, self.sink, self.rec = bus, session, sink, sink.rec
+        self.stats = Stats(self.SERVICE, session)
+        self.log_stats = log_stats
+        self.latest = EveryFrame(self.stats) if lossless else LatestPerKey(self.stats)
+        self.topology: dict[str, dict] = {}  # entity -> {"triangles", "n_vertices"}
+        self.frames_shown: dict[str, int] = {}
+        self.ended = threading.Event()
+        self._subs = [bus.declare_subscriber(key(session, "body"), self.latest),
+                      bus.declare_subscriber(key(session, "garment", "*"), self.latest),
+                      bus.declare_subscriber(key(session, "control"), self._on_control)]
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.fetch_topology()
+
+    def _on_control(self, sample) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), str(sample.key_expr), self.session, "control")
+        except MessageError as err:
+            self.stats.reject(err)
+            return
+        if msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
+            self.ended.set()
+
+    @staticmethod
+    def entity(parts: tuple[str, ...]) -> str:
+        return "world/" + "/".join(parts)
+
+    def fetch_topology(self, timeout: float = 1.0) -> None:
+        """Log the static part (triangles, colour) of every mesh whose topology is latched."""
+        for k, msg in fetch_latched(self.bus, key(self.session, "topology", "**"), timeout, self.stats).items():
+            ent = self.entity(parse_key(k)[1][1:])  # tryon/s/topology/garment/x -> world/garment/x
+            if ent in self.topology:
+                continue
+            tris = np.array(msg.arrays["triangles"])
+            color = msg.meta.get("color", [0.7, 0.7, 0.7])
+            self.topology[ent] = {"triangles": tris, "n_vertices": int(msg.meta.get("n_vertices", tris.max() + 1)),
+                                  "color": tuple(float(c) for c in color[:3])}
+            self.rec.log(ent, rr.Mesh3D.from_fields(triangle_indices=tris,
+                                                    albedo_factor=[int(255 * c) for c in color[:3]] + [255]),
+                         static=True)
+
+    def start(self) -> "ViewerBridge":
+        self._thread = threading.Thread(target=self.serve, name="viewer-bridge", daemon=True)
+        self._thread.start()
+        return self
+
+    def serve(self) -> None:
+        while not self._stop.is_set():
+            batch = self.latest.take(0.2)
+            for _, sample in sorted(batch.items()):
+                try:
+                    self.show(str(sample.key_expr), sample.payload.to_bytes())
+                except MessageError as err:
+                    self.stats.reject(err)
+            self.stats.publish(self.bus)
+
+    def show(self, key_expr: str, payload: bytes) -> None:
+        session, parts = parse_key(key_expr)
+        msg = decode(payload, key_expr, self.session, parts[0])
+        ent = self.entity(parts)
+        if ent not in self.topology:
+            self.fetch_topology()
+            if ent not in self.topology:
+                raise MessageError(key_expr, "no topology latched for this mesh yet")
+        pos = msg.arrays["vertices" if msg.kind == "body" else "positions"]
+        if pos.shape[0] != self.topology[ent]["n_vertices"]:
+            raise MessageError(key_expr, f"{pos.shape[0]} vertices, the topology has {self.topology[ent]['n_vertices']}")
+        self.stats.add("received")
+        self.rec.set_time("frame", sequence=msg.frame)
+        self.rec.set_time("session_time", duration=msg.time)
+        self.rec.log(ent, rr.Mesh3D.from_fields(vertex_positions=pos, vertex_normals=msg.arrays["normals"]))
+        self.frames_shown[ent] = msg.frame
+        if msg.kind == "garment":
+            latency = (time.time_ns() - msg.origin_ns) / 1e6
+            self.stats.values["latency_ms"] = round(latency, 3)
+            if self.log_stats:
+                name = parts[-1]
+                for field in ("s101_ms", "pn_ms", "collision_ms", "deformation_ms"):
+                    if field in msg.meta:
+                        self.rec.log(f"stats/{name}/{field}", rr.Scalars(float(msg.meta[field])))
+                self.rec.log(f"stats/{name}/latency_ms", rr.Scalars(latency))
+
+    def stop(self, timeout: float = 5.0) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout)
+        for _, sample in sorted(self.latest.take(0).items()):  # show what is still pending
+            try:
+                self.show(str(sample.key_expr), sample.payload.to_bytes())
+            except MessageError as err:
+                self.stats.reject(err)
+        for s in self._subs:
+            s.undeclare()
+        self._subs.clear()
+        self.stats.publish(self.bus, force=True)
