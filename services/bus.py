@@ -110,6 +110,17 @@ def bus_config_from_args(args) -> BusConfig:
                      connect=args.connect or [], multicast=args.multicast, config_file=args.zenoh_config)
 
 
+def wait_matching(publisher: zenoh.Publisher, timeout: float) -> bool:
+    """Wait up to `timeout` s until a publisher has a subscriber (one that has just connected needs
+    a moment before its subscriptions are known here); True if it has one."""
+    deadline = time.monotonic() + timeout
+    while not publisher.matching_status.matching:
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.02)
+    return True
+
+
 class Stats:
     """A service's counters for one session, published on tryon/<s>/stats/<service>."""
 

@@ -163,8 +163,10 @@ def cmd_ingest(args) -> int:
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
                 "clip": "live" if args.live else Path(source.path).stem}
         svc = IngestService(bus, session, body, source, desc)
-        if args.wait_subscribers:
-            time.sleep(args.wait_subscribers)
+        svc.announce()
+        if args.wait_subscribers and not svc.wait_for_subscribers(args.wait_subscribers):
+            print(f"ingest: nothing subscribes to {session}'s body after {args.wait_subscribers:.0f} s; "
+                  "publishing anyway", file=sys.stderr)
         try:
             n = svc.run(start_frame=start)
         except KeyboardInterrupt:
@@ -271,9 +273,7 @@ def cmd_capture(args) -> int:
     with bus_config_from_args(args).open() as bus, \
             BVHSource(_clips(data, [args.clip])[0], pace=args.pace, every=args.every,
                       max_frames=args.max_frames) as source:
-        if args.wait_subscribers:
-            time.sleep(args.wait_subscribers)
-        n = publish_capture(bus, session, source, start_frame=START_FRAME)
+        n = publish_capture(bus, session, source, start_frame=START_FRAME, wait_subscribers=args.wait_subscribers)
         print(f"capture {session}: {n} poses published")
     return 0
 
@@ -352,7 +352,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--loop", action="store_true", help="loop the clip")
     p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
     p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--wait-subscribers", type=float, default=0.0, help="seconds to wait before the first frame")
+    p.add_argument("--wait-subscribers", type=float, default=10.0,
+                   help="wait up to this many seconds for a body subscriber (cloth service) before the first frame")
     _outfit_arguments(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_ingest)
@@ -397,7 +398,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"))
     p.add_argument("--every", type=int, default=2)
     p.add_argument("--max-frames", type=int, default=None)
-    p.add_argument("--wait-subscribers", type=float, default=0.0, help="seconds to wait before the first pose")
+    p.add_argument("--wait-subscribers", type=float, default=10.0,
+                   help="wait up to this many seconds for a pose subscriber (mocap-ingest) before the first pose")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_capture)
 

@@ -27,7 +27,7 @@ from skinning.body import Body
 from skinning.skeleton import Skeleton
 from skinning.source import PoseFrame
 
-from .bus import Latched, Stats, fetch_latched, key, parse_key
+from .bus import Latched, Stats, fetch_latched, key, wait_matching
 from .protocol import Message, MessageError, decode, encode
 
 log = logging.getLogger("tryon.ingest")
@@ -177,11 +177,15 @@ class IngestService:
                                                reliability=zenoh.Reliability.RELIABLE)
         self.frames = 0
         self.last_index = -1  # index of the last frame published
+        self._announced = False
         self._verts = np.empty((body.n_visible, 3), np.float32)
         self._normals = np.empty((body.n_visible, 3), np.float32)
 
     def announce(self) -> None:
-        """Latch the session description and the body's topology."""
+        """Latch the session description and the body's topology (once)."""
+        if self._announced:
+            return
+        self._announced = True
         self.latched.publish(key(self.session, "session"), encode(Message("session", self.session,
                                                                           meta=self.description)))
         topo = Message("topology", self.session, arrays={"triangles": self.body.triangles.astype(np.int32)},
@@ -204,6 +208,11 @@ class IngestService:
         self.stats.add("published")
         self.stats.values.update(meta)
         self.stats.publish(self.bus)
+
+    def wait_for_subscribers(self, timeout: float) -> bool:
+        """Wait (up to timeout s) until something subscribes to the body stream, e.g. a cloth service
+        that connects a moment later; frames put before then would reach no one."""
+        return wait_matching(self.publisher, timeout)
 
     def run(self, start_frame: int = 0, before_frame: Callable[[int], bool] | None = None,
             stop: threading.Event | None = None) -> int:
@@ -236,12 +245,13 @@ class IngestService:
 
 
 def publish_capture(bus: zenoh.Session, session: str, source, start_frame: int = 0,
-                    stop: threading.Event | None = None) -> int:
+                    stop: threading.Event | None = None, wait_subscribers: float = 0.0) -> int:
     """Play a motion source onto the bus as a live capture system would (skeleton + pose stream):
     the reference publisher for capture vendors, and the live input of the tests."""
     latched = Latched(bus)
     latched.publish(key(session, "skeleton"), encode(skeleton_message(session, source.skeleton, source.frame_time)))
     pub = bus.declare_publisher(key(session, "pose"), congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_matching(pub, wait_subscribers)
     n = 0
     try:
         for frame in source:

@@ -22,7 +22,7 @@ import zenoh
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
-from .bus import Latched, Stats, check_session_name, key, parse_key
+from .bus import Latched, Stats, check_session_name, key, parse_key, wait_matching
 from .protocol import SCHEMA_VERSION, MessageError, decode, retag
 
 log = logging.getLogger("tryon.recorder")
@@ -119,14 +119,16 @@ def read_recording(path: str | Path, kinds: set[str] | None = None):
 
 
 def replay(bus: zenoh.Session, path: str | Path, session: str | None = None, speed: float = 1.0,
-           kinds: set[str] | None = None, stop: threading.Event | None = None, linger: float = 0.0) -> int:
+           kinds: set[str] | None = None, stop: threading.Event | None = None, linger: float = 0.0,
+           wait_subscribers: float = 0.0) -> int:
     """Publish a recording onto the bus; returns the number of messages published.
 
     session: publish under this session name instead of the recorded one (payload arrays unchanged).
     speed: 1 = original pace, 2 = twice as fast, 0 = as fast as possible.
     kinds: only these key kinds (e.g. {"session", "topology", "body"} to feed a fresh cloth service).
     Latched kinds (session, topology, skeleton) are also answered to queries while the replay runs,
-    and for `linger` seconds after it."""
+    and for `linger` seconds after it. wait_subscribers: wait up to this long for a subscriber on each
+    key before its first message (a service that has just connected)."""
     if session is not None:
         check_session_name(session)
     latched = Latched(bus)
@@ -168,6 +170,7 @@ def replay(bus: zenoh.Session, path: str | Path, session: str | None = None, spe
             pub = publishers.get(k2)
             if pub is None:
                 pub = publishers[k2] = bus.declare_publisher(k2, congestion_control=zenoh.CongestionControl.BLOCK)
+                wait_matching(pub, wait_subscribers)
             pub.put(p2)
             n += 1
         if linger > 0:

@@ -1,0 +1,115 @@
+"""The bus contract: encoding, validation of malformed messages, retagging, pose quaternions."""
+
+import json
+import struct
+
+import numpy as np
+import pytest
+
+from services.bus import check_session_name, key, parse_key
+from services.ingest import matrices_to_quaternions, quaternions_to_matrices
+from services.protocol import MAGIC, PREFIX, SCHEMA_VERSION, Message, MessageError, decode, encode, peek_frame, retag
+
+KEY = "tryon/s1/body"
+
+
+def body_message(n=5, frame=7):
+    rng = np.random.default_rng(0)
+    return Message("body", "s1", frame, 0.125,
+                   {"vertices": rng.normal(size=(n, 3)).astype(np.float32),
+                    "normals": rng.normal(size=(n, 3)).astype(np.float32),
+                    "q": rng.normal(size=10)}, {"ik_ms": 1.5})
+
+
+def with_header(data: bytes, **changes) -> bytes:
+    """The same message with header fields changed (payload kept)."""
+    _, version, hlen = PREFIX.unpack_from(data, 0)
+    h = json.loads(data[PREFIX.size:PREFIX.size + hlen])
+    h.update(changes)
+    header = json.dumps(h).encode()
+    header += b" " * ((-(PREFIX.size + len(header))) % 8)
+    return PREFIX.pack(MAGIC, version, len(header)) + header + data[PREFIX.size + hlen:]
+
+
+def test_round_trip_keeps_every_bit_and_aligns_arrays():
+    m = body_message()
+    data = encode(m, stamp_ns=123)
+    d = decode(data, KEY, "s1", "body")
+    assert (d.kind, d.session, d.frame, d.time, d.meta, d.stamp_ns, d.origin_ns) == \
+        ("body", "s1", 7, 0.125, {"ik_ms": 1.5}, 123, 123)
+    for name, a in m.arrays.items():
+        assert d.arrays[name].dtype == a.dtype and d.arrays[name].tobytes() == a.tobytes()
+    _, _, hlen = PREFIX.unpack_from(data, 0)
+    assert (PREFIX.size + hlen) % 8 == 0
+    assert peek_frame(data) == 7
+
+
+@pytest.mark.parametrize("mutate, problem", [
+    (lambda d: d[:6], "shorter than"),
+    (lambda d: b"XXXX" + d[4:], "bad magic"),
+    (lambda d: struct.pack("<4sH", MAGIC, SCHEMA_VERSION + 1) + d[6:], f"schema version {SCHEMA_VERSION + 1}"),
+    (lambda d: d[:PREFIX.size] + b"}" + d[PREFIX.size + 1:], "not valid JSON"),
+    (lambda d: d[:-8], "needs"),
+    (lambda d: d + b"\0" * 16, "left over"),
+    (lambda d: with_header(d, kind="nonsense"), "unknown kind"),
+    (lambda d: with_header(d, kind="garment"), "'body' is expected"),
+    (lambda d: with_header(d, session="other"), "does not match the key's session"),
+    (lambda d: with_header(d, frame=-1), "'frame'"),
+    (lambda d: with_header(d, time="soon"), "'time'"),
+])
+def test_malformed_messages_are_rejected_with_key_and_problem(mutate, problem):
+    data = encode(body_message())
+    with pytest.raises(MessageError) as e:
+        decode(mutate(data), KEY, "s1", "body")
+    assert KEY in str(e.value) and problem in str(e.value)
+
+
+@pytest.mark.parametrize("arrays, problem", [
+    ({"vertices": np.zeros((4, 3), np.float32), "normals": np.zeros((4, 3), np.float32)}, "lacks array 'q'"),
+    ({"vertices": np.zeros((4, 2), np.float32), "normals": np.zeros((4, 3), np.float32), "q": np.zeros(3)},
+     "shape (4, 2), expected (n, 3)"),
+    ({"vertices": np.zeros((4, 3)), "normals": np.zeros((4, 3), np.float32), "q": np.zeros(3)},
+     "dtype <f8, expected <f4"),
+    ({"vertices": np.full((4, 3), np.nan, np.float32), "normals": np.zeros((4, 3), np.float32), "q": np.zeros(3)},
+     "NaN"),
+])
+def test_schema_violations_are_rejected(arrays, problem):
+    data = encode(Message("body", "s1", 1, 0.0, arrays))
+    with pytest.raises(MessageError, match="tryon/s1/body") as e:
+        decode(data, KEY, "s1")
+    assert problem in str(e.value)
+
+
+def test_unsupported_dtype_is_refused_when_encoding():
+    with pytest.raises(MessageError, match="unsupported dtype"):
+        encode(Message("stats", "s1", arrays={"x": np.zeros(3, np.complex64)}))
+
+
+def test_retag_changes_only_the_session():
+    data = encode(body_message(), stamp_ns=55)
+    out = decode(retag(data, "s2"), "tryon/s2/body", "s2", "body")
+    ref = decode(data)
+    assert out.session == "s2" and out.stamp_ns == 55 and out.frame == ref.frame
+    assert all(out.arrays[k].tobytes() == ref.arrays[k].tobytes() for k in ref.arrays)
+    assert decode(retag(data, "s2", restamp=True)).stamp_ns > 55
+
+
+def test_keys_and_session_names():
+    assert key("s1", "garment", "top") == "tryon/s1/garment/top"
+    assert parse_key("tryon/s1/garment/top") == ("s1", ("garment", "top"))
+    with pytest.raises(MessageError):
+        parse_key("other/s1/body")
+    for bad in ("", "a/b", "a*", "x" * 65):
+        with pytest.raises(ValueError, match="session name"):
+            check_session_name(bad)
+
+
+def test_pose_quaternions_known_rotation_and_round_trip():
+    s = np.sqrt(0.5)
+    m = quaternions_to_matrices(np.array([[0.0, 0.0, s, s]]), np.empty((1, 3, 3)))  # 90 deg about z
+    np.testing.assert_allclose(m[0] @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=1e-12)
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(50, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    r = quaternions_to_matrices(q, np.empty((50, 3, 3)))
+    np.testing.assert_allclose(quaternions_to_matrices(matrices_to_quaternions(r), np.empty((50, 3, 3))), r, atol=1e-12)

@@ -1,0 +1,302 @@
+"""The services over a real zenoh bus (TCP on loopback; no mocks).
+
+In-process participants each open their own zenoh session and connect to a hub over TCP, as
+separate machines would; the first test runs every service in its own OS process."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.bus import BusConfig, fetch_latched, key, parse_key
+from services.cloth_job import START_FRAME
+from services.cloth_service import ClothService, OutfitSpec
+from services.ingest import IngestService
+from services.protocol import Message, decode, encode
+from services.recorder import Recorder, read_recording, replay
+from services.viewer import RecordingSink, ViewerBridge
+from skinning.source import BVHSource
+
+OUTFIT = "female_casualsuit01"
+GARMENTS = (f"{OUTFIT}.bottom", f"{OUTFIT}.top")
+SHORT = "cmu_npybvh_example_75f"
+LEVEL = 3  # a small detailed surface keeps the tests quick; the pipeline is the same
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def peer(port: int):
+    return BusConfig(connect=[f"tcp/127.0.0.1:{port}"]).open()
+
+
+def wait_until(cond, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+        time.sleep(0.02)
+
+
+class Collector:
+    """Every message on a key expression, decoded, in arrival order."""
+
+    def __init__(self, bus, key_expr: str):
+        self.messages: list[tuple[str, Message]] = []
+        self._lock = threading.Lock()
+        self._sub = bus.declare_subscriber(key_expr, self)
+
+    def __call__(self, sample) -> None:
+        k = str(sample.key_expr)
+        msg = decode(sample.payload.to_bytes(), k)
+        msg.arrays = {n: a.copy() for n, a in msg.arrays.items()}
+        with self._lock:
+            self.messages.append((k, msg))
+
+    def frames(self, what: str) -> list[int]:
+        """Frame numbers of the messages on tryon/<session>/<what>."""
+        parts = tuple(what.split("/"))
+        with self._lock:
+            return [m.frame for k, m in self.messages if parse_key(k)[1] == parts]
+
+    def close(self) -> None:
+        self._sub.undeclare()
+
+
+def mocap_clip(data, name=SHORT) -> Path:
+    return data / "mocap" / f"{name}.bvh"
+
+
+@pytest.fixture(scope="module")
+def hub(body, data):
+    """A bus endpoint with a cloth service serving every session."""
+    port = free_port()
+    bus = BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open()
+    cloth = ClothService(bus, body, data, OutfitSpec(OUTFIT, None, LEVEL)).start()
+    yield port, cloth
+    cloth.stop()
+    bus.close()
+
+
+def run_ingest(bus, session, body, data, clip=SHORT, max_frames=None, pace="fast", loop=False, stop=None, every=2):
+    """An ingest service on `bus` in a thread; returns (thread, service)."""
+    source = BVHSource(mocap_clip(data, clip), pace=pace, loop=loop, every=every, max_frames=max_frames)
+    svc = IngestService(bus, session, body, source, {"outfit": OUTFIT, "level": LEVEL})
+    svc.announce()
+    assert svc.wait_for_subscribers(10), "no cloth service subscribes to the body stream"
+    t = threading.Thread(target=svc.run, kwargs={"start_frame": START_FRAME, "stop": stop}, daemon=True)
+    t.start()
+    return t, svc
+
+
+def test_full_session_across_processes(data, tmp_path):
+    """router, cloth service and mocap-ingest in three OS processes; this process records and watches."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    cli = [sys.executable, "-m", "services.cli", "--data", str(data)]
+    procs = []
+
+    def start(args, ready: str | None):
+        log = tmp_path / f"{args[0]}.log"
+        with open(log, "w") as fh:
+            p = subprocess.Popen(cli + args, env=env, stdout=fh, stderr=subprocess.STDOUT, text=True)
+        procs.append(p)
+        if ready:
+            wait_until(lambda: ready in log.read_text() or p.poll() is not None, 120, f"{args[0]} to start")
+            assert p.poll() is None, f"{args[0]} exited:\n{log.read_text()}"
+        return p, log
+
+    try:
+        start(["router", "--listen", endpoint], "listening")
+        start(["cloth-service", "--mode", "client", "--connect", endpoint, "--outfit", OUTFIT,
+               "--level", str(LEVEL)], "ready")
+        bus = BusConfig(mode="client", listen=[], connect=[endpoint]).open()
+        try:
+            garments = Collector(bus, key("procs", "garment", "*"))
+            bodies = Collector(bus, key("procs", "body"))
+            stats = Collector(bus, key("procs", "stats", "*"))
+            recorder = Recorder(bus, "procs", tmp_path / "procs.mcap")
+            ingest, log = start(["ingest", "--session", "procs", "--clip", SHORT, "--pace", "realtime", "--loop",
+                                 "--mode", "client", "--connect", endpoint, "--level", str(LEVEL)], None)
+            wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[1]}")) >= 10, 120, "garments from the cloth process")
+            topo = fetch_latched(bus, key("procs", "topology", "**"))  # while the session runs
+            assert set(topo) == {key("procs", "topology", "body")} | {key("procs", "topology", "garment", g)
+                                                                      for g in GARMENTS}
+            ingest.send_signal(signal.SIGINT)  # a live session stopped by hand ends cleanly
+            assert ingest.wait(timeout=60) == 0, log.read_text()
+            frames = bodies.frames("body")
+            assert frames == list(range(START_FRAME, START_FRAME + len(frames)))
+            wait_until(lambda: all(garments.frames(f"garment/{g}") == frames for g in GARMENTS), 120, "every garment frame")
+            for k, m in garments.messages:
+                t = topo[key("procs", "topology", "garment", parse_key(k)[1][1])]
+                assert m.arrays["positions"].shape == (int(t.meta["n_vertices"]), 3)
+                assert np.isfinite(m.arrays["positions"]).all()
+            wait_until(lambda: any(m.meta["service"] == "cloth" and m.meta["counts"]["received"] == len(frames)
+                                   for _, m in stats.messages), 10, "the cloth service's final stats")
+            path = recorder.close()
+        finally:
+            bus.close()
+        assert path.exists() and not path.with_name(path.name + ".part").exists()
+        kinds = [parse_key(k)[1][0] for k, _, _ in read_recording(path)]
+        assert kinds.count("body") == len(frames) and kinds.count("garment") == 2 * len(frames)
+        assert "session" in kinds and "topology" in kinds
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+
+
+def test_late_joining_display_gets_topology_and_frames(hub, body, data, tmp_path):
+    port, cloth = hub
+    bus = peer(port)
+    stop = threading.Event()
+    try:
+        watcher = Collector(bus, key("late", "garment", "*"))
+        t, svc = run_ingest(bus, "late", body, data, pace="realtime", loop=True, stop=stop)
+        wait_until(lambda: len(watcher.frames(f"garment/{GARMENTS[0]}")) >= 10, 60, "the session to run")
+        joined_at = max(watcher.frames(f"garment/{GARMENTS[0]}"))
+        display = peer(port)  # joins a running session
+        try:
+            sink = RecordingSink("late", rrd=tmp_path / "late.rrd")
+            bridge = ViewerBridge(display, "late", sink).start()
+            assert set(bridge.topology) == {"world/body", *(f"world/garment/{g}" for g in GARMENTS)}
+            late = Collector(display, key("late", "garment", "*"))
+            wait_until(lambda: len(late.frames(f"garment/{GARMENTS[1]}")) >= 5, 30, "frames at the late display")
+            assert min(late.frames(f"garment/{GARMENTS[1]}")) > joined_at
+            wait_until(lambda: all(bridge.frames_shown.get(e, -1) > joined_at for e in bridge.topology), 10,
+                       "the viewer bridge to show every mesh")
+            bridge.stop()
+            rrd = sink.close()
+            assert rrd.exists() and rrd.stat().st_size > 0 and bridge.stats.counts["rejected"] == 0
+        finally:
+            display.close()
+    finally:
+        stop.set()
+        t.join(30)
+        bus.close()
+
+
+def test_replay_reproduces_garment_meshes_exactly(hub, body, data, tmp_path):
+    port, _ = hub
+    bus = peer(port)
+    try:
+        recorder = Recorder(bus, "orig", tmp_path / "orig.mcap")
+        garments = Collector(bus, key("orig", "garment", "*"))
+        t, svc = run_ingest(bus, "orig", body, data, max_frames=10)
+        t.join(120)
+        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[1]}")) == svc.frames, 60, "the original garments")
+        path = recorder.close()
+    finally:
+        bus.close()
+    recorded = {(k.split("/", 2)[2], decode(p).frame): decode(p) for k, p, _ in read_recording(path, {"garment"})}
+    assert len(recorded) == 2 * svc.frames
+    # a fresh cloth service on a bus of its own, fed only the recorded body stream (+ its description)
+    port2 = free_port()
+    bus2 = BusConfig(listen=[f"tcp/127.0.0.1:{port2}"]).open()
+    fresh = ClothService(bus2, body, data, OutfitSpec("nonexistent-default")).start()
+    player = peer(port2)
+    try:
+        out = Collector(bus2, key("again", "garment", "*"))
+        n = replay(player, path, session="again", speed=0, kinds={"session", "topology", "body", "control"},
+                   wait_subscribers=10, linger=3)  # the description is still answered while frames queue
+        assert n == svc.frames + 1  # body frames and the end
+        wait_until(lambda: len(out.messages) == len(recorded), 120, "the replayed garments")
+        for k, m in out.messages:
+            ref = recorded[(k.split("/", 2)[2], m.frame)]
+            for name in ("positions", "normals"):
+                assert m.arrays[name].tobytes() == ref.arrays[name].tobytes(), f"{k} frame {m.frame} {name}"
+    finally:
+        fresh.stop()
+        player.close()
+        bus2.close()
+
+
+def test_malformed_messages_are_rejected_counted_and_the_session_goes_on(hub, body, data, caplog):
+    port, cloth = hub
+    bus = peer(port)
+    stop = threading.Event()
+    caplog.set_level(logging.WARNING)
+    try:
+        garments = Collector(bus, key("bad", "garment", "*"))
+        stats = Collector(bus, key("bad", "stats", "cloth"))
+        t, svc = run_ingest(bus, "bad", body, data, pace="realtime", loop=True, stop=stop)
+        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) >= 5, 60, "the session to run")
+        good = encode(Message("body", "bad", 10**6, 0.0, {"vertices": np.zeros((10, 3), np.float32),
+                                                           "normals": np.zeros((10, 3), np.float32),
+                                                           "q": np.zeros(3)}))
+        bad_payloads = [b"not a tryon message",
+                        good[:4] + (99).to_bytes(2, "little") + good[6:],  # wrong schema version
+                        good,  # valid message, wrong number of body vertices
+                        encode(Message("body", "someone-else", 1, 0.0))]  # session mismatch, no arrays
+        for p in bad_payloads:
+            bus.put(key("bad", "body"), p)
+        before = len(garments.frames(f"garment/{GARMENTS[0]}"))
+        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) >= before + 10, 30, "frames after the bad messages")
+
+        def rejected():
+            counts = [m.meta["counts"]["rejected"] for _, m in stats.messages]
+            return max(counts, default=0)
+
+        wait_until(lambda: rejected() >= len(bad_payloads), 10, "the rejections in tryon/bad/stats/cloth")
+        logged = " ".join(r.getMessage() for r in caplog.records)
+        assert "tryon/bad/body" in logged and "schema version 99" in logged and "bad magic" in logged
+        assert "body has 10 vertices" in logged
+    finally:
+        stop.set()
+        t.join(30)
+        bus.close()
+
+
+def test_two_concurrent_sessions_do_not_see_each_other(hub, body, data):
+    port, cloth = hub
+    buses = [peer(port), peer(port)]
+    watch = peer(port)
+    stop = threading.Event()
+    runs = []
+    try:
+        seen = {s: Collector(watch, key(s, "**")) for s in ("alpha", "beta")}
+        # 15 Hz each: two live sessions that one process (ingest x2 + cloth) keeps up with on 2 cores
+        runs = [run_ingest(buses[0], "alpha", body, data, pace="realtime", loop=True, stop=stop, every=8),
+                run_ingest(buses[1], "beta", body, data, clip="cmu_131_01_walk_3dsmax", pace="realtime", loop=True,
+                           stop=stop, every=8)]
+        wait_until(lambda: all(len(seen[s].frames(f"garment/{GARMENTS[0]}")) >= 5 for s in seen), 60,
+                   "both sessions' garments")
+        assert set(cloth.sessions) >= {"alpha", "beta"}  # served at the same time, each with its own state
+        stop.set()
+        for t, _ in runs:
+            t.join(30)
+        for s, (_, svc) in zip(("alpha", "beta"), runs):
+            wait_until(lambda: all(len(seen[s].frames(f"garment/{g}")) == svc.frames for g in GARMENTS), 120,
+                       f"{s}'s garments")
+            assert len(seen[s].frames("body")) == svc.frames
+        for s, other in (("alpha", "beta"), ("beta", "alpha")):
+            assert all(m.session == s and k.startswith(f"tryon/{s}/") for k, m in seen[s].messages)
+            assert not any(other in k for k, _ in seen[s].messages)
+        # different motions: the two sessions' garments differ
+        a = [m for k, m in seen["alpha"].messages if k.endswith(GARMENTS[1])][3].arrays["positions"]
+        b = [m for k, m in seen["beta"].messages if k.endswith(GARMENTS[1])][3].arrays["positions"]
+        assert np.abs(a - b).max() > 0.01
+    finally:
+        stop.set()
+        for b in (*buses, watch):
+            b.close()
