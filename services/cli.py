@@ -189,7 +189,7 @@ def cmd_cloth_service(args) -> int:
     data = data_dir(args.data)
     body = load_body(data)
     with bus_config_from_args(args).open() as bus:
-        svc = ClothService(bus, body, data, _spec(args), idle_seconds=args.idle).start()
+        svc = ClothService(bus, body, data, _spec(args), idle_seconds=args.idle, catch_up=args.catch_up).start()
         print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)
         _wait()
         svc.stop()
@@ -361,6 +361,9 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("cloth-service", help="cloth service: tryon/*/body -> tryon/<s>/garment/<name>, every session")
     _outfit_arguments(p)
     p.add_argument("--idle", type=float, default=60.0, help="drop a session silent for this many seconds")
+    p.add_argument("--catch-up", action="store_true",
+                   help="when behind, simulate every body frame but build and publish the detailed surface only "
+                        "for the newest (live displays stay current; output no longer bit-reproducible)")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_cloth_service)
 

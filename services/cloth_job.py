@@ -7,7 +7,9 @@ starts with the garments on and at rest.
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -97,17 +99,25 @@ class ClothReport:
 
 
 class OutfitSession:
-    """Body animator + one ClothSim per garment; `frame()` advances everything by one frame."""
+    """Body animator + one ClothSim per garment; `step_cloth()` advances everything by one frame."""
+
+    PREROLL_SURFACE_STEPS = 10
 
     def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit,
-                 surface: SurfaceSettings | None = None, surface_models: list | None = None):
+                 surface: SurfaceSettings | None = None, surface_models: list | None = None,
+                 threads: int | None = None):
         """surface: also build each garment's detailed surface (S102-S106) at these settings;
-        surface_models: the garments' surface models, already built (shared between sessions)."""
+        surface_models: the garments' surface models, already built (shared between sessions);
+        threads: garments stepped in parallel (default: one per garment, at most one per core)."""
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
         if surface_models is None and surface is not None:
             surface_models = [build_surface_model(m, surface) for m in outfit.models]
         self.surfaces = [DetailedSurface(sm) for sm in surface_models or []]
+        self._detailed: list = [None] * len(self.sims)
+        self._frame = None
+        threads = min(len(self.sims), os.cpu_count() or 1) if threads is None else threads
+        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="garment") if threads > 1 else None
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
         self.grid = VertexGrid(body_mesh.n_vertices)  # one per body pose, shared by the garments
@@ -115,22 +125,41 @@ class OutfitSession:
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))
 
-    def step_cloth(self, body_vertices: np.ndarray, dt: float) -> list[np.ndarray]:
-        out = []
+    def step_cloth(self, body_vertices: np.ndarray, dt: float, surface: bool = True,
+                   surface_dt: float | None = None) -> list[np.ndarray]:
+        """One frame of every garment: S101, then (if `surface`) S102-S106 with time step
+        `surface_dt` (default dt; longer when frames were skipped for the surface).
+
+        The garments are independent given the body, and every kernel releases the GIL, so with
+        `threads` > 1 they run on separate cores (the result is the same bit for bit)."""
         self.grid.update(np.ascontiguousarray(body_vertices[: self.body_mesh.n_vertices], dtype=np.float64))
-        for k, sim in enumerate(self.sims):
-            t0 = time.perf_counter()
-            out.append(sim.step(body_vertices, dt, profile=self.profile, body_grid=self.grid))
-            self.cloth_seconds[k] = time.perf_counter() - t0
-            self.stage_seconds[k] = sim.stage_seconds
-        if self.surfaces:
-            self.detailed = []
-            for k, (sim, surf) in enumerate(zip(self.sims, self.surfaces)):
-                st = sim.state
-                self.detailed.append(surf.step(out[k], st.nearest_any, sim.body_x, self.body_mesh, st.face_n,
-                                               st.face_stamp, st.stamp, dt))
-                self.surface_seconds[k] = surf.stage_seconds
+        self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt)
+        if self._pool is not None:
+            out = list(self._pool.map(self._step_garment, range(len(self.sims))))
+        else:
+            out = [self._step_garment(k) for k in range(len(self.sims))]
+        if self._frame[2]:
+            self.detailed = [self._detailed[k] for k in range(len(self.sims))]
         return out
+
+    def _step_garment(self, k: int) -> np.ndarray:
+        body_vertices, dt, surface, surface_dt = self._frame
+        sim = self.sims[k]
+        t0 = time.perf_counter()
+        x = sim.step(body_vertices, dt, profile=self.profile, body_grid=self.grid)
+        self.cloth_seconds[k] = time.perf_counter() - t0
+        self.stage_seconds[k] = sim.stage_seconds
+        if surface:
+            st, surf = sim.state, self.surfaces[k]
+            self._detailed[k] = surf.step(x, st.nearest_any, sim.body_x, self.body_mesh, st.face_n, st.face_stamp,
+                                          st.stamp, surface_dt)
+            self.surface_seconds[k] = surf.stage_seconds
+        return x
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
 
     def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5):
         """Blend the body from rest to the first frame's pose, then hold it while the cloth settles."""
@@ -138,11 +167,13 @@ class OutfitSession:
         q_rest = self.animator.rest_configuration()
         n_blend = max(1, int(round(blend_seconds / dt)))
         n_settle = max(1, int(round(settle_seconds / dt)))
-        for k in range(1, n_blend + n_settle + 1):
+        n = n_blend + n_settle
+        for k in range(1, n + 1):
             t = smoothstep(min(1.0, k / n_blend))
             q = pin.interpolate(model, q_rest, q_first, t)
             frame = self.animator.pose(q)
-            self.step_cloth(frame.vertices, dt)
+            # the detailed surface only needs the last few steps to settle onto the coarse cloth
+            self.step_cloth(frame.vertices, dt, surface=k > n - self.PREROLL_SURFACE_STEPS)
 
 
 def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max_frames: int | None = None,
@@ -155,7 +186,8 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
         animator = BodyAnimator(body, source.skeleton)
         body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body))
         outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)
-        session = OutfitSession(body, animator, body_mesh, outfit, surface)
+        # garments one after the other: the per-garment stage timings stay those of one core
+        session = OutfitSession(body, animator, body_mesh, outfit, surface, threads=1)
         session.profile = profile
         report = ClothReport(Path(clip).stem, outfit.name, [m.name for m in outfit.models], models=outfit.models)
         report.surface_triangles = [sf.model.tess.triangles for sf in session.surfaces]

@@ -83,6 +83,7 @@ class GarmentSession:
         self.last_frame = -1
         self.started = False
         self.end_frame: int | None = None  # set by the session's end message
+        self.skipped_since = 0  # frames stepped without their surface since the last published one
         self.last_seen = time.monotonic()
         for k, (n, m) in enumerate(zip(self.names, outfit.models)):
             tris = self.sim.surfaces[k].model.tess.triangles if self.sim.surfaces else m.triangles
@@ -92,7 +93,9 @@ class GarmentSession:
                                  "level": spec.level, "n_vertices": int(tris.max()) + 1})
             self.latched.publish(key(session, "topology", "garment", n), encode(topo))
 
-    def on_body(self, msg: Message, key_expr: str) -> None:
+    def on_body(self, msg: Message, key_expr: str, publish: bool = True) -> None:
+        """Step the cloth to this body frame. publish=False (catching up): S101 only, no surface and
+        no garment message; the next published frame's surface step spans the skipped frames."""
         svc = self.service
         v, q = msg.arrays["vertices"], msg.arrays["q"]
         if v.shape[0] != svc.body.n_visible:
@@ -112,8 +115,15 @@ class GarmentSession:
             self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
             self.started = True
         t0 = time.perf_counter()
-        positions = self.sim.step_cloth(self.body_x, self.dt)
+        positions = self.sim.step_cloth(self.body_x, self.dt, surface=publish,
+                                        surface_dt=self.dt * (self.skipped_since + 1))
         step_ms = (time.perf_counter() - t0) * 1000
+        self.stats.add("received")
+        if not publish:
+            self.skipped_since += 1
+            self.stats.add("skipped")
+            return
+        self.skipped_since = 0
         for k, name in enumerate(self.names):
             if self.sim.detailed:
                 p, n = self.sim.detailed[k]
@@ -135,12 +145,12 @@ class GarmentSession:
                           origin_ns=msg.stamp_ns)
             self.publishers[k].put(encode(out))
             self.stats.add("published")
-        self.stats.add("received")
         self.stats.values.update(step_ms=round(step_ms, 3), backlog=svc.backlog(),
                                  latency_ms=round((time.time_ns() - msg.stamp_ns) / 1e6, 3))
         self.stats.publish(svc.bus)
 
     def close(self) -> None:
+        self.sim.close()
         self.stats.publish(self.service.bus, force=True)
         for p in self.publishers:
             p.undeclare()
@@ -153,8 +163,14 @@ class ClothService:
     SERVICE = "cloth"
 
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
-                 queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*"):
+                 queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
+                 catch_up: bool = False):
+        """catch_up: when a session's body frames queue up, step the coarse cloth through every one
+        of them but build and publish the detailed surface only for the newest (live displays stay
+        current; the output then depends on timing). Off: every frame is published, in order, and
+        the output is deterministic (replays reproduce it bit for bit)."""
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
+        self.catch_up = catch_up
         self.idle_seconds = idle_seconds
         self.animator = BodyAnimator(body)
         self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body))
@@ -212,20 +228,33 @@ class ClothService:
         """Consume body frames until stop(); every error is logged and counted, never fatal."""
         while not self._stop.is_set():
             try:
-                sample = self._queue.get(timeout=0.2)
+                batch = [self._queue.get(timeout=0.2)]
             except queue.Empty:
                 self._drop_idle()
                 continue
-            try:
-                self.handle(str(sample.key_expr), sample.payload.to_bytes())
-            except Exception:  # noqa: BLE001 - a bug in one session must not stop the others
-                log.exception("cloth: failed on %s", sample.key_expr)
-                self.stats.add("errors")
-            with self.done:
-                self.frames_done += 1
-                self.done.notify_all()
+            if self.catch_up:  # everything already waiting: only each session's newest frame is published
+                while True:
+                    try:
+                        batch.append(self._queue.get_nowait())
+                    except queue.Empty:
+                        break
+            newest: dict[str, int] = {}
+            for i, sample in enumerate(batch):
+                k = str(sample.key_expr)
+                if k.endswith("/body"):
+                    newest[k] = i
+            for i, sample in enumerate(batch):
+                k = str(sample.key_expr)
+                try:
+                    self.handle(k, sample.payload.to_bytes(), publish=newest.get(k, i) == i)
+                except Exception:  # noqa: BLE001 - a bug in one session must not stop the others
+                    log.exception("cloth: failed on %s", k)
+                    self.stats.add("errors")
+                with self.done:
+                    self.frames_done += 1
+                    self.done.notify_all()
 
-    def handle(self, key_expr: str, payload: bytes) -> None:
+    def handle(self, key_expr: str, payload: bytes, publish: bool = True) -> None:
         try:
             session, rest = parse_key(key_expr)
             msg = decode(payload, key_expr, session, rest[0] if rest[0] in ("body", "control") else None)
@@ -258,7 +287,7 @@ class ClothService:
                 return
         gs.last_seen = time.monotonic()
         try:
-            gs.on_body(msg, key_expr)
+            gs.on_body(msg, key_expr, publish)
         except MessageError as err:
             gs.stats.reject(err)
             gs.stats.publish(self.bus)

@@ -130,7 +130,8 @@ class BusPoseSource:
     def __iter__(self) -> Iterator[PoseFrame]:
         n = len(self.skeleton.names)
         last = -1
-        while True:
+        end_at = None  # the capture's last frame, once its end message is in
+        while end_at is None or last < end_at:
             try:
                 sample = self._q.get(timeout=self.idle_timeout)
             except queue.Empty:
@@ -140,7 +141,8 @@ class BusPoseSource:
                 msg = decode(sample.payload.to_bytes(), k, self.session)
                 if msg.kind == "control":
                     if msg.meta.get("event") == "end" and msg.meta.get("from") == "capture":
-                        return
+                        end_at = msg.meta.get("last_frame", -1)  # poses may still be on their way
+                        end_at = end_at if isinstance(end_at, int) else -1
                     continue
                 if msg.kind != "pose":
                     raise MessageError(k, f"kind {msg.kind!r} where 'pose' is expected")
@@ -252,20 +254,22 @@ def publish_capture(bus: zenoh.Session, session: str, source, start_frame: int =
     latched.publish(key(session, "skeleton"), encode(skeleton_message(session, source.skeleton, source.frame_time)))
     pub = bus.declare_publisher(key(session, "pose"), congestion_control=zenoh.CongestionControl.BLOCK)
     wait_matching(pub, wait_subscribers)
-    n = 0
+    n, last = 0, -1
     try:
         for frame in source:
             if stop is not None and stop.is_set():
                 break
             if frame.index < start_frame:
                 continue
+            last = frame.index
             msg = Message("pose", session, frame.index, frame.time,
                           {"local_rotations": matrices_to_quaternions(frame.local_rot),
                            "root_position": frame.root_position.copy()})
             pub.put(encode(msg))
             n += 1
     finally:
-        bus.put(key(session, "control"), encode(Message("control", session, n, meta={"event": "end", "from": "capture"})))
+        bus.put(key(session, "control"), encode(Message("control", session, n, meta={"event": "end", "from": "capture",
+                                                                      "last_frame": last})))
         pub.undeclare()
         time.sleep(0.2)  # let late skeleton queries be answered before the queryable goes
         latched.close()

@@ -172,7 +172,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
     t_start = time.perf_counter()
     cloth = viewer = recorder = tap = None
     try:
-        cloth = ClothService(bus, body, data, spec, sessions=session).start()
+        cloth = ClothService(bus, body, data, spec, sessions=session, catch_up=serve).start()
         sink = RecordingSink(session, rrd=out_dir / f"{session}.rrd", serve_port=serve_port, web_port=web_port)
         viewer = ViewerBridge(bus, session, sink, lossless=not serve).start()
         recorder = Recorder(bus, session, out_dir / f"{session}.mcap") if record else None

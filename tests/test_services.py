@@ -21,10 +21,12 @@ import pytest
 from services.bus import BusConfig, fetch_latched, key, parse_key
 from services.cloth_job import START_FRAME
 from services.cloth_service import ClothService, OutfitSpec
-from services.ingest import IngestService
+from services.bus import Stats
+from services.ingest import BusPoseSource, IngestService, publish_capture
 from services.protocol import Message, decode, encode
 from services.recorder import Recorder, read_recording, replay
 from services.viewer import RecordingSink, ViewerBridge
+from skinning.animate import BodyAnimator
 from skinning.source import BVHSource
 
 OUTFIT = "female_casualsuit01"
@@ -300,3 +302,32 @@ def test_two_concurrent_sessions_do_not_see_each_other(hub, body, data):
         stop.set()
         for b in (*buses, watch):
             b.close()
+
+
+def test_live_pose_stream_drives_the_body_like_the_file(hub, body, data):
+    """A capture system publishes skeleton + poses (quaternions); mocap-ingest turns them into the
+    same body as when it reads the file itself."""
+    port, _ = hub
+    capture_bus, ingest_bus = peer(port), peer(port)
+    try:
+        capture = threading.Thread(target=publish_capture, args=(capture_bus, "live",
+                                                                 BVHSource(mocap_clip(data), every=2, max_frames=8)),
+                                   kwargs={"start_frame": START_FRAME, "wait_subscribers": 10}, daemon=True)
+        capture.start()
+        source = BusPoseSource(ingest_bus, "live", Stats("ingest", "live"), wait_skeleton=10, idle_timeout=10)
+        svc = IngestService(ingest_bus, "live", body, source, {"outfit": OUTFIT, "level": LEVEL})
+        bodies = Collector(ingest_bus, key("live", "body"))
+        assert svc.run() == 7
+        capture.join(10)
+        wait_until(lambda: len(bodies.frames("body")) == 7, 10, "the live body frames")
+        assert bodies.frames("body") == list(range(1, 8))
+        with BVHSource(mocap_clip(data), every=2, max_frames=8) as ref:
+            animator = BodyAnimator(body, ref.skeleton)
+            expected = {f.index: animator(f.local_rot, f.root_position).vertices[: body.n_visible].copy()
+                        for f in ref if f.index >= 1}
+        for _, m in bodies.messages:
+            np.testing.assert_allclose(m.arrays["vertices"], expected[m.frame], atol=1e-5)
+        source.close()
+    finally:
+        capture_bus.close()
+        ingest_bus.close()

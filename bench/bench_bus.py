@@ -1,0 +1,196 @@
+"""End-to-end latency and throughput of the services over the bus (separate OS processes).
+
+A cloth service and mocap-ingest processes talk over zenoh on TCP loopback; this process
+subscribes to the garments like a display would. Latency of a frame = arrival of its last garment
+mesh here - publication of its body frame (same clock). Runs:
+  * one session (one outfit, two garments) at 60 Hz input: p50/p99 latency, dropped frames;
+  * the same at the clips' native 120 Hz;
+  * sustained throughput: input as fast as possible;
+  * concurrent 60 Hz sessions on one cloth service, 1..N: how many it holds (no dropped frame,
+    latency not growing).
+Run: .venv/bin/python bench/bench_bus.py [--level 6] [--seconds 8] [--max-sessions 3]
+(--level 0: coarse cloth only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench_cloth import cpu_name  # noqa: E402 - same folder
+from services.bus import BusConfig, key, parse_key  # noqa: E402
+from services.protocol import decode  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+CLIP = "cmu_131_01_walk_3dsmax"
+OUTFIT = "female_casualsuit01"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Arrivals:
+    """Arrival time of every garment message of some sessions."""
+
+    def __init__(self, bus, sessions: list[str]):
+        self.lock = threading.Lock()
+        self.frames: dict[tuple[str, int], dict] = {}  # (session, frame) -> {garment: (arrival, origin)}
+        self.body: dict[str, list[int]] = {s: [] for s in sessions}
+        self.subs = []
+        for s in sessions:
+            self.subs.append(bus.declare_subscriber(key(s, "garment", "*"), self.on_garment))
+            self.subs.append(bus.declare_subscriber(key(s, "body"), self.on_body))
+
+    def on_garment(self, sample) -> None:
+        now = time.time_ns()
+        k = str(sample.key_expr)
+        m = decode(sample.payload.to_bytes(), k)
+        if "preroll_s" in m.meta:  # the first frame waits for the session's pre-roll
+            return
+        with self.lock:
+            self.frames.setdefault((m.session, m.frame), {})[parse_key(k)[1][1]] = (now, m.origin_ns, m.meta)
+
+    def on_body(self, sample) -> None:
+        k = str(sample.key_expr)
+        m = decode(sample.payload.to_bytes(), k)
+        with self.lock:
+            self.body[m.session].append(m.frame)
+
+    def close(self):
+        for s in self.subs:
+            s.undeclare()
+
+    def result(self, session: str, garments: int = 2):
+        with self.lock:
+            body = self.body[session][1:]  # frame 1 carries the pre-roll
+            full = {f: g for (s, f), g in self.frames.items() if s == session and len(g) == garments}
+        lat = np.array([max(a for a, _, _ in full[f].values()) - max(o for _, o, _ in full[f].values())
+                        for f in body if f in full]) / 1e6
+        dropped = sum(1 for f in body if f not in full)
+        compute = np.array([sum(sum(v for k, v in meta.items() if k.endswith("_ms")) for _, _, meta in full[f].values())
+                            for f in body if f in full])
+        return lat, dropped, len(body), compute
+
+
+def cli(*args) -> list[str]:
+    return [sys.executable, "-m", "services.cli", *args]
+
+
+def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, level: int):
+    """Ingest processes (one per session) against the running cloth service; returns Arrivals."""
+    bus = BusConfig(mode="client", listen=[], connect=[endpoint]).open()
+    arrivals = Arrivals(bus, sessions)
+    level_args = ["--coarse-only"] if level == 0 else ["--level", str(level)]
+    procs = [subprocess.Popen(cli("ingest", "--session", s, "--clip", CLIP, "--pace", pace, "--every", str(every),
+                                  "--max-frames", str(frames + 1), "--mode", "client", "--connect", endpoint,
+                                  "--outfit", OUTFIT, *level_args),
+                              cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for s in sessions]
+    for p in procs:
+        p.wait()
+    # wait for the cloth service to finish what is queued: the garments of every session's last frame
+    last, still = None, 0.0
+    while still < 20.0:
+        time.sleep(0.25)
+        with arrivals.lock:
+            done = all(b and len(arrivals.frames.get((s, b[-1]), {})) == 2 for s, b in arrivals.body.items())
+            n = len(arrivals.frames)
+        if done:
+            break
+        still = still + 0.25 if n == last else 0.0
+        last = n
+    arrivals.close()
+    bus.close()
+    return arrivals
+
+
+def start_cloth(endpoint: str, level: int, catch_up: bool) -> subprocess.Popen:
+    level_args = ["--coarse-only"] if level == 0 else ["--level", str(level)]
+    cloth = subprocess.Popen(cli("cloth-service", "--listen", endpoint, "--outfit", OUTFIT, *level_args,
+                                 *(["--catch-up"] if catch_up else [])), cwd=ROOT,
+                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    for line in cloth.stdout:
+        if "ready" in line:
+            break
+    run(endpoint, ["warmup"], 2, "fast", 20, level)  # models built, kernels loaded
+    return cloth
+
+
+def latency_rows(endpoint: str, seconds: float, level: int, label: str) -> None:
+    for rate, every in (("60 Hz", 2), ("120 Hz (native)", 1)):
+        n = int(seconds * 120 / every)
+        a = run(endpoint, ["one"], every, "realtime", n, level)
+        lat, dropped, total, compute = a.result("one")
+        print(f"| {label} | {rate} | {total} | {np.percentile(lat, 50):.0f} | {np.percentile(lat, 99):.0f} | "
+              f"{lat.max():.0f} | {dropped} | {np.median(compute):.1f} |", flush=True)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--level", type=int, default=6, help="PN level (0: coarse cloth only)")
+    ap.add_argument("--seconds", type=float, default=8.0, help="length of each run in seconds of motion")
+    ap.add_argument("--max-sessions", type=int, default=3)
+    args = ap.parse_args()
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    print(f"machine: {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    print(f"outfit {OUTFIT} (two garments), level {args.level or 'coarse only'}, clip {CLIP}; "
+          f"cloth service, ingest and this subscriber in separate processes over TCP loopback\n")
+    print("| cloth service | input | frames | latency p50 ms | p99 ms | max ms | frames without garments | "
+          "compute ms/frame |")
+    print("|---|---|---|---|---|---|---|---|")
+    cloth = start_cloth(endpoint, args.level, catch_up=True)
+    try:
+        latency_rows(endpoint, args.seconds, args.level, "--catch-up")
+    finally:
+        cloth.terminate()
+        cloth.wait(10)
+    cloth = start_cloth(endpoint, args.level, catch_up=False)
+    try:
+        latency_rows(endpoint, args.seconds, args.level, "in order")
+        n = int(args.seconds * 60)
+        t0 = time.perf_counter()
+        a = run(endpoint, ["fast"], 2, "fast", n, args.level)
+        lat, dropped, total, compute = a.result("fast")
+        arr = sorted(max(x for x, _, _ in g.values()) for (s, _), g in a.frames.items() if s == "fast")
+        rate = (len(arr) - 1) / ((arr[-1] - arr[0]) / 1e9)
+        print(f"\nsustained throughput (input as fast as possible): {rate:.1f} frames/s "
+              f"({total} frames, {dropped} dropped, run {time.perf_counter() - t0:.0f} s)")
+        print("\n| concurrent 60 Hz sessions | latency p50 ms | p99 ms | dropped | holds |")
+        print("|---|---|---|---|---|")
+        for k in range(1, args.max_sessions + 1):
+            names = [f"s{i}" for i in range(k)]
+            a = run(endpoint, names, 2, "realtime", n, args.level)
+            lats, drops = [], 0
+            growing = False
+            for s in names:
+                lat, dropped, total, _ = a.result(s)
+                lats.append(lat)
+                drops += dropped
+                q = max(1, len(lat) // 4)
+                growing |= np.median(lat[-q:]) > 2 * np.median(lat[:q]) + 10
+            lat = np.concatenate(lats)
+            holds = drops == 0 and not growing and np.percentile(lat, 99) < 100
+            print(f"| {k} | {np.percentile(lat, 50):.0f} | {np.percentile(lat, 99):.0f} | {drops} | "
+                  f"{'yes' if holds else 'no'} |", flush=True)
+            if not holds:
+                break
+    finally:
+        cloth.terminate()
+        cloth.wait(10)
+
+
+if __name__ == "__main__":
+    main()
