@@ -163,12 +163,8 @@ def cmd_ingest(args) -> int:
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
                 "clip": "live" if args.live else Path(source.path).stem}
         svc = IngestService(bus, session, body, source, desc)
-        svc.announce()
-        if args.wait_subscribers and not svc.wait_for_subscribers(args.wait_subscribers):
-            print(f"ingest: nothing subscribes to {session}'s body after {args.wait_subscribers:.0f} s; "
-                  "publishing anyway", file=sys.stderr)
         try:
-            n = svc.run(start_frame=start)
+            n = svc.run(start_frame=start, wait_subscribers=args.wait_subscribers, wait_ready=args.wait_ready)
         except KeyboardInterrupt:
             n = svc.frames
         finally:
@@ -354,6 +350,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-frames", type=int, default=None)
     p.add_argument("--wait-subscribers", type=float, default=10.0,
                    help="wait up to this many seconds for a body subscriber (cloth service) before the first frame")
+    p.add_argument("--wait-ready", type=float, default=30.0,
+                   help="wait up to this many seconds for the cloth service to fit the outfit (pre-roll)")
     _outfit_arguments(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_ingest)

@@ -93,6 +93,24 @@ class GarmentSession:
                                  "level": spec.level, "n_vertices": int(tris.max()) + 1})
             self.latched.publish(key(session, "topology", "garment", n), encode(topo))
 
+    def preroll(self, q: np.ndarray) -> None:
+        """Settle the garments from the rest pose into pose q, then tell the session we are ready."""
+        t0 = time.perf_counter()
+        self.sim.preroll(np.array(q, dtype=np.float64), self.dt)
+        self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
+        self.started = True
+        ready = Message("control", self.session, meta={"event": "ready", "from": "cloth", "garments": self.names})
+        self.latched.publish(key(self.session, "status", "cloth"), encode(ready))
+
+    def start_from_description(self, desc: dict, key_expr: str) -> None:
+        q = desc.get("first_q")
+        if q is None:
+            return  # no first pose announced: the first body frame starts the session
+        nq = self.service.animator.character.model.nq
+        if not isinstance(q, list) or len(q) != nq or not all(isinstance(v, (int, float)) for v in q):
+            raise MessageError(key_expr, f"'first_q' must list the character's {nq} configuration values")
+        self.preroll(np.array(q, dtype=np.float64))
+
     def on_body(self, msg: Message, key_expr: str, publish: bool = True) -> None:
         """Step the cloth to this body frame. publish=False (catching up): S101 only, no surface and
         no garment message; the next published frame's surface step spans the skipped frames."""
@@ -109,11 +127,8 @@ class GarmentSession:
         self.last_frame = msg.frame
         self.body_x[:] = v
         first = not self.started
-        if first:  # settle the garments from the rest pose into this first pose
-            t0 = time.perf_counter()
-            self.sim.preroll(np.array(q, dtype=np.float64), self.dt)
-            self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
-            self.started = True
+        if first:  # joined without the announcement: settle the garments into this first pose
+            self.preroll(q)
         t0 = time.perf_counter()
         positions = self.sim.step_cloth(self.body_x, self.dt, surface=publish,
                                         surface_dt=self.dt * (self.skipped_since + 1))
@@ -181,8 +196,7 @@ class ClothService:
         self.stats = Stats(self.SERVICE, "_service")  # rejections of messages with no usable session
         self._models: dict[OutfitSpec, tuple[Outfit, list | None]] = {}
         self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
-        self._subs = [bus.declare_subscriber(key(sessions, "body"), self._queue.put),
-                      bus.declare_subscriber(key(sessions, "control"), self._queue.put)]
+        self._subs = [bus.declare_subscriber(key(sessions, k), self._queue.put) for k in ("session", "body", "control")]
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.frames_done = 0
@@ -257,7 +271,7 @@ class ClothService:
     def handle(self, key_expr: str, payload: bytes, publish: bool = True) -> None:
         try:
             session, rest = parse_key(key_expr)
-            msg = decode(payload, key_expr, session, rest[0] if rest[0] in ("body", "control") else None)
+            msg = decode(payload, key_expr, session, rest[0] if rest[0] in ("session", "body", "control") else None)
         except MessageError as err:
             gs = self.sessions.get(parse_key(key_expr)[0]) if key_expr.startswith("tryon/") else None
             (gs.stats if gs else self.stats).reject(err)
@@ -270,6 +284,16 @@ class ClothService:
                 if gs is not None:  # frames still on their way (other key, other order) finish it
                     gs.end_frame = last if isinstance(last, int) else -1
                     self._close_if_done(session)
+            return
+        if msg.kind == "session":  # announced: fit and settle the outfit before the first body frame
+            if session not in self.sessions and msg.stamp_ns > self.ended.get(session, -1):
+                self.failed.pop(session, None)
+                try:
+                    gs = self._open(session, key_expr, msg.meta)
+                    gs.start_from_description(msg.meta, key_expr)
+                except (MessageError, FileNotFoundError, ValueError) as err:
+                    self.failed[session] = f"session cannot be served: {err}"
+                    self.stats.reject(MessageError(key_expr, self.failed[session]))
             return
         gs = self.sessions.get(session)
         if gs is None and msg.stamp_ns <= self.ended.get(session, -1):
@@ -300,10 +324,11 @@ class ClothService:
             self.sessions.pop(session).close()
             self.closed_stats[session] = gs.stats.snapshot()
 
-    def _open(self, session: str, key_expr: str) -> GarmentSession:
-        found = fetch_latched(self.bus, key(session, "session"), timeout=2.0, stats=self.stats)
-        desc = next(iter(found.values())).meta if found else {}
-        if not found:
+    def _open(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
+        found = {} if desc is not None else fetch_latched(self.bus, key(session, "session"), timeout=2.0,
+                                                         stats=self.stats)
+        desc = desc if desc is not None else (next(iter(found.values())).meta if found else {})
+        if not desc:
             log.warning("cloth: session %s has no description on %s; using the defaults", session,
                         key(session, "session"))
         spec = OutfitSpec.from_description(desc, self.default, key(session, "session"))

@@ -127,6 +127,19 @@ class BusPoseSource:
             s.undeclare()
         self._subs.clear()
 
+    def hold(self, seconds: float) -> None:
+        """After a pause: poses that queued meanwhile are stale; keep only the newest."""
+        stale = []
+        while True:
+            try:
+                stale.append(self._q.get_nowait())
+            except queue.Empty:
+                break
+        poses = [s for s in stale if str(s.key_expr).endswith("/pose")]
+        for s in [s for s in stale if not str(s.key_expr).endswith("/pose")] + poses[-1:]:
+            self._q.put(s)
+        self.stats.add("dropped", max(0, len(poses) - 1))
+
     def __iter__(self) -> Iterator[PoseFrame]:
         n = len(self.skeleton.names)
         last = -1
@@ -180,6 +193,8 @@ class IngestService:
         self.frames = 0
         self.last_index = -1  # index of the last frame published
         self._announced = False
+        self._ready = threading.Event()
+        self._status = bus.declare_subscriber(key(session, "status", "*"), self._on_status)
         self._verts = np.empty((body.n_visible, 3), np.float32)
         self._normals = np.empty((body.n_visible, 3), np.float32)
 
@@ -194,8 +209,9 @@ class IngestService:
                        meta={"what": "body", "n_vertices": self.body.n_visible, "color": [0.86, 0.69, 0.58]})
         self.latched.publish(key(self.session, "topology", "body"), encode(topo))
 
-    def publish(self, frame: PoseFrame, origin_ns: int = 0) -> None:
-        out = self.animator(frame.local_rot, frame.root_position)
+    def publish(self, frame: PoseFrame, origin_ns: int = 0, out=None) -> None:
+        """Retarget + skin one pose (unless `out`, its BodyFrame, is given) and publish the body."""
+        out = self.animator(frame.local_rot, frame.root_position) if out is None else out
         self._verts[:] = out.vertices[: self.body.n_visible]
         self._normals[:] = out.normals
         st = self.animator.stage_seconds
@@ -216,11 +232,36 @@ class IngestService:
         that connects a moment later; frames put before then would reach no one."""
         return wait_matching(self.publisher, timeout)
 
+    def wait_ready(self, timeout: float) -> bool:
+        """Wait up to `timeout` s for a cloth service to report this session ready (garments fitted
+        and settled into the first pose), so the body stream does not queue up behind the pre-roll."""
+        deadline = time.monotonic() + timeout
+        while not self._ready.is_set():
+            found = fetch_latched(self.bus, key(self.session, "status", "*"), timeout=0.5)
+            if any(m.meta.get("event") == "ready" for m in found.values()):
+                return True
+            if time.monotonic() > deadline:
+                return False
+            self._ready.wait(0.05)
+        return True
+
+    def _on_status(self, sample) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), str(sample.key_expr), self.session, "control")
+        except MessageError as err:
+            self.stats.reject(err)
+            return
+        if msg.meta.get("event") == "ready":
+            self._ready.set()
+
     def run(self, start_frame: int = 0, before_frame: Callable[[int], bool] | None = None,
-            stop: threading.Event | None = None) -> int:
+            stop: threading.Event | None = None, wait_subscribers: float = 0.0, wait_ready: float = 0.0) -> int:
         """Publish every frame of the source; before_frame(index) may wait (flow control) or return
-        False to stop. Ends with a control "end" message. Returns the number of frames published."""
-        self.announce()
+        False to stop. Ends with a control "end" message. Returns the number of frames published.
+
+        The first pose is retargeted before the session is announced: its configuration goes into the
+        description (`first_q`), so a cloth service can fit and settle the garments into it before the
+        first body frame (`wait_ready` s at most); `wait_subscribers`: wait for a body subscriber."""
         try:
             for frame in self.source:
                 if stop is not None and stop.is_set():
@@ -229,7 +270,19 @@ class IngestService:
                     continue
                 if before_frame is not None and before_frame(frame.index) is False:
                     break
-                self.publish(frame, getattr(self.source, "origin_ns", 0))
+                out = self.animator(frame.local_rot, frame.root_position)
+                if not self._announced:
+                    self.description["first_q"] = [float(v) for v in out.retarget.q]
+                    self.announce()
+                    t0 = time.monotonic()
+                    if wait_subscribers > 0 and not self.wait_for_subscribers(wait_subscribers):
+                        log.warning("ingest: nothing subscribes to %s", key(self.session, "body"))
+                    if wait_ready > 0 and not self.wait_ready(wait_ready):
+                        log.warning("ingest: no cloth service reported %s ready in %.0f s", self.session, wait_ready)
+                    waited = time.monotonic() - t0
+                    if waited > 0.1 and hasattr(self.source, "hold"):  # no burst of frames that piled up
+                        self.source.hold(waited)
+                self.publish(frame, getattr(self.source, "origin_ns", 0), out)
         finally:
             self.end()
         return self.frames
@@ -242,6 +295,7 @@ class IngestService:
         self.stats.publish(self.bus, force=True)
 
     def close(self) -> None:
+        self._status.undeclare()
         self.publisher.undeclare()
         self.latched.close()
 

@@ -58,7 +58,7 @@ class SessionTap:
             for name, v in msg.meta.items():
                 if name.endswith("_ms"):
                     self.timings.setdefault(name if msg.kind == "body" else f"{parts[-1]}:{name}", []).append(v)
-            if msg.kind == "garment" and "preroll_s" not in msg.meta:  # the first frame waits for the pre-roll
+            if msg.kind == "garment" and "preroll_s" not in msg.meta:  # a first frame that waited for a pre-roll
                 self.latency_ms.append((now - msg.origin_ns) / 1e6)
                 self.garment_frames += 1
                 self.last_garment_frame = max(self.last_garment_frame, msg.frame)
@@ -194,7 +194,8 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
             return True
 
         try:
-            ingest.run(start_frame=START_FRAME, before_frame=before_frame, stop=stop)
+            ingest.run(start_frame=START_FRAME, before_frame=before_frame, stop=stop, wait_subscribers=10,
+                       wait_ready=300)
         except KeyboardInterrupt:
             ingest.end()
         # everything published so far is simulated, shown and recorded before the files close

@@ -59,6 +59,10 @@ class BVHSource:
     def close(self) -> None:
         self._reader.close()
 
+    def hold(self, seconds: float) -> None:
+        """Shift the real-time schedule by `seconds` (the consumer paused; no burst of late frames)."""
+        self._clock = getattr(self, "_clock", time.perf_counter()) + seconds
+
     def __enter__(self):
         return self
 
@@ -68,7 +72,7 @@ class BVHSource:
     def __iter__(self) -> Iterator[PoseFrame]:
         n_bones = len(self.skeleton.names)
         index = 0
-        start = time.perf_counter()
+        self._clock = time.perf_counter()
         while True:
             for k, values in enumerate(self._reader.rows()):
                 if k % self.every:
@@ -78,7 +82,7 @@ class BVHSource:
                 rot, pos = local_pose(self.header, values, np.empty((n_bones, 3, 3)), np.empty(3))
                 t = index * self.frame_time
                 if self.pace == "realtime":
-                    delay = start + t - time.perf_counter()
+                    delay = self._clock + t - time.perf_counter()
                     if delay > 0:
                         time.sleep(delay)
                 yield PoseFrame(index, t, rot, pos)

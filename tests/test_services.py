@@ -98,9 +98,8 @@ def run_ingest(bus, session, body, data, clip=SHORT, max_frames=None, pace="fast
     """An ingest service on `bus` in a thread; returns (thread, service)."""
     source = BVHSource(mocap_clip(data, clip), pace=pace, loop=loop, every=every, max_frames=max_frames)
     svc = IngestService(bus, session, body, source, {"outfit": OUTFIT, "level": LEVEL})
-    svc.announce()
-    assert svc.wait_for_subscribers(10), "no cloth service subscribes to the body stream"
-    t = threading.Thread(target=svc.run, kwargs={"start_frame": START_FRAME, "stop": stop}, daemon=True)
+    t = threading.Thread(target=svc.run, kwargs={"start_frame": START_FRAME, "stop": stop, "wait_subscribers": 10,
+                                                 "wait_ready": 30}, daemon=True)
     t.start()
     return t, svc
 
