@@ -13,7 +13,7 @@ $(BIN)/tryon: pyproject.toml
 setup: $(BIN)/tryon
 
 run: setup
-	$(BIN)/tryon body --out out
+	$(BIN)/tryon session --out out
 
 test: setup
 	$(BIN)/python -m pytest -q tests
@@ -23,6 +23,7 @@ bench: setup
 	$(BIN)/python bench/bench_body.py --every 2
 	$(BIN)/python bench/bench_cloth.py
 	$(BIN)/python bench/bench_surface.py
+	$(BIN)/python bench/bench_bus.py
 
 clean:
 	rm -rf $(VENV) out

@@ -326,8 +326,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="out", help="output folder (default out/)")
     p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
     p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
-    p.add_argument("--snapshot-frames", default="60,150,240,330,420",
-                   help="frames to render as PNG (comma-separated; default 60,150,240,330,420)")
+    p.add_argument("--snapshot-frames", default="60,150,240,420",
+                   help="frames to render as PNG (comma-separated; default 60,150,240,420)")
     p.add_argument("--serve", action="store_true", help="stay live: clip at its own pace, looped; rerun served "
                                                          "for remote viewers; bus on tcp/0.0.0.0:7447; Ctrl-C stops")
     p.add_argument("--port", type=int, default=9876, help="rerun gRPC port with --serve (default 9876)")

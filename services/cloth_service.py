@@ -321,8 +321,8 @@ class ClothService:
         gs = self.sessions.get(session)
         if gs is not None and gs.end_frame is not None and gs.last_frame >= gs.end_frame:
             log.info("cloth: session %s ended after frame %d", session, gs.last_frame)
-            self.sessions.pop(session).close()
             self.closed_stats[session] = gs.stats.snapshot()
+            self.sessions.pop(session).close()
 
     def _open(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
         found = {} if desc is not None else fetch_latched(self.bus, key(session, "session"), timeout=2.0,
