@@ -19,6 +19,7 @@ import pinocchio as pin
 from cloth.collision import BodyMesh, VertexGrid
 from cloth.fabric import Fabric, fabric as fabric_preset
 from cloth.garment import Garment, load_outfit
+from cloth.geometry import vertex_normals as geometry_vertex_normals
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
@@ -225,12 +226,10 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
 
 
 def vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals (drawing only)."""
-    fn = np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]], vertices[triangles[:, 2]] - vertices[triangles[:, 0]])
-    n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, triangles[:, k], fn)
-    return n / (np.linalg.norm(n, axis=1, keepdims=True) + 1e-30)
+    """Area-weighted unit vertex normals for drawing (cloth.geometry's kernel)."""
+    out = np.empty((len(vertices), 3))
+    geometry_vertex_normals(np.ascontiguousarray(vertices, dtype=np.float64), triangles, out)
+    return out
 
 
 def render_cloth_snapshots(body: Body, report: ClothReport, models: list[ClothModel], out_dir: Path,

@@ -75,8 +75,10 @@ class GarmentSession:
                                                  congestion_control=zenoh.CongestionControl.DROP)
                            for n in self.names]
         self._coarse_normals = [np.empty((m.n_particles, 3)) for m in outfit.models]
-        n_out = [sf.state.p.shape[0] for sf in self.sim.surfaces] \
-            if self.sim.surfaces else [m.n_particles for m in outfit.models]
+        if self.sim.surfaces:
+            n_out = [sf.model.n_vertices for sf in self.sim.surfaces]
+        else:
+            n_out = [m.n_particles for m in outfit.models]
         self._p32 = [np.empty((n, 3), np.float32) for n in n_out]  # wire buffers, reused every frame
         self._n32 = [np.empty((n, 3), np.float32) for n in n_out]
         self.body_x = np.empty((service.body.n_visible, 3))

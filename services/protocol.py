@@ -185,13 +185,21 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
     return Message(k, s, frame, float(t), arrays, meta, stamp, origin)
 
 
+def peek_header(data: bytes | memoryview) -> dict | None:
+    """The JSON header of a message, unvalidated and without touching its arrays (None when
+    unreadable): for passing messages on (recorder) without the cost of `decode`."""
+    try:
+        magic, _, hlen = PREFIX.unpack_from(data, 0)
+        h = json.loads(bytes(memoryview(data)[PREFIX.size:PREFIX.size + hlen])) if magic == MAGIC else None
+        return h if isinstance(h, dict) else None
+    except (struct.error, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+
+
 def peek_frame(data: bytes | memoryview) -> int | None:
     """Frame number of a message without decoding its arrays (None when unreadable)."""
-    try:
-        _, _, hlen = PREFIX.unpack_from(data, 0)
-        return int(json.loads(bytes(memoryview(data)[PREFIX.size:PREFIX.size + hlen]))["frame"])
-    except Exception:  # noqa: BLE001 - any unreadable message simply has no frame
-        return None
+    h = peek_header(data)
+    return h.get("frame") if h is not None and isinstance(h.get("frame"), int) else None
 
 
 def retag(data: bytes | memoryview, session: str, key: str = "?", restamp: bool = False) -> bytes:

@@ -224,9 +224,10 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         return SessionResult(session, ingest.frames, seconds, rrd, rec_path, snap, stats, timings,
                              (float(np.percentile(lat, 50)), float(np.percentile(lat, 99))))
     finally:
-        for part in (tap, cloth):
-            if part is not None:
-                part.close() if part is tap else part.stop()
+        if tap is not None:
+            tap.close()
+        if cloth is not None:
+            cloth.stop()
         if recorder is not None:
             recorder.close()
         bus.close()

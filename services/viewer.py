@@ -74,28 +74,34 @@ class LatestPerKey:
             self.latest[k] = sample
             self.cond.notify()
 
-    def take(self, timeout: float) -> dict:
+    def take(self, timeout: float) -> list:
+        """The samples waiting (waits up to `timeout` s for one), ordered by key."""
         with self.cond:
             if not self.latest:
                 self.cond.wait(timeout)
             out, self.latest = self.latest, {}
-        return out
+        return [out[k] for k in sorted(out)]
 
 
-class EveryFrame(LatestPerKey):
-    """Keeps every sample in arrival order (offline sessions: the .rrd gets every frame)."""
+class EveryFrame:
+    """A subscriber callback that keeps every sample in arrival order (offline sessions: the .rrd
+    gets every frame)."""
+
+    def __init__(self, stats: Stats):
+        self.samples: list = []
+        self.cond = threading.Condition()
 
     def __call__(self, sample) -> None:
         with self.cond:
-            self.latest.setdefault("", []).append(sample)
+            self.samples.append(sample)
             self.cond.notify()
 
-    def take(self, timeout: float) -> dict:
+    def take(self, timeout: float) -> list:
         with self.cond:
-            if not self.latest:
+            if not self.samples:
                 self.cond.wait(timeout)
-            out, self.latest = self.latest.get("", []), {}
-        return {i: s for i, s in enumerate(out)}
+            out, self.samples = self.samples, []
+        return out
 
 
 class ViewerBridge:
@@ -153,7 +159,7 @@ class ViewerBridge:
     def serve(self) -> None:
         while not self._stop.is_set():
             batch = self.latest.take(0.2)
-            for _, sample in sorted(batch.items()):
+            for sample in batch:
                 try:
                     self.show(str(sample.key_expr), sample.payload.to_bytes())
                 except MessageError as err:
@@ -190,7 +196,7 @@ class ViewerBridge:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout)
-        for _, sample in sorted(self.latest.take(0).items()):  # show what is still pending
+        for sample in self.latest.take(0):  # show what is still pending
             try:
                 self.show(str(sample.key_expr), sample.payload.to_bytes())
             except MessageError as err:
