@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from .geometry import closest_point_triangle
-from .topology import unique_edges, vertex_neighbours, vertex_triangles
+from .topology import triangle_neighbours, unique_edges, vertex_neighbours, vertex_triangles
 
 
 @dataclass(frozen=True)
@@ -28,6 +28,7 @@ class BodyMesh:
     tri_start: np.ndarray  # (n + 1,) int64
     tri_ids: np.ndarray  # int32
     regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each leg)
+    tri_nbrs: np.ndarray  # (m, 3) int32: the triangle across each edge (see topology.triangle_neighbours)
 
     @classmethod
     def build(cls, triangles: np.ndarray, n_vertices: int, regions: np.ndarray | None = None) -> "BodyMesh":
@@ -43,7 +44,7 @@ class BodyMesh:
         regions = np.ascontiguousarray(regions, dtype=np.uint8)
         if regions.shape != (n_vertices,) or np.any(regions == 0):
             raise ValueError(f"regions must be ({n_vertices},) uint8 with a bit set for every vertex")
-        return cls(triangles, n_vertices, ns, ni, ts, ti, regions)
+        return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles))
 
 
 def face_cache(n_faces: int) -> tuple[np.ndarray, np.ndarray]:
@@ -305,6 +306,83 @@ def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_
     side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
     dist = math.sqrt(best)
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz
+
+
+FACE_WALK_STEPS = 48  # a face walk longer than this falls back to the vertex walk
+
+
+@njit(cache=True, inline="always")
+def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n,
+                       face_stamp, stamp, q):
+    """Signed distance from p to the body (negative inside) by a walk over faces from `start`.
+
+    The exact closest point on the current face; inside the face it is a local minimum of the
+    distance to the surface, on an edge the walk crosses to the face beyond while that gets
+    closer. Most points end inside a face or on an edge after one or two faces, where the
+    vertex walk + ring (`ring_signed_distance`) computes six. On a vertex (or a walk longer than
+    FACE_WALK_STEPS) the ring of that vertex decides. Sign from the surface normal at the
+    closest point: the face normal inside a face, the sum of the two face normals on an edge
+    (its angle-weighted pseudo-normal), the ring's rule at a vertex.
+    Returns (distance, nx, ny, nz, qx, qy, qz, face): `face` is where the next walk should start.
+    q: (3,) scratch."""
+    t = start
+    best = np.inf
+    best_t = -1
+    bv = bw = 0.0
+    qx = qy = qz = 0.0
+    steps = 0
+    while steps < FACE_WALK_STEPS:
+        steps += 1
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        v, w = closest_point_triangle(p, body_x[a], body_x[b], body_x[c], q)
+        d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+        if d2 >= best:
+            break  # the face beyond is no closer: the closest point is on the shared edge
+        best, best_t, bv, bw = d2, t, v, w
+        qx, qy, qz = q[0], q[1], q[2]
+        u = 1.0 - v - w
+        if v > 1e-9 and w > 1e-9 and u > 1e-9:
+            break  # inside the face
+        if w <= 1e-9 and v > 1e-9 and u > 1e-9:
+            nxt = tri_nbrs[t, 0]  # on edge (a, b)
+        elif u <= 1e-9 and v > 1e-9 and w > 1e-9:
+            nxt = tri_nbrs[t, 1]  # (b, c)
+        elif v <= 1e-9 and w > 1e-9 and u > 1e-9:
+            nxt = tri_nbrs[t, 2]  # (c, a)
+        else:
+            break  # on a vertex
+        if nxt < 0:
+            break
+        t = nxt
+    a, b, c = tris[best_t, 0], tris[best_t, 1], tris[best_t, 2]
+    u = 1.0 - bv - bw
+    vertex = -1
+    if steps >= FACE_WALK_STEPS:
+        vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, a, regions, 255)
+    elif bv <= 1e-9 and bw <= 1e-9:
+        vertex = a
+    elif u <= 1e-9 and bw <= 1e-9:
+        vertex = b
+    elif u <= 1e-9 and bv <= 1e-9:
+        vertex = c
+    if vertex >= 0:
+        d, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vertex, face_n,
+                                                         face_stamp, stamp, q)
+        return d, nx, ny, nz, qx, qy, qz, tri_ids[tri_start[vertex]]
+    cached_face_normal(body_x, tris, best_t, face_n, face_stamp, stamp)
+    nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
+    if not (bv > 1e-9 and bw > 1e-9 and u > 1e-9):  # on an edge: add the face beyond
+        e = 0 if bw <= 1e-9 else (1 if u <= 1e-9 else 2)
+        o = tri_nbrs[best_t, e]
+        if o >= 0:
+            cached_face_normal(body_x, tris, o, face_n, face_stamp, stamp)
+            nx, ny, nz = nx + face_n[o, 0], ny + face_n[o, 1], nz + face_n[o, 2]
+            nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if nl > 0.0:
+                nx, ny, nz = nx / nl, ny / nl, nz / nl
+    side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
+    dist = math.sqrt(best)
+    return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
 
 
 @njit(cache=True, nogil=True)

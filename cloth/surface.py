@@ -143,8 +143,8 @@ class DetailedSurface:
         else:
             self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, t.face_ids, t.order, t.parents,
                                             coarse_nearest, body_x, body.nbr_start, body.nbr_ids, body.regions,
-                                            body.triangles, body.tri_start, body.tri_ids, s.nearest, face_n,
-                                            face_stamp, stamp, s.q, st.clearance, st.contact_margin,
+                                            body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.nearest,
+                                            face_n, face_stamp, stamp, s.q, st.clearance, st.contact_margin,
                                             st.penetration_iterations, st.max_lift, st.max_height)
         penetration_floor(s.dh, s.sd, st.clearance, s.floor)
         t2 = time.perf_counter()

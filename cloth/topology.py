@@ -155,3 +155,21 @@ def vertex_triangles(n_vertices: int, triangles: np.ndarray) -> tuple[np.ndarray
 def triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     v = vertices[triangles]
     return 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+
+
+def triangle_neighbours(triangles: np.ndarray) -> np.ndarray:
+    """(t, 3) int32: the triangle across edge (a, b), (b, c), (c, a) of each triangle, -1 on a
+    boundary. Where more than two triangles share an edge (non-manifold), the first other one."""
+    t = np.asarray(triangles, dtype=np.int64)
+    n = len(t)
+    e = np.stack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]], axis=1).reshape(-1, 2)
+    key = np.sort(e, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    k = key[order]
+    same = np.all(k[1:] == k[:-1], axis=1)  # consecutive half-edges of one edge
+    out = np.full(3 * n, -1, dtype=np.int64)
+    first = order[:-1][same]
+    second = order[1:][same]
+    out[first] = second // 3
+    out[second] = first // 3
+    return out.reshape(n, 3).astype(np.int32)

@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .collision import ring_signed_distance, walk_nearest
+from .collision import deepest_plane, face_walk_distance, ring_signed_distance, walk_nearest
 from .geometry import vertex_normals
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
@@ -21,11 +21,12 @@ UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test th
 # ---------------------------------------------------------------- S103 penetration avoidance
 
 @njit(cache=True, inline="always")
-def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, nearest,
+def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest,
                             face_n, face_stamp, stamp, q):
     """Signed distance of detailed particle i (at p) to the body, by a nearest-vertex walk from
-    the nearer of its own last nearest vertex and `seed` (a coarse particle's), then the exact
-    closest point on the faces around that vertex."""
+    the nearer of its own last nearest vertex and `seed` (a coarse particle's), then a walk over
+    faces from that vertex's (`face_walk_distance`: one or two exact closest points, where the
+    whole ring of faces around the vertex takes six)."""
     own = nearest[i]
     start = seed
     if own >= 0:
@@ -35,7 +36,12 @@ def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tri
             start = own
     vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, 255)
     nearest[i] = vtx
-    return ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp, q)
+    # from the face around it whose plane p is most in front of (least behind), over faces
+    face = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp)[1]
+    if face < 0:
+        return ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp, q)
+    return face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face,
+                              face_n, face_stamp, stamp, q)[:7]
 
 
 @njit(cache=True, inline="always")
@@ -49,7 +55,7 @@ def _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 
 @njit(cache=True, nogil=True)
 def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
-              tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance, max_iterations, max_lift):
+              tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q, clearance, max_iterations, max_lift):
     """The smallest lift along n_i that puts particle vid `clearance` outside the body (S103).
 
     Along n_i the signed distance grows at the rate n_i . n_body, so where the body faces n_i
@@ -69,7 +75,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
             break
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift)
         d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q)
+                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q)
         it += 1
     if d >= clearance:
         return d
@@ -82,19 +88,19 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         step *= 2.0
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
         d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q)
+                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q)
         if d >= clearance:
             found = True
             break
         lo = hi
     if not found:
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
-        return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+        return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                                        nearest, face_n, face_stamp, stamp, q)[0]
     for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
         mid = 0.5 * (lo + hi)
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, mid)
-        dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+        dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                                      nearest, face_n, face_stamp, stamp, q)[0]
         if dm >= clearance:
             hi = mid
@@ -107,7 +113,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
 
 @njit(cache=True, nogil=True)
 def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
-                      nbr_ids, regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp, q, clearance,
+                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q, clearance,
                       margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
@@ -147,13 +153,13 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
                 pi = p[vid]
                 d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids,
-                                                                    regions, tris, tri_start, tri_ids, nearest,
+                                                                    regions, tris, tri_start, tri_ids, tri_nbrs, nearest,
                                                                     face_n, face_stamp, stamp, q)
                 if d < clearance:
                     cap = min(max_lift, max_height - dh[vid])  # Δh never exceeds max_height
                     if cap > 0.0:
                         d = _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
-                                      nbr_ids, regions, tris, tri_start, tri_ids, nearest, face_n, face_stamp, stamp,
+                                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp,
                                       q, clearance, max_iterations, cap)
                 sd[vid] = d
             if parents[loc, 0] < 0 and sd[vid] < margin:

@@ -1,0 +1,66 @@
+"""The S103 signed distance to the body: triangle adjacency and the walk over faces, against
+the independent signed distance of the acceptance tests (tests/signed_distance.py, which
+shares no code with cloth/)."""
+
+import numpy as np
+import pytest
+from numba import njit
+
+from cloth.collision import BodyMesh, deepest_plane, face_cache, face_walk_distance, walk_nearest
+from cloth.topology import triangle_neighbours
+from tests.signed_distance import SignedDistance
+from tests.test_cloth_dynamics import box, uv_sphere
+
+
+@njit(cache=True)
+def _walk_all(points, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n,
+              face_stamp, out):
+    q = np.zeros(3)
+    for i in range(points.shape[0]):
+        p = points[i]
+        v = walk_nearest(p, body_x, nbr_start, nbr_ids, start[i], regions, 255)
+        f = deepest_plane(p, body_x, tris, tri_start, tri_ids, v, face_n, face_stamp, 1)[1]
+        out[i] = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, f,
+                                    face_n, face_stamp, 1, q)[0]
+
+
+def test_triangle_neighbours_of_a_closed_mesh_are_mutual():
+    _, tris = box(half=0.1, n=3)
+    nb = triangle_neighbours(tris)
+    assert nb.shape == tris.shape and (nb >= 0).all()  # closed: every edge has a triangle beyond
+    for t, row in enumerate(nb):
+        for e, o in enumerate(row):
+            a, b = tris[t, e], tris[t, (e + 1) % 3]
+            assert t in nb[o]  # mutual
+            assert {a, b} <= set(tris[o])  # across the shared edge
+
+
+def test_triangle_neighbours_of_an_open_edge_are_missing():
+    nb = triangle_neighbours(np.array([[0, 1, 2], [2, 1, 3]], dtype=np.int32))
+    np.testing.assert_array_equal(nb, [[-1, 1, -1], [0, -1, -1]])
+
+
+@pytest.mark.parametrize("shape", ["sphere", "box"])
+def test_face_walk_distance_matches_brute_force(shape):
+    """Points within 1 cm of the surface, inside and outside, walks started at a corner of the
+    face each point was made from:
+    the same signed distance as the exact closest point over every triangle."""
+    if shape == "sphere":
+        verts, tris = uv_sphere(radius=0.1, n_lat=24, n_lon=48)
+    else:
+        verts, tris = box(half=0.1, n=6)
+    rng = np.random.default_rng(3)
+    t = rng.integers(0, len(tris), 400)
+    w = rng.dirichlet(np.ones(3), 400)
+    a, b, c = verts[tris[t, 0]], verts[tris[t, 1]], verts[tris[t, 2]]
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    points = w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c + normal * rng.uniform(-0.01, 0.01, (400, 1))
+    expected = SignedDistance(tris, len(verts))(verts, points)
+    body = BodyMesh.build(tris, len(verts))
+    face_n, face_stamp = face_cache(len(tris))
+    start = tris[t, rng.integers(0, 3, 400)].astype(np.int32)  # seeded nearby, as S103 seeds its walks
+    out = np.zeros(len(points))
+    _walk_all(points, np.ascontiguousarray(verts, dtype=np.float64), body.triangles, body.tri_nbrs, body.tri_start,
+              body.tri_ids, body.nbr_start, body.nbr_ids, body.regions, start, face_n, face_stamp, out)
+    np.testing.assert_allclose(out, expected, atol=1e-9)
