@@ -47,37 +47,38 @@ class BodyMesh:
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles))
 
 
-def face_cache(n_faces: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame store of body face normals: (normals (m, 4): unit normal and twice the area,
-    stamps (m,)). A face's entry is valid while its stamp equals the caller's frame stamp."""
-    return np.zeros((n_faces, 4)), np.full(n_faces, -1, dtype=np.int64)
+@njit(cache=True, nogil=True)
+def body_face_normals(body_x, tris, face_n):
+    """face_n[t] = (unit normal, twice the area) of every body face, once per body pose.
+
+    The body stands still during a frame's substeps and its surface stage, and every garment
+    on it reads the same faces: one flat pass per pose, shared, costs less than computing
+    them on demand behind a per-face check in every walk."""
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        ux = body_x[b, 0] - body_x[a, 0]
+        uy = body_x[b, 1] - body_x[a, 1]
+        uz = body_x[b, 2] - body_x[a, 2]
+        vx = body_x[c, 0] - body_x[a, 0]
+        vy = body_x[c, 1] - body_x[a, 1]
+        vz = body_x[c, 2] - body_x[a, 2]
+        nx = uy * vz - uz * vy
+        ny = uz * vx - ux * vz
+        nz = ux * vy - uy * vx
+        area2 = math.sqrt(nx * nx + ny * ny + nz * nz)
+        inv = 1.0 / area2 if area2 > 0.0 else 0.0
+        face_n[t, 0] = nx * inv
+        face_n[t, 1] = ny * inv
+        face_n[t, 2] = nz * inv
+        face_n[t, 3] = area2
 
 
-@njit(cache=True, inline="always")
-def cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp):
-    """Fill face_n[t] = (unit normal, twice the area) of body face t, once per frame stamp.
-
-    The body stands still during a frame's substeps, so each face touched by the collision
-    walk is computed once per frame, not once per substep."""
-    if face_stamp[t] == stamp:
-        return
-    a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-    ux = body_x[b, 0] - body_x[a, 0]
-    uy = body_x[b, 1] - body_x[a, 1]
-    uz = body_x[b, 2] - body_x[a, 2]
-    vx = body_x[c, 0] - body_x[a, 0]
-    vy = body_x[c, 1] - body_x[a, 1]
-    vz = body_x[c, 2] - body_x[a, 2]
-    nx = uy * vz - uz * vy
-    ny = uz * vx - ux * vz
-    nz = ux * vy - uy * vx
-    area2 = math.sqrt(nx * nx + ny * ny + nz * nz)
-    inv = 1.0 / area2 if area2 > 0.0 else 0.0
-    face_n[t, 0] = nx * inv
-    face_n[t, 1] = ny * inv
-    face_n[t, 2] = nz * inv
-    face_n[t, 3] = area2
-    face_stamp[t] = stamp
+def face_normals(body_x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """(m, 4) float64: unit normal and twice the area of each face (allocating; see body_face_normals)."""
+    out = np.zeros((len(triangles), 4))
+    body_face_normals(np.ascontiguousarray(body_x, dtype=np.float64), np.ascontiguousarray(triangles, dtype=np.int32),
+                      out)
+    return out
 
 
 @njit(cache=True, inline="always")
@@ -102,7 +103,7 @@ def walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, mask):
 
 
 @njit(cache=True, inline="always")
-def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n, face_stamp, stamp):
+def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n):
     """Signed distance of p to the incident-face plane it is least behind, and that face.
 
     p is inside (behind every face incident to `vertex`) exactly when the distance is < 0."""
@@ -110,7 +111,6 @@ def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n, face_stam
     best_t = -1
     for k in range(tri_start[vertex], tri_start[vertex + 1]):
         t = tri_ids[k]
-        cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
         if face_n[t, 3] == 0.0:
             continue
         a = tris[t, 0]
@@ -124,19 +124,19 @@ def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n, face_stam
 
 @njit(cache=True, nogil=True)
 def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
-                      nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp):
+                      nearest, thickness, friction, contact, fixed, face_n):
     """S101 collision: update each particle's nearest body vertex by a walk; if the particle is
     behind every face around it (closer than `thickness`), move it onto the surface plus thickness.
 
     Velocity relative to the body (body_vel: the body's velocity at the particle not already
     carried by body following) loses its inward normal part, and Coulomb friction removes up to
     friction * |removed normal speed| of its tangential part.
-    face_n, face_stamp, stamp: the per-frame face normal store (see `face_cache`)."""
+    face_n: the body's face normals for this pose (see `body_face_normals`)."""
     for i in range(x.shape[0]):
         p = x[i]
         vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
         nearest[i] = vtx
-        d, t = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp)
+        d, t = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)
         if d >= thickness or fixed[i] or t < 0:
             contact[i] = 0
             continue
@@ -187,8 +187,7 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
 
 
 @njit(cache=True, nogil=True)
-def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, bary, height, anchor, face_n,
-                   face_stamp, stamp):
+def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, bary, height, anchor, face_n):
     """Store each particle's coordinates relative to its nearest body face (S101 body following).
 
     Among the faces around the nearest vertex, the one whose plane projection is most inside
@@ -202,7 +201,6 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
         best = -np.inf
         for k in range(lo, hi):
             t = tri_ids[k]
-            cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
             if face_n[t, 3] == 0.0:
                 continue
             a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
@@ -237,7 +235,7 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
 
 @njit(cache=True, nogil=True)
 def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, carrier, inv_dt, near, far,
-                followed, face_n, face_stamp, stamp):
+                followed, face_n):
     """S101 body following, before a step, after the body moved (with the Decision's distance blend).
 
     The fully-followed position keeps the particle's face, barycentric coordinates and height;
@@ -253,7 +251,6 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
     friction measure against."""
     for i in range(x.shape[0]):
         t = face[i]
-        cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
         h = height[i]
         w = 1.0 if (h <= near or fixed[i]) else (0.0 if h >= far else (far - h) / (far - near))
         for k in range(3):
@@ -269,7 +266,7 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
 
 
 @njit(cache=True, inline="always")
-def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp, q):
+def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q):
     """Signed distance from p to the faces around body vertex vtx (negative inside).
 
     The exact closest point q over those faces; the sign from the surface normal there (the
@@ -283,7 +280,6 @@ def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_
     wx = wy = wz = 0.0
     for k in range(tri_start[vtx], tri_start[vtx + 1]):
         t = tri_ids[k]
-        cached_face_normal(body_x, tris, t, face_n, face_stamp, stamp)
         wx += face_n[t, 3] * face_n[t, 0]
         wy += face_n[t, 3] * face_n[t, 1]
         wz += face_n[t, 3] * face_n[t, 2]
@@ -312,8 +308,7 @@ FACE_WALK_STEPS = 48  # a face walk longer than this falls back to the vertex wa
 
 
 @njit(cache=True, inline="always")
-def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n,
-                       face_stamp, stamp, q):
+def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n, q):
     """Signed distance from p to the body (negative inside) by a walk over faces from `start`.
 
     The exact closest point on the current face; inside the face it is a local minimum of the
@@ -366,16 +361,13 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     elif u <= 1e-9 and bv <= 1e-9:
         vertex = c
     if vertex >= 0:
-        d, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vertex, face_n,
-                                                         face_stamp, stamp, q)
+        d, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vertex, face_n, q)
         return d, nx, ny, nz, qx, qy, qz, tri_ids[tri_start[vertex]]
-    cached_face_normal(body_x, tris, best_t, face_n, face_stamp, stamp)
     nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
     if not (bv > 1e-9 and bw > 1e-9 and u > 1e-9):  # on an edge: add the face beyond
         e = 0 if bw <= 1e-9 else (1 if u <= 1e-9 else 2)
         o = tri_nbrs[best_t, e]
         if o >= 0:
-            cached_face_normal(body_x, tris, o, face_n, face_stamp, stamp)
             nx, ny, nz = nx + face_n[o, 0], ny + face_n[o, 1], nz + face_n[o, 2]
             nl = math.sqrt(nx * nx + ny * ny + nz * nz)
             if nl > 0.0:
@@ -387,7 +379,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
 
 @njit(cache=True, nogil=True)
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, nearest_any,
-                     thickness, fixed, face_n, face_stamp, stamp, q, cell, grid_start, grid_ids):
+                     thickness, fixed, face_n, q, cell, grid_start, grid_ids):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
@@ -410,8 +402,7 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
         if found != vtx:
             vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, found, regions, 255)
         nearest_any[i] = vtx
-        side, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n,
-                                                            face_stamp, stamp, q)
+        side, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
         if nx == 0.0 and ny == 0.0 and nz == 0.0:
             continue
         dist = abs(side)
@@ -428,6 +419,23 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             v[i, 0] -= vn * nx
             v[i, 1] -= vn * ny
             v[i, 2] -= vn * nz
+
+
+class BodyPose:
+    """What every garment reads from one body pose, computed once per pose and shared: the
+    vertices (float64, contiguous), the face normals and the vertex grid."""
+
+    def __init__(self, body: BodyMesh):
+        self.body = body
+        self.x = np.zeros((body.n_vertices, 3))  # m
+        self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
+        self.grid = VertexGrid(body.n_vertices)
+
+    def update(self, body_vertices: np.ndarray) -> None:
+        """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
+        self.x[:] = body_vertices[: self.body.n_vertices]
+        body_face_normals(self.x, self.body.triangles, self.face_n)
+        self.grid.update(self.x)
 
 
 class VertexGrid:

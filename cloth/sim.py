@@ -19,7 +19,7 @@ import numpy as np
 from numba import njit
 
 from .coarsen import coarsen
-from .collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_cache, follow_body,
+from .collision import (BodyMesh, BodyPose, attach_to_body, collide_particles, face_normals, follow_body,
                         resolve_contacts)
 from .dynamics import limit_stretch, rk4_substep
 from .fabric import Fabric
@@ -31,15 +31,14 @@ from .model import ClothModel, SimSettings, build_cloth_model
 @njit(cache=True, nogil=True)
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj,
                       rest, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
-                      tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n,
-                      face_stamp, stamp):
+                      tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n):
     """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
     call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
         rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
             collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
-                              masks, nearest, thickness, friction, contact, fixed, face_n, face_stamp, stamp)
+                              masks, nearest, thickness, friction, contact, fixed, face_n)
         # one Gauss-Seidel pass per substep, more on the last: the frame's output is what must hold
         for _ in range(1 if k < n_sub - 1 else limit_passes):
             limit_stretch(x, v, inv_mass, si, sj, rest, n_structural, max_strain)
@@ -92,11 +91,10 @@ def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh
     nearest_vertices(x, body_x, nearest, body.regions, masks)
     contact = np.zeros(len(x), dtype=np.uint8)
     free = np.zeros(len(x), dtype=np.uint8)
-    face_n, face_stamp = face_cache(len(body.triangles))
+    face_n = face_normals(body_x, body.triangles)
     for _ in range(iterations):
         collide_particles(x, v, body_x, v, body.nbr_start, body.nbr_ids, body.triangles, body.tri_start,
-                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free, face_n,
-                          face_stamp, 0)
+                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free, face_n)
     return x
 
 
@@ -132,7 +130,7 @@ class ClothStats:
 class ClothState:
     """Everything that changes per frame, preallocated."""
 
-    def __init__(self, n: int, n_body_faces: int):
+    def __init__(self, n: int):
         self.x = np.zeros((n, 3))  # positions, m
         self.v = np.zeros((n, 3))  # velocities, m/s
         self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
@@ -149,57 +147,57 @@ class ClothState:
         self.normals = np.zeros((n, 3))  # particle normals of this frame (air drag)
         self.bad = np.zeros(n, dtype=np.uint8)
         self.work = np.zeros((9, n, 3))
-        self.face_n, self.face_stamp = face_cache(n_body_faces)  # body face normals, valid for one frame
-        self.stamp = 0  # frame stamp of the body positions in use
 
 
 class ClothSim:
     def __init__(self, model: ClothModel, body: BodyMesh, body_vertices: np.ndarray):
         self.model = model
         self.body = body
-        self.state = ClothState(model.n_particles, len(body.triangles))
+        self.state = ClothState(model.n_particles)
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
-        self.grid: VertexGrid | None = None  # own body vertex grid, made when none is shared
-        self.body_x: np.ndarray | None = None
+        self.own_pose = BodyPose(body)  # used when no shared pose is given
+        self.pose = self.own_pose  # the body pose of the last step, for the detailed surface stage
         self.reset(body_vertices)
 
-    def _body(self, body_vertices: np.ndarray) -> np.ndarray:
-        b = body_vertices[: self.body.n_vertices]
-        if b.dtype != np.float64 or not b.flags.c_contiguous:
-            b = np.ascontiguousarray(b, dtype=np.float64)
-        return b
+    @property
+    def body_x(self) -> np.ndarray:
+        return self.pose.x
 
     def reset(self, body_vertices: np.ndarray) -> None:
         """Garment at its rest positions on a body in its rest pose, at rest."""
         s, m, b = self.state, self.model, self.body
-        body_x = self._body(body_vertices)
+        self.pose = self.own_pose
+        self.pose.update(body_vertices)
+        body_x, face_n = self.pose.x, self.pose.face_n
         s.x[:] = m.rest_positions
         s.v[:] = 0.0
         s.body_vel[:] = 0.0
         s.carrier[:] = 0.0
-        s.stamp += 1
         nearest_vertices(s.x, body_x, s.nearest, b.regions, m.region_mask)
         nearest_vertices(s.x, body_x, s.nearest_any, b.regions, np.full(m.n_particles, 255, dtype=np.uint8))
         free = np.zeros_like(m.grip)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, free, s.face, s.bary,
-                       s.height, s.anchor, s.face_n, s.face_stamp, s.stamp)
+                       s.height, s.anchor, face_n)
         s.followed[:] = s.x
         self.stats = ClothStats()
 
-    def step(self, body_vertices: np.ndarray, dt: float, profile: bool = False,
-             body_grid: VertexGrid | None = None) -> np.ndarray:
+    def step(self, body_vertices: np.ndarray | None, dt: float, profile: bool = False,
+             body_pose: BodyPose | None = None) -> np.ndarray:
         """Advance one frame of length dt against the body's new vertices; returns positions (n, 3).
 
-        body_grid: a `VertexGrid` already updated for these vertices, shared by every garment on
-        the body; None: the simulation keeps and updates its own."""
+        body_pose: a `BodyPose` already updated for this frame, shared by every garment on the
+        body (body_vertices is then ignored); None: the simulation updates its own from
+        body_vertices."""
         s, m, b, st = self.state, self.model, self.body, self.model.settings
         f = m.fabric
-        body_x = self._body(body_vertices)
-        self.body_x = body_x  # the frame's body, for the detailed surface stage
-        s.stamp += 1
+        if body_pose is None:
+            body_pose = self.own_pose
+            body_pose.update(body_vertices)
+        self.pose = body_pose
+        body_x, face_n, grid = body_pose.x, body_pose.face_n, body_pose.grid
         follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
-                    1.0 / dt, st.follow_near, st.follow_far, s.followed, s.face_n, s.face_stamp, s.stamp)
+                    1.0 / dt, st.follow_near, st.follow_far, s.followed, face_n)
         vertex_normals(s.x, m.triangles, s.normals)  # for air drag
         n_sub = m.substeps_for(dt)
         h = dt / n_sub
@@ -213,7 +211,7 @@ class ClothSim:
                 if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
                     collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
                                       b.tri_ids, b.regions, m.region_mask, s.nearest, f.thickness, f.friction,
-                                      s.contact, m.grip, s.face_n, s.face_stamp, s.stamp)
+                                      s.contact, m.grip, face_n)
                 t2 = time.perf_counter()
                 for _ in range(1 if k < n_sub - 1 else st.limit_passes):
                     limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
@@ -224,18 +222,12 @@ class ClothSim:
             self.stage_seconds[1] = t_col
         else:
             simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_pairs,
-                              m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.work, m.n_structural, f.max_strain, st.limit_passes, body_x, s.carrier,
+                              m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.work, m.n_structural,
+                              f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
-                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, s.face_n,
-                              s.face_stamp, s.stamp)
-        if body_grid is None:
-            if self.grid is None:
-                self.grid = VertexGrid(b.n_vertices)
-            body_grid = self.grid
-            body_grid.update(body_x)
+                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, face_n)
         resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                         b.regions, s.nearest_any, f.thickness, m.grip, s.face_n, s.face_stamp, s.stamp, s.q,
-                         body_grid.cell, body_grid.start, body_grid.ids)
+                         b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start, grid.ids)
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
                                  m.n_structural, st.max_speed, st.max_stretch, s.bad)
         if n_bad:
@@ -247,7 +239,7 @@ class ClothSim:
             nearest_vertices(s.x[idx], body_x, near, b.regions, m.region_mask[idx])
             s.nearest[idx] = near
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
-                       s.height, s.anchor, s.face_n, s.face_stamp, s.stamp)
+                       s.height, s.anchor, face_n)
         self.stats.frames += 1
         self.stats.last_substeps = n_sub
         return s.x

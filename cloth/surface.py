@@ -2,7 +2,7 @@
 
     surface_model = build_surface_model(cloth_model, SurfaceSettings(level=6))   # once
     surface = DetailedSurface(surface_model)                                      # per session
-    p, n = surface.step(x, nearest_any, body_x, body_mesh, face_n, face_stamp, stamp, dt)
+    p, n = surface.step(x, nearest_any, body_x, body_mesh, face_n, dt)
 
 One frame: S102 PN triangles → S103 penetration avoidance → S104 normal force → S105 length
 displacement → S106 deformation, constraints and shading normals. Δh carries to the next frame.
@@ -122,12 +122,12 @@ class DetailedSurface:
         self.tested = 0  # particles S103 tested in the last frame
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
-             body: BodyMesh | None, face_n: np.ndarray | None, face_stamp: np.ndarray | None, stamp: int, dt: float) -> tuple[np.ndarray, np.ndarray]:
+             body: BodyMesh | None, face_n: np.ndarray | None, dt: float) -> tuple[np.ndarray, np.ndarray]:
         """One frame of S102-S106 from the coarse positions x (n, 3); returns (positions, normals)
         of the detailed mesh (views of the state arrays, valid until the next step).
 
         coarse_nearest: each coarse particle's nearest body vertex (the S103 walk seeds);
-        face_n, face_stamp, stamp: the body face normal cache of this frame (see collision.face_cache)."""
+        face_n: the body's face normals for this pose (see collision.body_face_normals)."""
         m, s, t, st = self.model, self.state, self.model.tess, self.model.settings
         c = m.cloth
         t0 = time.perf_counter()
@@ -144,7 +144,7 @@ class DetailedSurface:
             self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, t.face_ids, t.order, t.parents,
                                             coarse_nearest, body_x, body.nbr_start, body.nbr_ids, body.regions,
                                             body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.nearest,
-                                            face_n, face_stamp, stamp, s.q, st.clearance, st.contact_margin,
+                                            face_n, s.q, st.clearance, st.contact_margin,
                                             st.penetration_iterations, st.max_lift, st.max_height)
         penetration_floor(s.dh, s.sd, st.clearance, s.floor)
         t2 = time.perf_counter()

@@ -22,7 +22,7 @@ UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test th
 
 @njit(cache=True, inline="always")
 def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest,
-                            face_n, face_stamp, stamp, q):
+                            face_n, q):
     """Signed distance of detailed particle i (at p) to the body, by a nearest-vertex walk from
     the nearer of its own last nearest vertex and `seed` (a coarse particle's), then a walk over
     faces from that vertex's (`face_walk_distance`: one or two exact closest points, where the
@@ -37,11 +37,11 @@ def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tri
     vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, 255)
     nearest[i] = vtx
     # from the face around it whose plane p is most in front of (least behind), over faces
-    face = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp)[1]
+    face = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
     if face < 0:
-        return ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, face_stamp, stamp, q)
+        return ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
     return face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face,
-                              face_n, face_stamp, stamp, q)[:7]
+                              face_n, q)[:7]
 
 
 @njit(cache=True, inline="always")
@@ -55,7 +55,7 @@ def _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 
 @njit(cache=True, nogil=True)
 def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
-              tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q, clearance, max_iterations, max_lift):
+              tri_start, tri_ids, tri_nbrs, nearest, face_n, q, clearance, max_iterations, max_lift):
     """The smallest lift along n_i that puts particle vid `clearance` outside the body (S103).
 
     Along n_i the signed distance grows at the rate n_i . n_body, so where the body faces n_i
@@ -75,7 +75,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
             break
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift)
         d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q)
+                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, q)
         it += 1
     if d >= clearance:
         return d
@@ -88,7 +88,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         step *= 2.0
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
         d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q)
+                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, q)
         if d >= clearance:
             found = True
             break
@@ -96,12 +96,12 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
     if not found:
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
         return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                                       nearest, face_n, face_stamp, stamp, q)[0]
+                                       nearest, face_n, q)[0]
     for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
         mid = 0.5 * (lo + hi)
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, mid)
         dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                                     nearest, face_n, face_stamp, stamp, q)[0]
+                                     nearest, face_n, q)[0]
         if dm >= clearance:
             hi = mid
             d = dm
@@ -113,7 +113,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
 
 @njit(cache=True, nogil=True)
 def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
-                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp, q, clearance,
+                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n, q, clearance,
                       margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
@@ -154,12 +154,12 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
                 pi = p[vid]
                 d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids,
                                                                     regions, tris, tri_start, tri_ids, tri_nbrs, nearest,
-                                                                    face_n, face_stamp, stamp, q)
+                                                                    face_n, q)
                 if d < clearance:
                     cap = min(max_lift, max_height - dh[vid])  # Δh never exceeds max_height
                     if cap > 0.0:
                         d = _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
-                                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n, face_stamp, stamp,
+                                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n,
                                       q, clearance, max_iterations, cap)
                 sd[vid] = d
             if parents[loc, 0] < 0 and sd[vid] < margin:

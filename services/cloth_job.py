@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
-from cloth.collision import BodyMesh, VertexGrid
+from cloth.collision import BodyMesh, BodyPose
 from cloth.fabric import Fabric, fabric as fabric_preset
 from cloth.garment import Garment, load_outfit
 from cloth.geometry import vertex_normals as geometry_vertex_normals
@@ -121,7 +121,7 @@ class OutfitSession:
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="garment") if threads > 1 else None
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
-        self.grid = VertexGrid(body_mesh.n_vertices)  # one per body pose, shared by the garments
+        self.pose = BodyPose(body_mesh)  # face normals and vertex grid of the frame's body, shared by the garments
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))
@@ -133,7 +133,7 @@ class OutfitSession:
 
         The garments are independent given the body, and every kernel releases the GIL, so with
         `threads` > 1 they run on separate cores (the result is the same bit for bit)."""
-        self.grid.update(np.ascontiguousarray(body_vertices[: self.body_mesh.n_vertices], dtype=np.float64))
+        self.pose.update(body_vertices)
         self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt)
         if self._pool is not None:
             out = list(self._pool.map(self._step_garment, range(len(self.sims))))
@@ -147,13 +147,13 @@ class OutfitSession:
         body_vertices, dt, surface, surface_dt = self._frame
         sim = self.sims[k]
         t0 = time.perf_counter()
-        x = sim.step(body_vertices, dt, profile=self.profile, body_grid=self.grid)
+        x = sim.step(body_vertices, dt, profile=self.profile, body_pose=self.pose)
         self.cloth_seconds[k] = time.perf_counter() - t0
         self.stage_seconds[k] = sim.stage_seconds
         if surface:
             st, surf = sim.state, self.surfaces[k]
-            self._detailed[k] = surf.step(x, st.nearest_any, sim.body_x, self.body_mesh, st.face_n, st.face_stamp,
-                                          st.stamp, surface_dt)
+            self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
+                                          surface_dt)
             self.surface_seconds[k] = surf.stage_seconds
         return x
 

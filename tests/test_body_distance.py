@@ -6,22 +6,21 @@ import numpy as np
 import pytest
 from numba import njit
 
-from cloth.collision import BodyMesh, deepest_plane, face_cache, face_walk_distance, walk_nearest
+from cloth.collision import BodyMesh, deepest_plane, face_normals, face_walk_distance, walk_nearest
 from cloth.topology import triangle_neighbours
 from tests.signed_distance import SignedDistance
 from tests.test_cloth_dynamics import box, uv_sphere
 
 
 @njit(cache=True)
-def _walk_all(points, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n,
-              face_stamp, out):
+def _walk_all(points, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n, out):
     q = np.zeros(3)
     for i in range(points.shape[0]):
         p = points[i]
         v = walk_nearest(p, body_x, nbr_start, nbr_ids, start[i], regions, 255)
-        f = deepest_plane(p, body_x, tris, tri_start, tri_ids, v, face_n, face_stamp, 1)[1]
+        f = deepest_plane(p, body_x, tris, tri_start, tri_ids, v, face_n)[1]
         out[i] = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, f,
-                                    face_n, face_stamp, 1, q)[0]
+                                    face_n, q)[0]
 
 
 def test_triangle_neighbours_of_a_closed_mesh_are_mutual():
@@ -58,9 +57,8 @@ def test_face_walk_distance_matches_brute_force(shape):
     points = w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c + normal * rng.uniform(-0.01, 0.01, (400, 1))
     expected = SignedDistance(tris, len(verts))(verts, points)
     body = BodyMesh.build(tris, len(verts))
-    face_n, face_stamp = face_cache(len(tris))
     start = tris[t, rng.integers(0, 3, 400)].astype(np.int32)  # seeded nearby, as S103 seeds its walks
     out = np.zeros(len(points))
     _walk_all(points, np.ascontiguousarray(verts, dtype=np.float64), body.triangles, body.tri_nbrs, body.tri_start,
-              body.tri_ids, body.nbr_start, body.nbr_ids, body.regions, start, face_n, face_stamp, out)
+              body.tri_ids, body.nbr_start, body.nbr_ids, body.regions, start, face_normals(verts, tris), out)
     np.testing.assert_allclose(out, expected, atol=1e-9)

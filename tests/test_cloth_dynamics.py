@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_cache, follow_body,
+from cloth.collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_normals, follow_body,
                              resolve_contacts)
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
@@ -163,7 +163,7 @@ def collide_once(points, verts, tris, thickness):
     free = np.zeros(len(x), dtype=np.uint8)
     collide_particles(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                       mesh.tri_ids, mesh.regions, masks, nearest, thickness, 0.5, contact, free,
-                      *face_cache(len(tris)), 0)
+                      face_normals(verts, tris))
     return x, contact
 
 
@@ -208,7 +208,7 @@ def test_resolve_contacts_pushes_out_of_any_body_part():
     start = np.zeros(2, np.int32)  # both walks would start on the first box
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.regions, start, 0.003, np.zeros(2, np.uint8),
-                     *face_cache(len(tris)), 0, np.zeros(3), grid.cell, grid.start, grid.ids)
+                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids)
     assert start[0] >= len(verts1)
     np.testing.assert_allclose(x[0], [2.1, 0.303, -0.05], atol=1e-9)
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
@@ -254,9 +254,8 @@ def test_body_following_moves_an_attached_particle_rigidly():
     nearest_vertices(x, verts, nearest, mesh.regions, np.full(n, 255, np.uint8))
     face, bary, height, anchor = np.zeros(n, np.int32), np.zeros((n, 3)), np.zeros(n), np.zeros((n, 3))
     free = np.zeros(n, np.uint8)
-    face_n, face_stamp = face_cache(len(tris))
     attach_to_body(x, verts, mesh.triangles, mesh.tri_start, mesh.tri_ids, nearest, free, face, bary, height, anchor,
-                   face_n, face_stamp, 0)
+                   face_normals(verts, tris))
     np.testing.assert_allclose(height, [0.005, 0.02, 0.2], atol=1e-12)
     R = rotation([0.3, 1.0, -0.2], 0.7)
     t = np.array([0.4, -0.1, 0.25])
@@ -265,7 +264,7 @@ def test_body_following_moves_an_attached_particle_rigidly():
     x0 = x.copy()
     dt = 1 / 60
     follow_body(x, moved, mesh.triangles, free, face, bary, height, anchor, body_vel, carrier, 1 / dt,
-                0.01, 0.04, followed, face_n, face_stamp, 1)
+                0.01, 0.04, followed, face_normals(moved, tris))
     rigid = x0 @ R.T + t
     np.testing.assert_allclose(followed, rigid, atol=1e-12)  # relative coordinates are preserved
     np.testing.assert_allclose(x[0], rigid[0], atol=1e-12)  # within `near`: follows fully

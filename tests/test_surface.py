@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from cloth.coarsen import CoarseMesh
-from cloth.collision import BodyMesh, face_cache
+from cloth.collision import BodyMesh, face_normals
 from cloth.fabric import fabric
 from cloth.garment import Garment
 from cloth.model import SimSettings, build_cloth_model
@@ -112,7 +112,7 @@ def test_pn_triangles_are_watertight_across_shared_edges():
 
 def run_frames(surf, x, frames):
     for _ in range(frames):
-        p, n = surf.step(x, None, None, None, None, None, 0, DT)
+        p, n = surf.step(x, None, None, None, None, DT)
     return p, n
 
 
@@ -184,8 +184,7 @@ def test_detailed_particle_inside_a_body_ends_outside(shape):
     surf = DetailedSurface(m)
     x = m.cloth.rest_positions.copy()
     nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
-    face_n, face_stamp = face_cache(len(bt))
-    p, _ = surf.step(x, nearest, np.ascontiguousarray(bv), body, face_n, face_stamp, 1, DT)
+    p, _ = surf.step(x, nearest, np.ascontiguousarray(bv), body, face_normals(bv, bt), DT)
     if shape == "box":
         c = np.array([0.08, -0.045, 0.04])
         q = np.abs(p - c)
