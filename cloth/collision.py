@@ -325,12 +325,12 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     best_t = -1
     bv = bw = 0.0
     qx = qy = qz = 0.0
-    steps = 0
-    while steps < FACE_WALK_STEPS:
-        steps += 1
+    settled = False
+    for _ in range(FACE_WALK_STEPS):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         v, w = closest_point_triangle(p, body_x[a], body_x[b], body_x[c], q)
         d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+        settled = True  # unless the walk goes on below
         if d2 >= best:
             break  # the face beyond is no closer: the closest point is on the shared edge
         best, best_t, bv, bw = d2, t, v, w
@@ -347,12 +347,13 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
         else:
             break  # on a vertex
         if nxt < 0:
-            break
+            break  # an open edge
+        settled = False
         t = nxt
     a, b, c = tris[best_t, 0], tris[best_t, 1], tris[best_t, 2]
     u = 1.0 - bv - bw
     vertex = -1
-    if steps >= FACE_WALK_STEPS:
+    if not settled:
         vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, a, regions, 255)
     elif bv <= 1e-9 and bw <= 1e-9:
         vertex = a

@@ -21,12 +21,12 @@ UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test th
 # ---------------------------------------------------------------- S103 penetration avoidance
 
 @njit(cache=True, inline="always")
-def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest,
-                            face_n, q):
+def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
+                            nearest, face_n, q):
     """Signed distance of detailed particle i (at p) to the body, by a nearest-vertex walk from
     the nearer of its own last nearest vertex and `seed` (a coarse particle's), then a walk over
-    faces from that vertex's (`face_walk_distance`: one or two exact closest points, where the
-    whole ring of faces around the vertex takes six)."""
+    the body's faces from the face around that vertex whose plane p is least behind
+    (`face_walk_distance`: one or two exact closest points where the whole ring takes six)."""
     own = nearest[i]
     start = seed
     if own >= 0:
@@ -36,7 +36,6 @@ def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tri
             start = own
     vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, 255)
     nearest[i] = vtx
-    # from the face around it whose plane p is most in front of (least behind), over faces
     face = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
     if face < 0:
         return ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
@@ -95,13 +94,13 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         lo = hi
     if not found:
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
-        return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                                       nearest, face_n, q)[0]
+        return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                                       tri_nbrs, nearest, face_n, q)[0]
     for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
         mid = 0.5 * (lo + hi)
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, mid)
-        dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                                     nearest, face_n, q)[0]
+        dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                                     tri_nbrs, nearest, face_n, q)[0]
         if dm >= clearance:
             hi = mid
             d = dm
@@ -153,8 +152,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
                 pi = p[vid]
                 d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids,
-                                                                    regions, tris, tri_start, tri_ids, tri_nbrs, nearest,
-                                                                    face_n, q)
+                                                                    regions, tris, tri_start, tri_ids, tri_nbrs,
+                                                                    nearest, face_n, q)
                 if d < clearance:
                     cap = min(max_lift, max_height - dh[vid])  # Δh never exceeds max_height
                     if cap > 0.0:

@@ -121,7 +121,7 @@ class OutfitSession:
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="garment") if threads > 1 else None
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
-        self.pose = BodyPose(body_mesh)  # face normals and vertex grid of the frame's body, shared by the garments
+        self.pose = BodyPose(body_mesh)  # the frame's body: face normals, vertex grid; shared by the garments
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))

@@ -46,6 +46,18 @@ def peer(port: int):
     return BusConfig(connect=[f"tcp/127.0.0.1:{port}"]).open()
 
 
+@pytest.fixture(scope="module", autouse=True)
+def compiled_kernels(body, data):
+    """Run the cloth pipeline once in this process first: numba caches the compiled kernels on
+    disk, so the service processes below load them instead of compiling all at once on a
+    2-core machine (a process busy compiling can hold a Ctrl-C for a minute)."""
+    from cloth.surface import SurfaceSettings
+    from services.cloth_job import run_cloth_clip
+
+    run_cloth_clip(body, data / "garments" / OUTFIT, data / "mocap" / f"{SHORT}.bvh", max_frames=3,
+                   surface=SurfaceSettings(level=LEVEL))
+
+
 def wait_until(cond, timeout: float, what: str) -> None:
     deadline = time.monotonic() + timeout
     while not cond():
