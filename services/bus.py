@@ -142,6 +142,14 @@ class Stats:
             self.counts["rejected"] += 1
             self.rejections[err.key] = self.rejections.get(err.key, 0) + 1
 
+    def decode(self, sample, session: str, kind: str | None = None) -> Message | None:
+        """The zenoh sample's message, or None once it is logged and counted as rejected."""
+        try:
+            return decode(sample.payload.to_bytes(), str(sample.key_expr), session, kind)
+        except MessageError as err:
+            self.reject(err)
+            return None
+
     def snapshot(self) -> dict:
         with self._lock:
             return {"service": self.service, "counts": dict(self.counts), "rejections": dict(self.rejections),

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -112,6 +115,23 @@ def _wait(stop_check=None) -> None:
         pass
 
 
+@contextlib.contextmanager
+def _stop_on_signals():
+    """An Event that Ctrl-C (SIGINT) or SIGTERM sets, for loops that publish on the main thread.
+
+    A KeyboardInterrupt raised wherever the main thread happens to be (inside a zenoh call,
+    between taking a lock and the `with` block that releases it) can leave the service
+    unable to send its end message and exit; the loop checks the Event between frames
+    instead and ends the session cleanly."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
 def cmd_session(args) -> int:
     from skinning.body import load_body
 
@@ -152,9 +172,9 @@ def cmd_ingest(args) -> int:
     data = data_dir(args.data)
     session = check_session_name(args.session)
     body = load_body(data)
-    with bus_config_from_args(args).open() as bus:
+    with bus_config_from_args(args).open() as bus, _stop_on_signals() as stop:
         if args.live:
-            source = BusPoseSource(bus, session, Stats("ingest", session), wait_skeleton=args.wait)
+            source = BusPoseSource(bus, session, Stats("ingest", session), wait_skeleton=args.wait, stop=stop)
             start = 0
         else:
             source = BVHSource(_clips(data, [args.clip])[0], pace=args.pace, loop=args.loop, every=args.every,
@@ -164,9 +184,8 @@ def cmd_ingest(args) -> int:
                 "clip": "live" if args.live else Path(source.path).stem}
         svc = IngestService(bus, session, body, source, desc)
         try:
-            n = svc.run(start_frame=start, wait_subscribers=args.wait_subscribers, wait_ready=args.wait_ready)
-        except KeyboardInterrupt:
-            n = svc.frames
+            n = svc.run(start_frame=start, stop=stop, wait_subscribers=args.wait_subscribers,
+                        wait_ready=args.wait_ready)
         finally:
             time.sleep(0.2)
             svc.close()
@@ -269,7 +288,9 @@ def cmd_capture(args) -> int:
     with bus_config_from_args(args).open() as bus, \
             BVHSource(_clips(data, [args.clip])[0], pace=args.pace, every=args.every,
                       max_frames=args.max_frames) as source:
-        n = publish_capture(bus, session, source, start_frame=START_FRAME, wait_subscribers=args.wait_subscribers)
+        with _stop_on_signals() as stop:
+            n = publish_capture(bus, session, source, start_frame=START_FRAME, stop=stop,
+                                wait_subscribers=args.wait_subscribers)
         print(f"capture {session}: {n} poses published")
     return 0
 

@@ -97,12 +97,13 @@ def skeleton_from_message(msg: Message, key_expr: str) -> tuple[Skeleton, float]
 class BusPoseSource:
     """A live pose stream on tryon/<s>/pose as a motion source (see the module docstring).
 
-    Iteration ends on a control "end" message, or after `idle_timeout` seconds without a pose.
-    Malformed poses are rejected, counted in `stats` and skipped."""
+    Iteration ends on a control "end" message, after `idle_timeout` seconds without a pose, or
+    when `stop` is set. Malformed poses are rejected, counted in `stats` and skipped."""
 
     def __init__(self, bus: zenoh.Session, session: str, stats: Stats, wait_skeleton: float = 10.0,
-                 idle_timeout: float = 5.0):
+                 idle_timeout: float = 5.0, stop: threading.Event | None = None):
         self.bus, self.session, self.stats, self.idle_timeout = bus, session, stats, idle_timeout
+        self.stop = stop or threading.Event()
         self._q: queue.Queue = queue.Queue()
         self._subs = [bus.declare_subscriber(key(session, "pose"), self._q.put),
                       bus.declare_subscriber(key(session, "control"), self._q.put)]
@@ -140,14 +141,24 @@ class BusPoseSource:
             self._q.put(s)
         self.stats.add("dropped", max(0, len(poses) - 1))
 
+    def _next_sample(self):
+        """The next pose or control sample; None after idle_timeout or once `stop` is set."""
+        deadline = time.monotonic() + self.idle_timeout
+        while not self.stop.is_set():
+            try:
+                return self._q.get(timeout=min(0.1, max(0.0, deadline - time.monotonic())))
+            except queue.Empty:
+                if time.monotonic() >= deadline:
+                    return None
+        return None
+
     def __iter__(self) -> Iterator[PoseFrame]:
         n = len(self.skeleton.names)
         last = -1
         end_at = None  # the capture's last frame, once its end message is in
         while end_at is None or last < end_at:
-            try:
-                sample = self._q.get(timeout=self.idle_timeout)
-            except queue.Empty:
+            sample = self._next_sample()
+            if sample is None:
                 return
             k = str(sample.key_expr)
             try:
@@ -246,12 +257,8 @@ class IngestService:
         return True
 
     def _on_status(self, sample) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), str(sample.key_expr), self.session, "control")
-        except MessageError as err:
-            self.stats.reject(err)
-            return
-        if msg.meta.get("event") == "ready":
+        msg = self.stats.decode(sample, self.session, "control")
+        if msg is not None and msg.meta.get("event") == "ready":
             self._ready.set()
 
     def run(self, start_frame: int = 0, before_frame: Callable[[int], bool] | None = None,

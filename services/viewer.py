@@ -125,12 +125,8 @@ class ViewerBridge:
         self.fetch_topology()
 
     def _on_control(self, sample) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), str(sample.key_expr), self.session, "control")
-        except MessageError as err:
-            self.stats.reject(err)
-            return
-        if msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
+        msg = self.stats.decode(sample, self.session, "control")
+        if msg is not None and msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
             self.ended.set()
 
     @staticmethod
