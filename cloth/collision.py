@@ -305,6 +305,29 @@ def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q):
 
 
 FACE_WALK_STEPS = 48  # a face walk longer than this falls back to the vertex walk
+INSIDE_FACE = -1  # closest_feature: the point lies inside the triangle
+
+
+@njit(cache=True, inline="always")
+def closest_feature(v, w):
+    """Where a closest point with barycentric weights (1 - v - w, v, w) lies on triangle abc:
+    INSIDE_FACE, edge 0 (a, b), 1 (b, c), 2 (c, a) (the index into tri_nbrs), or vertex 3 + k
+    (a, b, c)."""
+    eps = 1e-9
+    zu, zv, zw = 1.0 - v - w <= eps, v <= eps, w <= eps
+    if zv and zw:
+        return 3
+    if zu and zw:
+        return 4
+    if zu and zv:
+        return 5
+    if zw:
+        return 0
+    if zu:
+        return 1
+    if zv:
+        return 2
+    return INSIDE_FACE
 
 
 @njit(cache=True, inline="always")
@@ -323,7 +346,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     t = start
     best = np.inf
     best_t = -1
-    bv = bw = 0.0
+    feature = INSIDE_FACE
     qx = qy = qz = 0.0
     settled = False
     for _ in range(FACE_WALK_STEPS):
@@ -333,46 +356,27 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
         settled = True  # unless the walk goes on below
         if d2 >= best:
             break  # the face beyond is no closer: the closest point is on the shared edge
-        best, best_t, bv, bw = d2, t, v, w
+        best, best_t, feature = d2, t, closest_feature(v, w)
         qx, qy, qz = q[0], q[1], q[2]
-        u = 1.0 - v - w
-        if v > 1e-9 and w > 1e-9 and u > 1e-9:
-            break  # inside the face
-        if w <= 1e-9 and v > 1e-9 and u > 1e-9:
-            nxt = tri_nbrs[t, 0]  # on edge (a, b)
-        elif u <= 1e-9 and v > 1e-9 and w > 1e-9:
-            nxt = tri_nbrs[t, 1]  # (b, c)
-        elif v <= 1e-9 and w > 1e-9 and u > 1e-9:
-            nxt = tri_nbrs[t, 2]  # (c, a)
-        else:
-            break  # on a vertex
-        if nxt < 0:
-            break  # an open edge
+        if feature == INSIDE_FACE or feature >= 3 or tri_nbrs[t, feature] < 0:
+            break  # inside the face, on a vertex, or on an open edge
         settled = False
-        t = nxt
-    a, b, c = tris[best_t, 0], tris[best_t, 1], tris[best_t, 2]
-    u = 1.0 - bv - bw
+        t = tri_nbrs[t, feature]
     vertex = -1
     if not settled:
-        vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, a, regions, 255)
-    elif bv <= 1e-9 and bw <= 1e-9:
-        vertex = a
-    elif u <= 1e-9 and bw <= 1e-9:
-        vertex = b
-    elif u <= 1e-9 and bv <= 1e-9:
-        vertex = c
+        vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
+    elif feature >= 3:
+        vertex = tris[best_t, feature - 3]
     if vertex >= 0:
         d, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vertex, face_n, q)
         return d, nx, ny, nz, qx, qy, qz, tri_ids[tri_start[vertex]]
     nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
-    if not (bv > 1e-9 and bw > 1e-9 and u > 1e-9):  # on an edge: add the face beyond
-        e = 0 if bw <= 1e-9 else (1 if u <= 1e-9 else 2)
-        o = tri_nbrs[best_t, e]
-        if o >= 0:
-            nx, ny, nz = nx + face_n[o, 0], ny + face_n[o, 1], nz + face_n[o, 2]
-            nl = math.sqrt(nx * nx + ny * ny + nz * nz)
-            if nl > 0.0:
-                nx, ny, nz = nx / nl, ny / nl, nz / nl
+    if feature != INSIDE_FACE and tri_nbrs[best_t, feature] >= 0:  # on an edge: add the face beyond
+        o = tri_nbrs[best_t, feature]
+        nx, ny, nz = nx + face_n[o, 0], ny + face_n[o, 1], nz + face_n[o, 2]
+        nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if nl > 0.0:
+            nx, ny, nz = nx / nl, ny / nl, nz / nl
     side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
     dist = math.sqrt(best)
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
