@@ -19,7 +19,7 @@ from .collision import BodyMesh
 from .dynamics import spring_forces
 from .model import ClothModel
 from .pn import Tessellation, build_tessellation, pn_surface
-from .topology import unique_edges
+from .topology import unique_edges, vertex_cells
 from .wrinkles import (apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights, elastic_forces,
                        length_displacement, normal_force, offset_along_normals, penetration_floor,
                        shading_normals)
@@ -48,6 +48,8 @@ class SurfaceModel:
     vertex_edge_count: np.ndarray  # (n_coarse,) coarse edges per coarse vertex
     d_edges: np.ndarray  # (D, 2) int32 detailed mesh edges
     d_max: np.ndarray  # (D,) m: maximum neighbour distance per detailed edge
+    d_edge_start: np.ndarray  # (N + 1,) int64: CSR of each detailed vertex's edges (into d_edges)
+    d_edge_ids: np.ndarray  # int32
     k_out_plane: float
     h_normal: float
     transfer_exponent: float
@@ -75,8 +77,9 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     rest_len = np.linalg.norm(p_rest[d_edges[:, 0]] - p_rest[d_edges[:, 1]], axis=1)
     f = cloth.fabric
     straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)
+    es, ei = vertex_cells(tess.n_vertices, d_edges)
     return SurfaceModel(tess, settings, cloth, edge_rest, straight, count, d_edges,
-                        f.max_neighbour_ratio * rest_len, f.k_out_plane, f.h_normal, f.transfer_exponent)
+                        f.max_neighbour_ratio * rest_len, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent)
 
 
 class SurfaceState:
@@ -100,6 +103,9 @@ class SurfaceState:
         self.edge_required = np.zeros(E)  # S105 ΔLE_required,e, m
         self.vertex_required = np.zeros(n)
         self.dh_def = np.zeros(N)  # S106 Δh_deformation
+        self.expected = np.zeros(N)  # S106 ΔL_expected
+        self.moved = np.zeros((2, N), dtype=np.int32)  # S106 constraint rounds: who moved in the last one
+        self.stamp = np.zeros(N, dtype=np.int32)
         self.coarse_normals = np.zeros((n, 3))
         self.coarse_force = np.zeros((n, 3))
         self.zero_v = np.zeros((n, 3))
@@ -156,16 +162,16 @@ class DetailedSurface:
                            c.fabric.compression_stiffness, s.edge_force)
         elastic_forces(s.p, s.coarse_force, s.edge_force, t.edge_ids, t.face_ids, t.lines, t.line_length,
                        t.interior_local, m.transfer_exponent, s.rates, s.f1, s.fn, s.ids, s.ef)
-        normal_force(s.p, s.ef, t.nbr_start, t.nbr_ids, s.vf)
+        normal_force(s.p, s.ef, m.d_edges, s.vf)
         # S105: length displacement
         length_displacement(s.p, t.edge_ids, m.edge_rest, t.coarse_triangles, t.owner_face, t.owner_weights,
                             s.edge_required, s.vertex_required, m.vertex_edge_count, s.required)
         # S106: deformation, constraints, positions, shading normals
-        deformation_heights(s.vf, s.dh, s.required, t.nbr_start, t.nbr_ids, t.n_coarse, m.k_out_plane, dt,
-                            s.dh_def)
+        deformation_heights(s.vf, s.dh, s.required, m.d_edges, t.n_coarse, m.k_out_plane, dt, s.expected, s.dh_def)
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
-                          t.interior_local, m.d_edges, m.d_max, st.constraint_passes, st.max_height, s.p)
+                          t.interior_local, m.d_edges, m.d_max, m.d_edge_start, m.d_edge_ids, st.constraint_passes,
+                          st.max_height, s.moved, s.stamp, s.p)
         shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
         self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)

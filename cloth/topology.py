@@ -144,12 +144,17 @@ def vertex_neighbours(n_vertices: int, edges: np.ndarray) -> tuple[np.ndarray, n
 
 def vertex_triangles(n_vertices: int, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """CSR (start, ids) of the triangles incident to each vertex."""
-    owner = triangles.ravel()
-    tri = np.repeat(np.arange(len(triangles), dtype=np.int32), 3)
+    return vertex_cells(n_vertices, triangles)
+
+
+def vertex_cells(n_vertices: int, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (start, ids) of the cells (triangles (m, 3), edges (m, 2), ...) incident to each vertex."""
+    owner = cells.ravel()
+    cell = np.repeat(np.arange(len(cells), dtype=np.int32), cells.shape[1])
     order = np.argsort(owner, kind="stable")
     start = np.zeros(n_vertices + 1, dtype=np.int64)
     np.add.at(start, owner + 1, 1)
-    return np.cumsum(start), tri[order]
+    return np.cumsum(start), cell[order]
 
 
 def triangle_areas(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

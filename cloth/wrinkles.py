@@ -180,6 +180,13 @@ def transfer_rate(p, i, k, j, exponent):
     c = (ax * bx + ay * by + az * bz) / den
     if c <= 0.0:
         return 0.0
+    # the presets' exponents without a call to pow (the rate is computed for every detailed particle)
+    if exponent == 1.0:
+        return c
+    if exponent == 2.0:
+        return c * c
+    if exponent == 0.5:
+        return math.sqrt(c)
     return c ** exponent
 
 
@@ -193,9 +200,10 @@ def _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, weight, accumu
         rates[m] = transfer_rate(p, ids[m - 1], ids[m], ids[m + 1], exponent)
         total += rates[m]
     run = 0.0
+    inv_total = 1.0 / total if total > 1e-12 else 0.0
     for m in range(1, count - 1):
-        if total > 1e-12:
-            s = (run + 0.5 * rates[m]) / total
+        if inv_total > 0.0:
+            s = (run + 0.5 * rates[m]) * inv_total
         else:  # a chain folded flat everywhere transmits nothing: split evenly
             s = (m - 0.5) / (count - 2)
         run += rates[m]
@@ -271,18 +279,21 @@ def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_
 
 
 @njit(cache=True, nogil=True)
-def normal_force(p, ef, nbr_start, nbr_ids, vf):
+def normal_force(p, ef, edges, vf):
     """S104 step 5: vf_i = Σ_j (p_i - p_j)/|p_i - p_j| . ef_j over the detailed neighbours j.
-    vf > 0: pushed by its surroundings (relief grows); vf < 0: pulled (the surface flattens)."""
-    for i in range(p.shape[0]):
-        s = 0.0
-        for k in range(nbr_start[i], nbr_start[i + 1]):
-            j = nbr_ids[k]
-            dx, dy, dz = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1], p[i, 2] - p[j, 2]
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if d > 0.0:
-                s += (dx * ef[j, 0] + dy * ef[j, 1] + dz * ef[j, 2]) / d
-        vf[i] = s
+    vf > 0: pushed by its surroundings (relief grows); vf < 0: pulled (the surface flattens).
+    Summed over the detailed edges (i, j), each giving its two terms: one square root per
+    edge instead of one per neighbour pair."""
+    for i in range(vf.shape[0]):
+        vf[i] = 0.0
+    for e in range(edges.shape[0]):
+        i, j = edges[e, 0], edges[e, 1]
+        dx, dy, dz = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1], p[i, 2] - p[j, 2]
+        d2 = dx * dx + dy * dy + dz * dz
+        if d2 > 0.0:
+            inv = 1.0 / math.sqrt(d2)
+            vf[i] += (dx * ef[j, 0] + dy * ef[j, 1] + dz * ef[j, 2]) * inv
+            vf[j] -= (dx * ef[i, 0] + dy * ef[i, 1] + dz * ef[i, 2]) * inv
 
 
 # ---------------------------------------------------------------- S105 length displacement
@@ -321,7 +332,7 @@ def length_displacement(p, edge_ids, edge_rest, coarse_tris, owner_face, owner_w
 # ---------------------------------------------------------------- S106 surface deformation
 
 @njit(cache=True, nogil=True)
-def deformation_heights(vf, dh, required, nbr_start, nbr_ids, n_coarse, k_out, dt, out):
+def deformation_heights(vf, dh, required, edges, n_coarse, k_out, dt, expected, out):
     """S106 steps 1-4: Δh_deformation per detailed particle.
 
     1. ΔL_expected,i = Σ_j ±k_out |vf_i - vf_j|, + when (vf_i - vf_j)(Δh_i - Δh_j) >= 0.
@@ -332,20 +343,26 @@ def deformation_heights(vf, dh, required, nbr_start, nbr_ids, n_coarse, k_out, d
     rate at which the surface around i lengthens when every particle moves at k_out vf, and
     ΔL_required / ΔL_expected is the time that takes; Δh_length is the height reached moving
     at k_out vf_i for that time, and the clamp limits it to one frame's motion. Coarse-vertex
-    particles keep Δh_deformation = 0: S101 has placed them."""
+    particles keep Δh_deformation = 0: S101 has placed them.
+    Step 1 is summed over the detailed edges (i, j): the term is the same seen from i and from
+    j (both factors change sign). expected: (N,) scratch."""
+    for i in range(vf.shape[0]):
+        expected[i] = 0.0
+    for e in range(edges.shape[0]):
+        i, j = edges[e, 0], edges[e, 1]
+        dv = vf[i] - vf[j]
+        term = k_out * abs(dv)
+        if dv * (dh[i] - dh[j]) < 0.0:
+            term = -term
+        expected[i] += term
+        expected[j] += term
     for i in range(vf.shape[0]):
         if i < n_coarse:
             out[i] = 0.0
             continue
-        expected = 0.0
-        for k in range(nbr_start[i], nbr_start[i + 1]):
-            j = nbr_ids[k]
-            dv = vf[i] - vf[j]
-            term = k_out * abs(dv)
-            expected += term if dv * (dh[i] - dh[j]) >= 0.0 else -term
         speed = k_out * vf[i]
-        if required[i] * expected > 0.0:
-            h_length = speed * (required[i] / expected)
+        if required[i] * expected[i] > 0.0:
+            h_length = speed * (required[i] / expected[i])
         else:
             h_length = 0.0
         h_force = speed * dt
@@ -354,16 +371,20 @@ def deformation_heights(vf, dh, required, nbr_start, nbr_ids, n_coarse, k_out, d
 
 @njit(cache=True, nogil=True)
 def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, interior_local,
-                      d_edges, d_max, passes, max_height, p):
+                      d_edges, d_max, edge_start, edge_ids, passes, max_height, moved, stamp, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
 
     floor_i <= Δh_i <= max_height (floor: 0, or the height S103 needs to keep it out of the
     body; max_height bounds what S103 lifts pile up where the coarse cloth is deep in the body); in a coarse face
     all of whose edges are stretched (ΔLE_required < 0) the interior is flat (Δh = floor);
     neighbours no farther apart than d_max (per detailed edge): the higher one comes down
-    towards its floor, and if that is not enough the lower one goes up (`passes` rounds)."""
+    towards its floor, and if that is not enough the lower one goes up (`passes` rounds).
+    The first round visits every edge; a later one only the edges around the particles the
+    round before moved (edge_start, edge_ids: CSR of each particle's detailed edges), as the
+    others are as that round left them. moved (2, N) int32, stamp (N,) int32: scratch."""
     for i in range(dh.shape[0]):
         dh[i] = max(floor[i], min(dh[i], max_height))
+        stamp[i] = -1
     for f in range(face_ids.shape[0]):
         if (edge_required[face_edges[f, 0]] < 0.0 and edge_required[face_edges[f, 1]] < 0.0
                 and edge_required[face_edges[f, 2]] < 0.0):
@@ -371,23 +392,41 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
                 vid = face_ids[f, interior_local[k]]
                 dh[vid] = floor[vid]
     offset_along_normals(p_smoothed, n_pn, dh, p)
-    for _ in range(passes):
-        for e in range(d_edges.shape[0]):
-            i, j = d_edges[e, 0], d_edges[e, 1]
-            lim = d_max[e]
-            d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
-            if d2 <= lim * lim:
-                continue
-            hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
-            # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
-            t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
-            if t >= floor[hi]:
-                _set_height(p_smoothed, n_pn, dh, p, hi, t)
-                continue
-            _set_height(p_smoothed, n_pn, dh, p, hi, max(floor[hi], min(t, dh[hi])))
-            t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
-            if t > dh[lo]:
-                _set_height(p_smoothed, n_pn, dh, p, lo, t)
+    count = 0
+    for r in range(passes):
+        this = r % 2
+        last_count, count = count, 0
+        for k in range(d_edges.shape[0] if r == 0 else last_count):
+            if r == 0:  # every edge
+                first, end = k, k + 1
+            else:  # the edges around a particle moved in the round before
+                v = moved[1 - this, k]
+                first, end = edge_start[v], edge_start[v + 1]
+            for m in range(first, end):
+                e = m if r == 0 else edge_ids[m]
+                i, j = d_edges[e, 0], d_edges[e, 1]
+                lim = d_max[e]
+                d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
+                if d2 <= lim * lim:
+                    continue
+                hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
+                if stamp[hi] != r:
+                    stamp[hi] = r
+                    moved[this, count] = hi
+                    count += 1
+                # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
+                t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
+                if t >= floor[hi]:
+                    _set_height(p_smoothed, n_pn, dh, p, hi, t)
+                    continue
+                _set_height(p_smoothed, n_pn, dh, p, hi, max(floor[hi], min(t, dh[hi])))
+                t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
+                if t > dh[lo]:
+                    if stamp[lo] != r:
+                        stamp[lo] = r
+                        moved[this, count] = lo
+                        count += 1
+                    _set_height(p_smoothed, n_pn, dh, p, lo, t)
 
 
 @njit(cache=True, nogil=True)
@@ -425,13 +464,37 @@ def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
 @njit(cache=True, nogil=True)
 def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
     """S106 step 7: n_i = normalize(α n_deform + (1 - α) n_pnt), α = min(1, Δh_i / h_normal);
-    n_deform: area-weighted normals of the deformed detailed mesh."""
-    vertex_normals(p, triangles, n_deform)
+    n_deform: area-weighted normals of the deformed detailed mesh.
+
+    A particle with Δh <= 0 (α = 0) takes n_pnt (unit already), so n_deform is summed only over
+    the triangles with a raised corner: every triangle around a raised particle is one."""
     for i in range(p.shape[0]):
-        alpha = 1.0 if dh[i] >= h_normal else max(dh[i], 0.0) / h_normal
-        x = alpha * n_deform[i, 0] + (1.0 - alpha) * n_pn[i, 0]
-        y = alpha * n_deform[i, 1] + (1.0 - alpha) * n_pn[i, 1]
-        z = alpha * n_deform[i, 2] + (1.0 - alpha) * n_pn[i, 2]
+        n_deform[i, 0] = 0.0
+        n_deform[i, 1] = 0.0
+        n_deform[i, 2] = 0.0
+    for t in range(triangles.shape[0]):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        if dh[a] <= 0.0 and dh[b] <= 0.0 and dh[c] <= 0.0:
+            continue
+        ux, uy, uz = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
+        vx, vy, vz = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
+        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        for k in (a, b, c):
+            n_deform[k, 0] += nx
+            n_deform[k, 1] += ny
+            n_deform[k, 2] += nz
+    for i in range(p.shape[0]):
+        if dh[i] <= 0.0:
+            out[i, 0] = n_pn[i, 0]
+            out[i, 1] = n_pn[i, 1]
+            out[i, 2] = n_pn[i, 2]
+            continue
+        alpha = 1.0 if dh[i] >= h_normal else dh[i] / h_normal
+        m = math.sqrt(n_deform[i, 0] ** 2 + n_deform[i, 1] ** 2 + n_deform[i, 2] ** 2)
+        m = alpha / m if m > 0.0 else 0.0
+        x = m * n_deform[i, 0] + (1.0 - alpha) * n_pn[i, 0]
+        y = m * n_deform[i, 1] + (1.0 - alpha) * n_pn[i, 1]
+        z = m * n_deform[i, 2] + (1.0 - alpha) * n_pn[i, 2]
         m = math.sqrt(x * x + y * y + z * z)
         m = 1.0 / m if m > 0.0 else 0.0
         out[i, 0] = x * m
