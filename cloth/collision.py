@@ -152,17 +152,8 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
         vn = rx * nx + ry * ny + rz * nz
         # In a crease the push alternates between faces; the inward part along the vertex
         # normal (area-weighted) is removed too, or a velocity into the crease would survive every push.
-        wx = wy = wz = 0.0
-        for k in range(tri_start[vtx], tri_start[vtx + 1]):
-            f = tri_ids[k]
-            wx += face_n[f, 3] * face_n[f, 0]
-            wy += face_n[f, 3] * face_n[f, 1]
-            wz += face_n[f, 3] * face_n[f, 2]
-        wl = math.sqrt(wx * wx + wy * wy + wz * wz)
-        if wl > 0.0:
-            wx /= wl
-            wy /= wl
-            wz /= wl
+        wx, wy, wz = vertex_normal(tri_start, tri_ids, face_n, vtx)
+        if wx != 0.0 or wy != 0.0 or wz != 0.0:
             vnv = rx * wx + ry * wy + rz * wz
             if vnv < 0.0:
                 rx -= vnv * wx
@@ -266,24 +257,35 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
 
 
 @njit(cache=True, inline="always")
-def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q):
-    """Signed distance from p to the faces around body vertex vtx (negative inside).
-
-    The exact closest point q over those faces; the sign from the surface normal there (the
-    face normal inside a face, the area-weighted vertex normal on an edge or corner).
-    Returns (distance, nx, ny, nz, qx, qy, qz); a zero normal when vtx has no usable face.
-    q: (3,) scratch."""
-    best = np.inf
-    best_t = -1
-    interior = False
-    qx = qy = qz = 0.0
+def vertex_normal(tri_start, tri_ids, face_n, vtx):
+    """Area-weighted unit normal of the body at vertex vtx; (0, 0, 0) when it has no usable face."""
     wx = wy = wz = 0.0
     for k in range(tri_start[vtx], tri_start[vtx + 1]):
         t = tri_ids[k]
         wx += face_n[t, 3] * face_n[t, 0]
         wy += face_n[t, 3] * face_n[t, 1]
         wz += face_n[t, 3] * face_n[t, 2]
-        bv, bw = closest_point_triangle(p, body_x[tris[t, 0]], body_x[tris[t, 1]], body_x[tris[t, 2]], q)
+    wl = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if wl == 0.0:
+        return 0.0, 0.0, 0.0
+    return wx / wl, wy / wl, wz / wl
+
+
+@njit(cache=True, inline="always")
+def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q):
+    """Signed distance from p to the faces around body vertex vtx (negative inside).
+
+    The exact closest point q over those faces; the sign from the surface normal there (the
+    face normal inside a face, the area-weighted vertex normal on an edge or corner).
+    Returns (distance, nx, ny, nz, qx, qy, qz, face): a zero normal when vtx has no usable
+    face; `face` holds the closest point. q: (3,) scratch."""
+    best = np.inf
+    best_t = -1
+    interior = False
+    qx = qy = qz = 0.0
+    for k in range(tri_start[vtx], tri_start[vtx + 1]):
+        t = tri_ids[k]
+        bv, bw = closest_point_triangle(p, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
         d = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
         if d < best:
             best = d
@@ -291,17 +293,29 @@ def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q):
             qx, qy, qz = q[0], q[1], q[2]
             interior = bv > 1e-9 and bw > 1e-9 and bv + bw < 1.0 - 1e-9
     if best_t < 0:
-        return np.inf, 0.0, 0.0, 0.0, qx, qy, qz
+        return np.inf, 0.0, 0.0, 0.0, qx, qy, qz, best_t
     if interior:
         nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
     else:
-        wl = math.sqrt(wx * wx + wy * wy + wz * wz)
-        if wl == 0.0:
-            return np.inf, 0.0, 0.0, 0.0, qx, qy, qz
-        nx, ny, nz = wx / wl, wy / wl, wz / wl
+        nx, ny, nz = vertex_normal(tri_start, tri_ids, face_n, vtx)
+        if nx == 0.0 and ny == 0.0 and nz == 0.0:
+            return np.inf, 0.0, 0.0, 0.0, qx, qy, qz, best_t
     side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
     dist = math.sqrt(best)
-    return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz
+    return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
+
+
+@njit(cache=True, inline="always")
+def in_vertex_region(p, body_x, nbr_start, nbr_ids, vtx):
+    """Whether body vertex vtx is the closest point to p on every face around it:
+    (p - v).(u - v) <= 0 for every neighbour u (then each face's closest point is v)."""
+    px, py, pz = p[0] - body_x[vtx, 0], p[1] - body_x[vtx, 1], p[2] - body_x[vtx, 2]
+    for k in range(nbr_start[vtx], nbr_start[vtx + 1]):
+        u = nbr_ids[k]
+        if (px * (body_x[u, 0] - body_x[vtx, 0]) + py * (body_x[u, 1] - body_x[vtx, 1])
+                + pz * (body_x[u, 2] - body_x[vtx, 2])) > 0.0:
+            return False
+    return True
 
 
 FACE_WALK_STEPS = 48  # a face walk longer than this falls back to the vertex walk
@@ -337,10 +351,12 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     The exact closest point on the current face; inside the face it is a local minimum of the
     distance to the surface, on an edge the walk crosses to the face beyond while that gets
     closer. Most points end inside a face or on an edge after one or two faces, where the
-    vertex walk + ring (`ring_signed_distance`) computes six. On a vertex (or a walk longer than
-    FACE_WALK_STEPS) the ring of that vertex decides. Sign from the surface normal at the
-    closest point: the face normal inside a face, the sum of the two face normals on an edge
-    (its angle-weighted pseudo-normal), the ring's rule at a vertex.
+    vertex walk + ring (`ring_signed_distance`) computes six. On a vertex that is the closest
+    point of its whole ring (`in_vertex_region`) the distance is to the vertex; on any other
+    vertex (or after a walk longer than FACE_WALK_STEPS) the ring of that vertex decides. Sign
+    from the surface normal at the closest point: the face normal inside a face, the sum of
+    the two face normals on an edge (its angle-weighted pseudo-normal), the ring's rule (the
+    area-weighted vertex normal) at a vertex.
     Returns (distance, nx, ny, nz, qx, qy, qz, face): `face` is where the next walk should start.
     q: (3,) scratch."""
     t = start
@@ -351,7 +367,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     settled = False
     for _ in range(FACE_WALK_STEPS):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        v, w = closest_point_triangle(p, body_x[a], body_x[b], body_x[c], q)
+        v, w = closest_point_triangle(p, body_x, a, b, c, q)
         d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
         settled = True  # unless the walk goes on below
         if d2 >= best:
@@ -363,13 +379,21 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
         settled = False
         t = tri_nbrs[t, feature]
     vertex = -1
-    if not settled:
-        vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
-    elif feature >= 3:
+    if settled and feature >= 3:
         vertex = tris[best_t, feature - 3]
-    if vertex >= 0:
-        d, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vertex, face_n, q)
-        return d, nx, ny, nz, qx, qy, qz, tri_ids[tri_start[vertex]]
+        # the usual case on a vertex: it is the closest point of its whole ring, and the ring's
+        # rule gives the sign without six more closest points
+        if in_vertex_region(p, body_x, nbr_start, nbr_ids, vertex):
+            nx, ny, nz = vertex_normal(tri_start, tri_ids, face_n, vertex)
+            if nx != 0.0 or ny != 0.0 or nz != 0.0:
+                side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
+                dist = math.sqrt(best)
+                return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
+    elif not settled:
+        vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
+    if not settled or feature >= 3:
+        d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vertex, face_n, q)
+        return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
     nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
     if feature != INSIDE_FACE and tri_nbrs[best_t, feature] >= 0:  # on an edge: add the face beyond
         o = tri_nbrs[best_t, feature]
@@ -407,7 +431,7 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
         if found != vtx:
             vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, found, regions, 255)
         nearest_any[i] = vtx
-        side, nx, ny, nz, qx, qy, qz = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
+        side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
         if nx == 0.0 and ny == 0.0 and nz == 0.0:
             continue
         dist = abs(side)

@@ -14,13 +14,16 @@ def dot3(a0, a1, a2, b0, b1, b2):
 
 
 @njit(cache=True, inline="always")
-def closest_point_triangle(p, a, b, c, out):
-    """Closest point to p on triangle abc (Ericson, Real-Time Collision Detection 5.1.5).
+def closest_point_triangle(p, x, a, b, c, out):
+    """Closest point to p on triangle (x[a], x[b], x[c]) (Ericson, Real-Time Collision Detection 5.1.5).
 
-    Writes the point to out and returns its barycentric weight of (b, c) as (v, w)."""
-    abx, aby, abz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-    acx, acy, acz = c[0] - a[0], c[1] - a[1], c[2] - a[2]
-    apx, apy, apz = p[0] - a[0], p[1] - a[1], p[2] - a[2]
+    Writes the point to out and returns its barycentric weight of (b, c) as (v, w). The corners
+    are read by index (not passed as row views): in the per-frame walks this is most of the
+    cost, and a view per corner costs more than the arithmetic."""
+    ax, ay, az = x[a, 0], x[a, 1], x[a, 2]
+    abx, aby, abz = x[b, 0] - ax, x[b, 1] - ay, x[b, 2] - az
+    acx, acy, acz = x[c, 0] - ax, x[c, 1] - ay, x[c, 2] - az
+    apx, apy, apz = p[0] - ax, p[1] - ay, p[2] - az
     d1 = dot3(abx, aby, abz, apx, apy, apz)
     d2 = dot3(acx, acy, acz, apx, apy, apz)
     v = 0.0
@@ -28,10 +31,11 @@ def closest_point_triangle(p, a, b, c, out):
     if d1 <= 0.0 and d2 <= 0.0:
         v, w = 0.0, 0.0
     else:
-        bpx, bpy, bpz = p[0] - b[0], p[1] - b[1], p[2] - b[2]
+        # p - b = ap - ab, p - c = ap - ac
+        bpx, bpy, bpz = apx - abx, apy - aby, apz - abz
         d3 = dot3(abx, aby, abz, bpx, bpy, bpz)
         d4 = dot3(acx, acy, acz, bpx, bpy, bpz)
-        cpx, cpy, cpz = p[0] - c[0], p[1] - c[1], p[2] - c[2]
+        cpx, cpy, cpz = apx - acx, apy - acy, apz - acz
         d5 = dot3(abx, aby, abz, cpx, cpy, cpz)
         d6 = dot3(acx, acy, acz, cpx, cpy, cpz)
         vc = d1 * d4 - d3 * d2
@@ -52,8 +56,9 @@ def closest_point_triangle(p, a, b, c, out):
             denom = 1.0 / (va + vb + vc)
             v = vb * denom
             w = vc * denom
-    for k in range(3):
-        out[k] = a[k] + v * (b[k] - a[k]) + w * (c[k] - a[k])
+    out[0] = ax + v * abx + w * acx
+    out[1] = ay + v * aby + w * acy
+    out[2] = az + v * abz + w * acz
     return v, w
 
 
@@ -85,10 +90,7 @@ def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
     for i in range(points.shape[0]):
         best = np.inf
         for t in range(triangles.shape[0]):
-            a = vertices[triangles[t, 0]]
-            b = vertices[triangles[t, 1]]
-            c = vertices[triangles[t, 2]]
-            v, w = closest_point_triangle(points[i], a, b, c, q)
+            v, w = closest_point_triangle(points[i], vertices, triangles[t, 0], triangles[t, 1], triangles[t, 2], q)
             d = (q[0] - points[i, 0]) ** 2 + (q[1] - points[i, 1]) ** 2 + (q[2] - points[i, 2]) ** 2
             if d < best:
                 best = d

@@ -95,7 +95,7 @@ class SurfaceState:
         self.dh = np.zeros(N)  # Δh, carried to the next frame (Δh_last_frame)
         self.dh_pen = np.zeros(N)  # S103 Δh_penetration
         self.sd = np.zeros(N)  # S103 signed distance of tested particles (inf: untested)
-        self.nearest = np.full(N, -1, dtype=np.int32)  # S103 nearest body vertex per particle
+        self.body_face = np.full(N, -1, dtype=np.int32)  # S103: body face each particle's last walk ended on
         self.floor = np.zeros(N)
         self.ef = np.zeros((N, 3))  # S104 elastic force, N
         self.vf = np.zeros(N)  # S104 normal force, N
@@ -149,7 +149,7 @@ class DetailedSurface:
         else:
             self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, t.face_ids, t.order, t.parents,
                                             coarse_nearest, body_x, body.nbr_start, body.nbr_ids, body.regions,
-                                            body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.nearest,
+                                            body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face,
                                             face_n, s.q, st.clearance, st.contact_margin,
                                             st.penetration_iterations, st.max_lift, st.max_height)
         penetration_floor(s.dh, s.sd, st.clearance, s.floor)

@@ -22,25 +22,31 @@ UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test th
 
 @njit(cache=True, inline="always")
 def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                            nearest, face_n, q):
-    """Signed distance of detailed particle i (at p) to the body, by a nearest-vertex walk from
-    the nearer of its own last nearest vertex and `seed` (a coarse particle's), then a walk over
-    the body's faces from the face around that vertex whose plane p is least behind
-    (`face_walk_distance`: one or two exact closest points where the whole ring takes six)."""
-    own = nearest[i]
-    start = seed
-    if own >= 0:
-        d_own = (body_x[own, 0] - p[0]) ** 2 + (body_x[own, 1] - p[1]) ** 2 + (body_x[own, 2] - p[2]) ** 2
+                            body_face, face_n, q):
+    """Signed distance of detailed particle i (at p) to the body, by a walk over the body's
+    faces (`face_walk_distance`) from the face its last walk ended on (body_face[i]): the
+    body and the cloth move little between two tests, so that is usually one exact closest
+    point. The walk is local; when it is new (body_face[i] < 0) or its answer is farther than
+    `seed` (the coarse particle's nearest body vertex, a point of the body), it starts again
+    from the face around the nearest vertex to p, found by a vertex walk from `seed`, whose
+    plane p is least behind."""
+    f = body_face[i]
+    if f >= 0:
+        r = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, f, face_n,
+                               q)
         d_seed = (body_x[seed, 0] - p[0]) ** 2 + (body_x[seed, 1] - p[1]) ** 2 + (body_x[seed, 2] - p[2]) ** 2
-        if d_own < d_seed:
-            start = own
-    vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, 255)
-    nearest[i] = vtx
+        if d_seed >= r[0] * r[0]:
+            body_face[i] = r[7]
+            return r[:7]
+    vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, seed, regions, 255)
     face = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
     if face < 0:
-        return ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
-    return face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face,
-                              face_n, q)[:7]
+        r = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
+    else:
+        r = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face,
+                               face_n, q)
+    body_face[i] = r[7]
+    return r[:7]
 
 
 @njit(cache=True, inline="always")
@@ -54,7 +60,7 @@ def _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 
 @njit(cache=True, nogil=True)
 def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
-              tri_start, tri_ids, tri_nbrs, nearest, face_n, q, clearance, max_iterations, max_lift):
+              tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance, max_iterations, max_lift):
     """The smallest lift along n_i that puts particle vid `clearance` outside the body (S103).
 
     Along n_i the signed distance grows at the rate n_i . n_body, so where the body faces n_i
@@ -74,7 +80,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
             break
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift)
         d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, q)
+                                                            tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
         it += 1
     if d >= clearance:
         return d
@@ -87,7 +93,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         step *= 2.0
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
         d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, tri_nbrs, nearest, face_n, q)
+                                                            tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
         if d >= clearance:
             found = True
             break
@@ -95,12 +101,12 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
     if not found:
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
         return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
-                                       tri_nbrs, nearest, face_n, q)[0]
+                                       tri_nbrs, body_face, face_n, q)[0]
     for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
         mid = 0.5 * (lo + hi)
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, mid)
         dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
-                                     tri_nbrs, nearest, face_n, q)[0]
+                                     tri_nbrs, body_face, face_n, q)[0]
         if dm >= clearance:
             hi = mid
             d = dm
@@ -112,7 +118,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
 
 @njit(cache=True, nogil=True)
 def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
-                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n, q, clearance,
+                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance,
                       margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
@@ -122,7 +128,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
     `margin` of the body is skipped; inside a face the lattice is visited top-down (`order`),
     and a finer particle is tested only if one of its coarser parents was within `margin`.
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out); sd: signed
-    distance of each tested particle after lifting (UNTESTED otherwise).
+    distance of each tested particle after lifting (UNTESTED otherwise); body_face: the body
+    face each particle's last distance walk ended on (-1: none yet), carried between frames.
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
     `_lift_out` for the other cases). Returns the number of particles tested."""
@@ -153,12 +160,12 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
                 pi = p[vid]
                 d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids,
                                                                     regions, tris, tri_start, tri_ids, tri_nbrs,
-                                                                    nearest, face_n, q)
+                                                                    body_face, face_n, q)
                 if d < clearance:
                     cap = min(max_lift, max_height - dh[vid])  # Δh never exceeds max_height
                     if cap > 0.0:
                         d = _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
-                                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, nearest, face_n,
+                                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n,
                                       q, clearance, max_iterations, cap)
                 sd[vid] = d
             if parents[loc, 0] < 0 and sd[vid] < margin:
