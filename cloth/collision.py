@@ -349,8 +349,9 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     """Signed distance from p to the body (negative inside) by a walk over faces from `start`.
 
     The exact closest point on the current face; inside the face it is a local minimum of the
-    distance to the surface, on an edge the walk crosses to the face beyond while that gets
-    closer. Most points end inside a face or on an edge after one or two faces, where the
+    distance to the surface (in front of the face; behind it, the walk goes on to a nearer
+    neighbour while there is one), on an edge the walk crosses to the face beyond while that
+    gets closer. Most points end inside a face or on an edge after one or two faces, where the
     vertex walk + ring (`ring_signed_distance`) computes six. On a vertex that is the closest
     point of its whole ring (`in_vertex_region`) the distance is to the vertex; on any other
     vertex (or after a walk longer than FACE_WALK_STEPS) the ring of that vertex decides. Sign
@@ -378,6 +379,24 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
             break  # inside the face, on a vertex, or on an open edge
         settled = False
         t = tri_nbrs[t, feature]
+    if settled and feature == INSIDE_FACE and (
+            (p[0] - qx) * face_n[best_t, 0] + (p[1] - qy) * face_n[best_t, 1] + (p[2] - qz) * face_n[best_t, 2]) < 0.0:
+        # behind a face, a closest point inside it need not be the nearest: where the body is
+        # convex a neighbouring face's plane can be nearer. Descend to the nearest neighbour
+        # while one is nearer.
+        for _ in range(FACE_WALK_STEPS):
+            cur = best_t
+            for e in range(3):
+                o = tri_nbrs[cur, e]
+                if o < 0:
+                    continue
+                v, w = closest_point_triangle(p, body_x, tris[o, 0], tris[o, 1], tris[o, 2], q)
+                d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+                if d2 < best:
+                    best, best_t, feature = d2, o, closest_feature(v, w)
+                    qx, qy, qz = q[0], q[1], q[2]
+            if best_t == cur:
+                break
     vertex = -1
     if settled and feature >= 3:
         vertex = tris[best_t, feature - 3]

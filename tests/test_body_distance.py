@@ -8,6 +8,7 @@ from numba import njit
 
 from cloth.collision import BodyMesh, deepest_plane, face_normals, face_walk_distance, walk_nearest
 from cloth.topology import triangle_neighbours
+from cloth.wrinkles import _detail_signed_distance
 from tests.signed_distance import SignedDistance
 from tests.test_cloth_dynamics import box, uv_sphere
 
@@ -62,3 +63,42 @@ def test_face_walk_distance_matches_brute_force(shape):
     _walk_all(points, np.ascontiguousarray(verts, dtype=np.float64), body.triangles, body.tri_nbrs, body.tri_start,
               body.tri_ids, body.nbr_start, body.nbr_ids, body.regions, start, face_normals(verts, tris), out)
     np.testing.assert_allclose(out, expected, atol=1e-9)
+
+
+@njit(cache=True)
+def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, body_face,
+                face_n, out):
+    q = np.zeros(3)
+    for i in range(points.shape[0]):
+        out[i] = _detail_signed_distance(points[i], i, seeds[i], body_x, nbr_start, nbr_ids, regions, tris, tri_start,
+                                         tri_ids, tri_nbrs, body_face, face_n, q)[0]
+
+
+def test_detailed_particle_walk_starts_from_its_last_face_and_re_anchors_at_the_seed():
+    """Two spheres 0.3 m apart; points near the first. A first walk (no face remembered), then
+    walks from the remembered faces after the points moved by up to 2 mm (the usual case),
+    then walks remembered on the second sphere (the cloth jumped: a recovery, a reset): all give
+    the exact signed distance; the last are re-anchored at the coarse seed, a vertex of the
+    first sphere nearer than anything on the second."""
+    v1, t1 = uv_sphere(radius=0.1, n_lat=16, n_lon=32)
+    verts = np.concatenate([v1, v1 + [0.3, 0.0, 0.0]])
+    tris = np.concatenate([t1, t1 + len(v1)]).astype(np.int32)
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(200, 3))
+    points = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.09, 0.11, (200, 1))
+    body = BodyMesh.build(tris, len(verts))
+    body_x = np.ascontiguousarray(verts, dtype=np.float64)
+    face_n = face_normals(verts, tris)
+    body_face = np.full(len(points), -1, dtype=np.int32)
+    for case in ("first walk", "moved", "remembered on the other sphere"):
+        if case == "moved":
+            points = points + rng.uniform(-0.002, 0.002, points.shape)
+        elif case.startswith("remembered"):
+            body_face += len(t1)
+        seeds = np.argmin(np.linalg.norm(v1[None] - points[:, None], axis=2), axis=1).astype(np.int32)
+        expected = SignedDistance(tris, len(verts))(verts, points)
+        out = np.zeros(len(points))
+        _detail_all(points, seeds, body_x, body.triangles, body.tri_nbrs, body.tri_start, body.tri_ids,
+                    body.nbr_start, body.nbr_ids, body.regions, body_face, face_n, out)
+        np.testing.assert_allclose(out, expected, atol=1e-9, err_msg=case)
+        assert (body_face >= 0).all() and (body_face < len(t1)).all()  # faces of the first sphere remembered
