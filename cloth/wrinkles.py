@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .collision import deepest_plane, face_walk_distance, ring_signed_distance, walk_nearest
+from .collision import deepest_plane, face_walk_distance, walk_nearest
 from .geometry import vertex_normals
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
@@ -29,24 +29,34 @@ def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tri
     point. The walk is local; when it is new (body_face[i] < 0) or its answer is farther than
     `seed` (the coarse particle's nearest body vertex, a point of the body), it starts again
     from the face around the nearest vertex to p, found by a vertex walk from `seed`, whose
-    plane p is least behind."""
+    plane p is least behind. (One call site of the walk: numba inlines it, and each copy
+    lengthens compilation.)"""
     f = body_face[i]
-    if f >= 0:
-        r = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, f, face_n,
-                               q)
+    fresh = f < 0
+    while True:
+        if fresh:
+            vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, seed, regions, 255)
+            f = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
+            if f < 0:  # no usable face around the vertex
+                body_face[i] = -1
+                return np.inf, 0.0, 0.0, 0.0, p[0], p[1], p[2]
+        d, nx, ny, nz, qx, qy, qz, last = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
+                                                             nbr_ids, regions, f, face_n, q)
         d_seed = (body_x[seed, 0] - p[0]) ** 2 + (body_x[seed, 1] - p[1]) ** 2 + (body_x[seed, 2] - p[2]) ** 2
-        if d_seed >= r[0] * r[0]:
-            body_face[i] = r[7]
-            return r[:7]
-    vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, seed, regions, 255)
-    face = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
-    if face < 0:
-        r = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
-    else:
-        r = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face,
-                               face_n, q)
-    body_face[i] = r[7]
-    return r[:7]
+        if fresh or d_seed >= d * d:
+            body_face[i] = last
+            return d, nx, ny, nz, qx, qy, qz
+        fresh = True
+
+
+@njit(cache=True, nogil=True)
+def detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
+                           body_face, face_n, q):
+    """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
+    particles a frame), where the call costs little and more inlined copies would cost
+    compilation time."""
+    return _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                                   tri_nbrs, body_face, face_n, q)
 
 
 @njit(cache=True, inline="always")
@@ -79,7 +89,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         if lift <= dh_pen[vid]:
             break
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift)
-        d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
+        d, bx, by, bz, qx, qy, qz = detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
                                                             tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
         it += 1
     if d >= clearance:
@@ -92,7 +102,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         hi = min(hi + step, max_lift)
         step *= 2.0
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
-        d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
+        d, bx, by, bz, qx, qy, qz = detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
                                                             tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
         if d >= clearance:
             found = True
@@ -100,12 +110,12 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         lo = hi
     if not found:
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
-        return _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+        return detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
                                        tri_nbrs, body_face, face_n, q)[0]
     for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
         mid = 0.5 * (lo + hi)
         _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, mid)
-        dm = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+        dm = detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
                                      tri_nbrs, body_face, face_n, q)[0]
         if dm >= clearance:
             hi = mid
