@@ -115,20 +115,26 @@ def nearest_vertices(points, vertices, out, regions, masks):
                 out[i] = j
 
 
+@njit(cache=True, inline="always")
+def add_face_normal(x, triangles, t, out):
+    """Add triangle t's area-weighted normal (the cross product of two edges) to its three corners' rows of out."""
+    a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+    ux, uy, uz = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+    vx, vy, vz = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+    nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+    for p in (a, b, c):
+        out[p, 0] += nx
+        out[p, 1] += ny
+        out[p, 2] += nz
+
+
 @njit(cache=True, nogil=True)
 def vertex_normals(x, triangles, out):
     """Area-weighted unit normals of a triangle mesh at its vertices (the cloth's air drag, S102's
     coarse N_i, S106's n_deform)."""
     out[:] = 0.0
     for t in range(triangles.shape[0]):
-        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        ux, uy, uz = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
-        vx, vy, vz = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
-        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
-        for p in (a, b, c):
-            out[p, 0] += nx
-            out[p, 1] += ny
-            out[p, 2] += nz
+        add_face_normal(x, triangles, t, out)
     for i in range(out.shape[0]):
         norm = math.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2 + out[i, 2] ** 2)
         if norm > 0.0:

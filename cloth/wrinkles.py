@@ -13,7 +13,7 @@ import numpy as np
 from numba import njit
 
 from .collision import deepest_plane, face_walk_distance, walk_nearest
-from .geometry import vertex_normals
+from .geometry import add_face_normal
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -491,15 +491,8 @@ def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
         n_deform[i, 2] = 0.0
     for t in range(triangles.shape[0]):
         a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-        if dh[a] <= 0.0 and dh[b] <= 0.0 and dh[c] <= 0.0:
-            continue
-        ux, uy, uz = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
-        vx, vy, vz = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
-        nx, ny, nz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
-        for k in (a, b, c):
-            n_deform[k, 0] += nx
-            n_deform[k, 1] += ny
-            n_deform[k, 2] += nz
+        if dh[a] > 0.0 or dh[b] > 0.0 or dh[c] > 0.0:
+            add_face_normal(p, triangles, t, n_deform)
     for i in range(p.shape[0]):
         if dh[i] <= 0.0:
             out[i, 0] = n_pn[i, 0]
