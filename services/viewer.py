@@ -15,12 +15,32 @@ from pathlib import Path
 
 import numpy as np
 import rerun as rr
+import rerun.blueprint as rrb
 import zenoh
 
 from .bus import Stats, fetch_latched, key, parse_key
 from .protocol import MessageError, decode
 
 log = logging.getLogger("tryon.viewer")
+
+
+def session_layout() -> rrb.Blueprint:
+    """The viewer's default layout: the body and garments large, the per-stage timings and the
+    latency of each garment in a column beside them (rerun's automatic layout gives every
+    plot as much room as the 3D view)."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            # the camera follows the body: a walk leaves the place where it started
+            rrb.Spatial3DView(origin="/world", name="try-on", eye_controls=rrb.EyeControls3D(tracking_entity="/world/body")),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin="/stats/stages", name="stage ms per garment"),
+                rrb.TimeSeriesView(origin="/stats/latency", name="latency ms, body published → garment shown"),
+            ),
+            column_shares=[3, 1],
+        ),
+        rrb.BlueprintPanel(state="collapsed"),
+        rrb.SelectionPanel(state="collapsed"),
+    )
 
 
 class RecordingSink:
@@ -47,6 +67,7 @@ class RecordingSink:
             self.rec.set_sinks(*sinks)
         if web_port is not None and self.url is not None:
             rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=self.url)
+        self.rec.send_blueprint(session_layout())
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
 
     def close(self) -> Path | None:
@@ -185,8 +206,8 @@ class ViewerBridge:
                 name = parts[-1]
                 for field in ("s101_ms", "pn_ms", "collision_ms", "deformation_ms"):
                     if field in msg.meta:
-                        self.rec.log(f"stats/{name}/{field}", rr.Scalars(float(msg.meta[field])))
-                self.rec.log(f"stats/{name}/latency_ms", rr.Scalars(latency))
+                        self.rec.log(f"stats/stages/{name}/{field}", rr.Scalars(float(msg.meta[field])))
+                self.rec.log(f"stats/latency/{name}", rr.Scalars(latency))
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()

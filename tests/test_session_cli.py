@@ -1,5 +1,10 @@
 """`tryon session` (the README's main command) end to end, and the recording's integrity."""
 
+import re
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -27,6 +32,15 @@ def test_session_writes_rrd_recording_and_snapshots(tmp_path, capsys):
     garments = [w for w in kinds if w.startswith("garment/")]
     assert len(garments) == 2 and all(kinds[g] == list(range(1, 9)) for g in garments)
     assert "session" in kinds and "topology/body" in kinds
+    # the .rrd carries the viewer layout: the 3D view and the two plots whose origins hold what the bridge logs
+    rerun = Path(sys.executable).parent / "rerun"
+    printed = subprocess.run([str(rerun), "rrd", "print", "-vvv", str(tmp_path / "t1.rrd")], capture_output=True,
+                             text=True, check=True).stdout
+    views = set(re.findall(r"\[(3D|TimeSeries)\]\s+┆ \[[^\]]+\]\s+┆ \[(/[^\]]*)\]", printed))
+    assert views == {("3D", "/world"), ("TimeSeries", "/stats/stages"), ("TimeSeries", "/stats/latency")}
+    entities = set(re.findall(r"entity_path: (/\S+)", printed))
+    for origin in ("/world/garment/", "/stats/stages/", "/stats/latency/"):
+        assert sum(e.startswith(origin) for e in entities) >= 2, origin  # both garments
     img = np.asarray(Image.open(tmp_path / "t1.png"))
     assert img.shape[1] == 4 * 360 and img.std() > 10  # two frames, two views each
     # garment colours: not only skin, floor and sky
