@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from .geometry import closest_point_triangle
-from .topology import triangle_neighbours, unique_edges, vertex_neighbours, vertex_triangles
+from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
 
 
 @dataclass(frozen=True)
@@ -38,7 +38,7 @@ class BodyMesh:
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
-        ts, ti = vertex_triangles(n_vertices, triangles)
+        ts, ti = vertex_cells(n_vertices, triangles)
         if regions is None:
             regions = np.ones(n_vertices, dtype=np.uint8)
         regions = np.ascontiguousarray(regions, dtype=np.uint8)

@@ -66,8 +66,7 @@ class Tessellation:
     edge_ids: np.ndarray  # (E, L + 1) int32: detailed vertices along each coarse edge, low to high
     face_edges: np.ndarray  # (T, 3) int32: coarse edge of AB, BC, CA
     triangles: np.ndarray  # (T * L², 3) int32 detailed triangles
-    nbr_start: np.ndarray  # (N + 1,) int64 CSR of detailed mesh neighbours
-    nbr_ids: np.ndarray  # int32
+    detail_edges: np.ndarray  # (D, 2) int32: the detailed mesh's edges, sorted pairs
     lattice: np.ndarray  # (P, 2) (b, c)
     # hierarchical order for S103: local lattice points sorted coarse to fine, and up to 3
     # coarser-level "parents" each (-1 padded; corners have none)
@@ -141,13 +140,7 @@ def build_tessellation(coarse_triangles: np.ndarray, n_coarse: int, level: int) 
             edge_ids[e, t] = edge_vertex(int(u), int(w), t)
     local_tris = lattice_triangles(L)
     triangles = face_ids[:, local_tris].reshape(-1, 3)
-    d_edges, _ = unique_edges(triangles)
-    order_nbr = np.argsort(np.concatenate([d_edges[:, 0], d_edges[:, 1]]), kind="stable")
-    heads = np.concatenate([d_edges[:, 0], d_edges[:, 1]])[order_nbr]
-    nbr_ids = np.concatenate([d_edges[:, 1], d_edges[:, 0]])[order_nbr].astype(np.int32)
-    nbr_start = np.zeros(N + 1, dtype=np.int64)
-    np.add.at(nbr_start, heads + 1, 1)
-    nbr_start = np.cumsum(nbr_start)
+    d_edges = unique_edges(triangles)[0].astype(np.int32)
     order, parents = _hierarchy(lat, L)
     lines = np.full((3, max(L - 1, 1), L + 1), -1, dtype=np.int32)
     line_length = np.zeros((3, max(L - 1, 1)), dtype=np.int32)
@@ -162,7 +155,7 @@ def build_tessellation(coarse_triangles: np.ndarray, n_coarse: int, level: int) 
             lines[d, m - 1, : len(pts)] = pts
             line_length[d, m - 1] = len(pts)
     return Tessellation(L, n_coarse, tris, edges, face_ids, owner_face, owner_w, edge_ids, face_edges,
-                        triangles.astype(np.int32), nbr_start, nbr_ids, lat, order, parents,
+                        triangles.astype(np.int32), d_edges, lat, order, parents,
                         np.array(interior, dtype=np.int32), lines, line_length)
 
 

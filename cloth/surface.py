@@ -19,7 +19,7 @@ from .collision import BodyMesh
 from .dynamics import spring_forces
 from .model import ClothModel
 from .pn import Tessellation, build_tessellation, pn_surface
-from .topology import unique_edges, vertex_cells
+from .topology import vertex_cells
 from .wrinkles import (apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights, elastic_forces,
                        length_displacement, normal_force, offset_along_normals, penetration_floor,
                        shading_normals)
@@ -72,8 +72,7 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     seg = np.linalg.norm(np.diff(p_rest[tess.edge_ids], axis=1), axis=2)
     edge_rest = seg.sum(axis=1)
     count = np.bincount(tess.coarse_edges.ravel(), minlength=n).astype(np.float64)
-    d_edges, _ = unique_edges(tess.triangles)
-    d_edges = d_edges.astype(np.int32)
+    d_edges = tess.detail_edges
     rest_len = np.linalg.norm(p_rest[d_edges[:, 0]] - p_rest[d_edges[:, 1]], axis=1)
     f = cloth.fabric
     straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)

@@ -142,11 +142,6 @@ def vertex_neighbours(n_vertices: int, edges: np.ndarray) -> tuple[np.ndarray, n
     return np.cumsum(start), both[:, 1].astype(np.int32)
 
 
-def vertex_triangles(n_vertices: int, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """CSR (start, ids) of the triangles incident to each vertex."""
-    return vertex_cells(n_vertices, triangles)
-
-
 def vertex_cells(n_vertices: int, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """CSR (start, ids) of the cells (triangles (m, 3), edges (m, 2), ...) incident to each vertex."""
     owner = cells.ravel()
