@@ -272,16 +272,53 @@ def vertex_normal(tri_start, tri_ids, face_n, vtx):
 
 
 @njit(cache=True, inline="always")
-def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q):
+def feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t, feature):
+    """The surface normal at a closest point on face t (`closest_feature`): the face normal inside
+    the face, the two faces' normals summed on an edge, the angle-weighted vertex normal at a
+    corner. These pseudo-normals give the exact inside/outside sign of a closed mesh
+    (Bærentzen & Aanæs 2005). (0, 0, 0) when degenerate."""
+    if feature == INSIDE_FACE:
+        return face_n[t, 0], face_n[t, 1], face_n[t, 2]
+    nx = ny = nz = 0.0
+    if feature < 3:
+        nx, ny, nz = face_n[t, 0], face_n[t, 1], face_n[t, 2]
+        o = tri_nbrs[t, feature]
+        if o >= 0:
+            nx, ny, nz = nx + face_n[o, 0], ny + face_n[o, 1], nz + face_n[o, 2]
+    else:
+        vtx = tris[t, feature - 3]
+        for k in range(tri_start[vtx], tri_start[vtx + 1]):
+            f = tri_ids[k]
+            c = 0
+            while tris[f, c] != vtx:
+                c += 1
+            u, w = tris[f, (c + 1) % 3], tris[f, (c + 2) % 3]
+            ux, uy, uz = body_x[u, 0] - body_x[vtx, 0], body_x[u, 1] - body_x[vtx, 1], body_x[u, 2] - body_x[vtx, 2]
+            wx, wy, wz = body_x[w, 0] - body_x[vtx, 0], body_x[w, 1] - body_x[vtx, 1], body_x[w, 2] - body_x[vtx, 2]
+            lu = math.sqrt(ux * ux + uy * uy + uz * uz)
+            lw = math.sqrt(wx * wx + wy * wy + wz * wz)
+            if lu == 0.0 or lw == 0.0:
+                continue
+            angle = math.acos(min(1.0, max(-1.0, (ux * wx + uy * wy + uz * wz) / (lu * lw))))
+            nx += angle * face_n[f, 0]
+            ny += angle * face_n[f, 1]
+            nz += angle * face_n[f, 2]
+    nl = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if nl == 0.0:
+        return 0.0, 0.0, 0.0
+    return nx / nl, ny / nl, nz / nl
+
+
+@njit(cache=True, inline="always")
+def ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx, face_n, q):
     """Signed distance from p to the faces around body vertex vtx (negative inside).
 
-    The exact closest point q over those faces; the sign from the surface normal there (the
-    face normal inside a face, the area-weighted vertex normal on an edge or corner).
-    Returns (distance, nx, ny, nz, qx, qy, qz, face): a zero normal when vtx has no usable
-    face; `face` holds the closest point. q: (3,) scratch."""
+    The exact closest point q over those faces; the sign from the surface's pseudo-normal
+    there (`feature_normal`). Returns (distance, nx, ny, nz, qx, qy, qz, face): a zero normal
+    when vtx has no usable face; `face` holds the closest point. q: (3,) scratch."""
     best = np.inf
     best_t = -1
-    interior = False
+    feature = INSIDE_FACE
     qx = qy = qz = 0.0
     for k in range(tri_start[vtx], tri_start[vtx + 1]):
         t = tri_ids[k]
@@ -291,15 +328,12 @@ def ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q):
             best = d
             best_t = t
             qx, qy, qz = q[0], q[1], q[2]
-            interior = bv > 1e-9 and bw > 1e-9 and bv + bw < 1.0 - 1e-9
+            feature = closest_feature(bv, bw)
     if best_t < 0:
         return np.inf, 0.0, 0.0, 0.0, qx, qy, qz, best_t
-    if interior:
-        nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
-    else:
-        nx, ny, nz = vertex_normal(tri_start, tri_ids, face_n, vtx)
-        if nx == 0.0 and ny == 0.0 and nz == 0.0:
-            return np.inf, 0.0, 0.0, 0.0, qx, qy, qz, best_t
+    nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
+    if nx == 0.0 and ny == 0.0 and nz == 0.0:
+        return np.inf, 0.0, 0.0, 0.0, qx, qy, qz, best_t
     side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
     dist = math.sqrt(best)
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
@@ -403,7 +437,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
         # the usual case on a vertex: it is the closest point of its whole ring, and the ring's
         # rule gives the sign without six more closest points
         if in_vertex_region(p, body_x, nbr_start, nbr_ids, vertex):
-            nx, ny, nz = vertex_normal(tri_start, tri_ids, face_n, vertex)
+            nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
             if nx != 0.0 or ny != 0.0 or nz != 0.0:
                 side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
                 dist = math.sqrt(best)
@@ -411,7 +445,8 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     elif not settled:
         vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
     if not settled or feature >= 3:
-        d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vertex, face_n, q)
+        d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vertex,
+                                                             face_n, q)
         return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
     nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
     if feature != INSIDE_FACE and tri_nbrs[best_t, feature] >= 0:  # on an edge: add the face beyond
@@ -425,48 +460,53 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
 
 
+CONTACT_ITERATIONS = 4  # nearest-surface pushes per particle and frame (a crease between two body parts takes 2-3)
+MAX_CONTACT_DEPTH = 0.06  # m: a particle found deeper inside than this is left to the next frame
+
+
 @njit(cache=True, nogil=True)
-def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, nearest_any,
-                     thickness, fixed, face_n, q, cell, grid_start, grid_ids):
+def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
+                     nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
     body regions the particle lay near at rest; it misses a particle that a concave fold of the
     body (armpit, crotch) or another limb swung into. Here each particle finds its nearest body
     vertex over the whole body (the vertex grid, then a walk over every region), takes the
-    exact closest point on the faces around it, and
-    one inside or closer than `thickness` is put at that point plus thickness along the surface
-    normal there (the face normal, or the vertex normal at an edge or corner), its inward velocity
-    relative to the body removed. q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid`
-    built for this pose."""
+    exact closest point on the faces around it, and one inside or closer than `thickness` is
+    put at that point plus thickness along the surface normal there (its pseudo-normal, see
+    `ring_signed_distance`), its inward velocity relative to the body removed. In a crease
+    between two body parts a push can land it behind the other part's faces: the test is
+    repeated from the new position (CONTACT_ITERATIONS), which settles it outside both.
+    Gripped particles (fixed) are placed too, their velocity untouched.
+    q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid` built for this pose."""
     for i in range(x.shape[0]):
-        if fixed[i]:
-            continue
         p = x[i]
-        # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
-        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
-        d2 = (body_x[vtx, 0] - p[0]) ** 2 + (body_x[vtx, 1] - p[1]) ** 2 + (body_x[vtx, 2] - p[2]) ** 2
-        found, d2 = grid_nearest(p, body_x, cell, grid_start, grid_ids, vtx, d2)
-        if found != vtx:
-            vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, found, regions, 255)
-        nearest_any[i] = vtx
-        side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(p, body_x, tris, tri_start, tri_ids, vtx, face_n, q)
-        if nx == 0.0 and ny == 0.0 and nz == 0.0:
-            continue
-        dist = abs(side)
-        if side >= 0.0 and dist >= thickness:
-            continue
-        p[0] = qx + thickness * nx
-        p[1] = qy + thickness * ny
-        p[2] = qz + thickness * nz
-        rx = v[i, 0] - body_vel[i, 0]
-        ry = v[i, 1] - body_vel[i, 1]
-        rz = v[i, 2] - body_vel[i, 2]
-        vn = rx * nx + ry * ny + rz * nz
-        if vn < 0.0:
-            v[i, 0] -= vn * nx
-            v[i, 1] -= vn * ny
-            v[i, 2] -= vn * nz
+        for _ in range(CONTACT_ITERATIONS):
+            # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
+            vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
+            d2 = (body_x[vtx, 0] - p[0]) ** 2 + (body_x[vtx, 1] - p[1]) ** 2 + (body_x[vtx, 2] - p[2]) ** 2
+            found, d2 = grid_nearest(p, body_x, cell, grid_start, grid_ids, vtx, d2)
+            if found != vtx:
+                vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, found, regions, 255)
+            nearest_any[i] = vtx
+            side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx,
+                                                                   face_n, q)
+            if side >= thickness * 0.999 or side < -MAX_CONTACT_DEPTH or (nx == 0.0 and ny == 0.0 and nz == 0.0):
+                break
+            p[0] = qx + thickness * nx
+            p[1] = qy + thickness * ny
+            p[2] = qz + thickness * nz
+            if fixed[i]:
+                continue  # a gripped particle is placed, not moved: it has no velocity of its own
+            rx = v[i, 0] - body_vel[i, 0]
+            ry = v[i, 1] - body_vel[i, 1]
+            rz = v[i, 2] - body_vel[i, 2]
+            vn = rx * nx + ry * ny + rz * nz
+            if vn < 0.0:
+                v[i, 0] -= vn * nx
+                v[i, 1] -= vn * ny
+                v[i, 2] -= vn * nz
 
 
 class BodyPose:

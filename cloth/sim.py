@@ -227,7 +227,8 @@ class ClothSim:
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
                               m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, face_n)
         resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                         b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start, grid.ids)
+                         b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
+                         grid.ids)
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
                                  m.n_structural, st.max_speed, st.max_stretch, s.bad)
         if n_bad:

@@ -207,7 +207,7 @@ def test_resolve_contacts_pushes_out_of_any_body_part():
     grid.update(verts)
     start = np.zeros(2, np.int32)  # both walks would start on the first box
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
-                     mesh.tri_ids, mesh.regions, start, 0.003, np.zeros(2, np.uint8),
+                     mesh.tri_ids, mesh.tri_nbrs, mesh.regions, start, 0.003, np.zeros(2, np.uint8),
                      face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids)
     assert start[0] >= len(verts1)
     np.testing.assert_allclose(x[0], [2.1, 0.303, -0.05], atol=1e-9)
