@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from numba import njit
 
-from cloth.collision import BodyMesh, deepest_plane, face_normals, face_walk_distance, walk_nearest
+from cloth.collision import (BodyMesh, deepest_plane, face_normals, face_walk_distance, ring_signed_distance,
+                             walk_nearest)
 from cloth.topology import triangle_neighbours
 from cloth.wrinkles import _detail_signed_distance
 from tests.signed_distance import SignedDistance
@@ -102,3 +103,37 @@ def test_detailed_particle_walk_starts_from_its_last_face_and_re_anchors_at_the_
                     body.nbr_start, body.nbr_ids, body.regions, body_face, face_n, out)
         np.testing.assert_allclose(out, expected, atol=1e-9, err_msg=case)
         assert (body_face >= 0).all() and (body_face < len(t1)).all()  # faces of the first sphere remembered
+
+
+@njit(cache=True)
+def _ring_all(points, vertices, body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, out, faces):
+    q = np.zeros(3)
+    for i in range(points.shape[0]):
+        r = ring_signed_distance(points[i], body_x, tris, tri_nbrs, tri_start, tri_ids, vertices[i], face_n, q)
+        out[i] = r[0]
+        faces[i] = r[7]
+
+
+def test_ring_distance_takes_its_side_from_the_closest_feature_at_a_sharp_edge():
+    """A thin wedge (a prism whose ridge is 2.3° sharp, like a fold of skinned skin); a point
+    1 cm outside its ridge edge, near the ridge's end vertex, whose faces hold the closest
+    point. Outside, at 1 cm (the independent test agrees): the side comes from the edge's two
+    faces. The end vertex's area-weighted normal leans to the other face, which it touches
+    with twice the area, and would put the point inside."""
+    a, b, c, length = (-0.02, 0.0), (0.02, 0.0), (0.0, 1.0), 1.0
+    verts = np.array([[*a, 0], [*b, 0], [*c, 0], [*a, length], [*b, length], [*c, length]], float)
+    a0, b0, c0, a1, b1, c1 = range(6)
+    tris = np.array([[a0, c0, b0], [a1, b1, c1], [a0, b0, b1], [a0, b1, a1],  # caps, base
+                     [b0, c0, c1], [b0, c1, b1],  # side b-c: c0 in one triangle
+                     [c0, a0, a1], [c0, a1, c1]], dtype=np.int32)  # side c-a: c0 in both
+    mesh = BodyMesh.build(tris, 6)
+    face_n = face_normals(verts, tris)
+    d = 0.9 * face_n[4, :3] + 0.1 * face_n[6, :3]  # within the ridge's normal cone, nearer side b-c
+    d /= np.linalg.norm(d)
+    point = np.array([[0.0, 1.0, 0.02]]) + 0.01 * d
+    out = np.zeros(1)
+    faces = np.zeros(1, dtype=np.int64)
+    _ring_all(point, np.array([c0], np.int32), verts, mesh.triangles, mesh.tri_nbrs, mesh.tri_start, mesh.tri_ids,
+              face_n, out, faces)
+    np.testing.assert_allclose(SignedDistance(tris, 6)(verts, point), [0.01], atol=1e-12)
+    np.testing.assert_allclose(out, [0.01], atol=1e-12)

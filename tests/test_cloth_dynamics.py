@@ -296,3 +296,51 @@ def test_fabric_presets_and_errors(tmp_path):
         load_fabrics(bad)
     with pytest.raises(FabricError, match="no fabric 'tweed'"):
         fabric("tweed")
+
+
+def l_prism(depth=1.0):
+    """A closed L-shaped prism (outward triangles): the L (0,0)-(2,0)-(2,1)-(1,1)-(1,2)-(0,2)
+    in x, y, extruded from z = 0 to depth. Its inner corner is the edge x = y = 1."""
+    ring = np.array([[0, 0], [2, 0], [2, 1], [1, 1], [1, 2], [0, 2]], float)
+    verts = np.concatenate([np.c_[ring, np.zeros(6)], np.c_[ring, np.full(6, depth)]])
+    cap = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 5], [3, 4, 5]])  # the L, counter-clockwise seen from +z
+    tris = [c[::-1] for c in cap] + [c + 6 for c in cap]  # bottom faces -z, top faces +z
+    for k in range(6):
+        a, b = k, (k + 1) % 6
+        tris += [[a, b, b + 6], [a, b + 6, a + 6]]
+    return verts, np.array(tris, dtype=np.int32)
+
+
+def test_resolve_contacts_settles_a_particle_in_a_concave_corner_away_from_both_faces():
+    """A particle just inside the inner corner of an L: the first push (along the corner edge's
+    normal) leaves it nearer than thickness to both faces; the pass repeats from there and
+    settles it thickness away from each, in the corner's outside quadrant."""
+    verts, tris = l_prism()
+    mesh = BodyMesh.build(tris, len(verts))
+    face_n = face_normals(verts, tris)
+    assert np.allclose(face_n[8:10, :3], [0, -1, 0])  # the first side, y = 0, faces out
+    x = np.array([[0.999, 0.9985, 0.5]])
+    v = np.zeros_like(x)
+    grid = VertexGrid(len(verts))
+    grid.update(verts)
+    resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                     mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.zeros(1, np.uint8),
+                     face_n, np.zeros(3), grid.cell, grid.start, grid.ids)
+    assert x[0, 0] >= 1.003 - 1e-9 and x[0, 1] >= 1.003 - 1e-9, x
+    assert x[0, 0] < 1.0031 and x[0, 1] < 1.0031 and x[0, 2] == 0.5, x
+
+
+def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_velocity():
+    """A waistband particle (gripped: kinematic, it follows the body) that the skin bulged over
+    is placed outside like any other; its velocity, which only a free particle has, is kept."""
+    verts, tris = box(0.3)
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[0.1, 0.29, 0.0]])
+    v = np.array([[0.0, -1.0, 0.0]])
+    grid = VertexGrid(len(verts))
+    grid.update(verts)
+    resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                     mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.ones(1, np.uint8),
+                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids)
+    np.testing.assert_allclose(x[0], [0.1, 0.303, 0.0], atol=1e-9)
+    np.testing.assert_array_equal(v[0], [0.0, -1.0, 0.0])
