@@ -5,9 +5,9 @@
     x = sim.step(body_vertices, dt)                                          # every frame
 
 A frame: body following (relative coordinates to the nearest face, distance-blended), then
-`substeps` × (RK4 step, vertex collision, strain limiting), then the contact pass over the
-whole body, the instability check (NaN, speed, runaway stretch → reset to the
-body-following positions, counted), and the new relative coordinates.
+`substeps` × (RK4 step, vertex collision, strain limiting), then the instability check (NaN,
+speed, runaway stretch → reset to the body-following positions, counted), the contact pass
+over the whole body, and the new relative coordinates.
 """
 
 from __future__ import annotations
@@ -226,9 +226,8 @@ class ClothSim:
                               f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
                               m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, face_n)
-        resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                         b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
-                         grid.ids)
+        # recovery before the contact pass: a reset particle's body-following place can lie in
+        # another body part, and what leaves the step has been through the contact pass
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
                                  m.n_structural, st.max_speed, st.max_stretch, s.bad)
         if n_bad:
@@ -239,6 +238,10 @@ class ClothSim:
             near = np.empty(len(idx), dtype=np.int32)
             nearest_vertices(s.x[idx], body_x, near, b.regions, m.region_mask[idx])
             s.nearest[idx] = near
+            s.nearest_any[idx] = near
+        resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
+                         b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
+                         grid.ids)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
                        s.height, s.anchor, face_n)
         self.stats.frames += 1
