@@ -461,7 +461,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
 
 
 CONTACT_ITERATIONS = 4  # nearest-surface pushes per particle and frame (a crease between two body parts takes 2-3)
-MAX_CONTACT_DEPTH = 0.06  # m: a particle found deeper inside than this is left to the next frame
+MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
 
 
 @njit(cache=True, nogil=True)
@@ -478,7 +478,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     `ring_signed_distance`), its inward velocity relative to the body removed. In a crease
     between two body parts a push can land it behind the other part's faces: the test is
     repeated from the new position (CONTACT_ITERATIONS), which settles it outside both.
-    Gripped particles (fixed) are placed too, their velocity untouched.
+    Gripped particles (fixed) are placed too, their velocity untouched. One found deeper than
+    MAX_CONTACT_DEPTH is left where it is.
     q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid` built for this pose."""
     for i in range(x.shape[0]):
         p = x[i]
