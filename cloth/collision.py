@@ -389,9 +389,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     vertex walk + ring (`ring_signed_distance`) computes six. On a vertex that is the closest
     point of its whole ring (`in_vertex_region`) the distance is to the vertex; on any other
     vertex (or after a walk longer than FACE_WALK_STEPS) the ring of that vertex decides. Sign
-    from the surface normal at the closest point: the face normal inside a face, the sum of
-    the two face normals on an edge (its angle-weighted pseudo-normal), the ring's rule (the
-    area-weighted vertex normal) at a vertex.
+    from the pseudo-normal of the closest feature (`feature_normal`), as in the ring.
     Returns (distance, nx, ny, nz, qx, qy, qz, face): `face` is where the next walk should start.
     q: (3,) scratch."""
     t = start
@@ -448,13 +446,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
         d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vertex,
                                                              face_n, q)
         return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
-    nx, ny, nz = face_n[best_t, 0], face_n[best_t, 1], face_n[best_t, 2]
-    if feature != INSIDE_FACE and tri_nbrs[best_t, feature] >= 0:  # on an edge: add the face beyond
-        o = tri_nbrs[best_t, feature]
-        nx, ny, nz = nx + face_n[o, 0], ny + face_n[o, 1], nz + face_n[o, 2]
-        nl = math.sqrt(nx * nx + ny * ny + nz * nz)
-        if nl > 0.0:
-            nx, ny, nz = nx / nl, ny / nl, nz / nl
+    nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
     side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
     dist = math.sqrt(best)
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t

@@ -31,7 +31,8 @@ def session_layout() -> rrb.Blueprint:
     return rrb.Blueprint(
         rrb.Horizontal(
             # the camera follows the body: a walk leaves the place where it started
-            rrb.Spatial3DView(origin="/world", name="try-on", eye_controls=rrb.EyeControls3D(tracking_entity="/world/body")),
+            rrb.Spatial3DView(origin="/world", name="try-on",
+                              eye_controls=rrb.EyeControls3D(tracking_entity="/world/body")),
             rrb.Vertical(
                 rrb.TimeSeriesView(origin="/stats/stages", name="stage ms per garment"),
                 rrb.TimeSeriesView(origin="/stats/latency", name="latency ms, body published → garment shown"),
