@@ -3,6 +3,9 @@
 The body is seen as arrays: skinned vertex positions (per frame) and a `BodyMesh`
 (triangles and adjacency, built once). Each particle tracks its nearest body vertex by a
 local walk; it is inside when it lies behind every face incident to that vertex.
+
+The helpers take a point as three scalars (px, py, pz), not as a row view of an array: a
+view in a loop with branches costs numba two atomic reference counts (see `cloth.jit`).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from .geometry import closest_point_triangle
+from .jit import kernel
 from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
 
 
@@ -47,7 +51,7 @@ class BodyMesh:
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def body_face_normals(body_x, tris, face_n):
     """face_n[t] = (unit normal, twice the area) of every body face, once per body pose.
 
@@ -82,11 +86,11 @@ def face_normals(body_x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, inline="always")
-def walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, mask):
+def walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, mask):
     """Nearest body vertex to p by a local walk from `start` (S101: repeat while a neighbour is nearer),
     through vertices of the particle's body regions only (regions[u] & mask)."""
     best = start
-    bd = (body_x[best, 0] - p[0]) ** 2 + (body_x[best, 1] - p[1]) ** 2 + (body_x[best, 2] - p[2]) ** 2
+    bd = (body_x[best, 0] - px) ** 2 + (body_x[best, 1] - py) ** 2 + (body_x[best, 2] - pz) ** 2
     moved = True
     while moved:
         moved = False
@@ -94,7 +98,7 @@ def walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, mask):
             u = nbr_ids[k]
             if not (regions[u] & mask):
                 continue
-            d = (body_x[u, 0] - p[0]) ** 2 + (body_x[u, 1] - p[1]) ** 2 + (body_x[u, 2] - p[2]) ** 2
+            d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
             if d < bd:
                 bd = d
                 best = u
@@ -103,7 +107,7 @@ def walk_nearest(p, body_x, nbr_start, nbr_ids, start, regions, mask):
 
 
 @njit(cache=True, inline="always")
-def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n):
+def deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
     """Signed distance of p to the incident-face plane it is least behind, and that face.
 
     p is inside (behind every face incident to `vertex`) exactly when the distance is < 0."""
@@ -114,15 +118,15 @@ def deepest_plane(p, body_x, tris, tri_start, tri_ids, vertex, face_n):
         if face_n[t, 3] == 0.0:
             continue
         a = tris[t, 0]
-        d = ((p[0] - body_x[a, 0]) * face_n[t, 0] + (p[1] - body_x[a, 1]) * face_n[t, 1]
-             + (p[2] - body_x[a, 2]) * face_n[t, 2])
+        d = ((px - body_x[a, 0]) * face_n[t, 0] + (py - body_x[a, 1]) * face_n[t, 1]
+             + (pz - body_x[a, 2]) * face_n[t, 2])
         if d > best:
             best = d
             best_t = t
     return best, best_t
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
                       nearest, thickness, friction, contact, fixed, face_n):
     """S101 collision: update each particle's nearest body vertex by a walk; if the particle is
@@ -133,19 +137,19 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
     friction * |removed normal speed| of its tangential part.
     face_n: the body's face normals for this pose (see `body_face_normals`)."""
     for i in range(x.shape[0]):
-        p = x[i]
-        vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
+        px, py, pz = x[i, 0], x[i, 1], x[i, 2]  # scalars, not a row view: a view costs atomic refcounts
+        vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
         nearest[i] = vtx
-        d, t = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)
+        d, t = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
         if d >= thickness or fixed[i] or t < 0:
             contact[i] = 0
             continue
         contact[i] = 1
         nx, ny, nz = face_n[t, 0], face_n[t, 1], face_n[t, 2]
         push = thickness - d
-        p[0] += push * nx
-        p[1] += push * ny
-        p[2] += push * nz
+        x[i, 0] = px + push * nx
+        x[i, 1] = py + push * ny
+        x[i, 2] = pz + push * nz
         rx = v[i, 0] - body_vel[i, 0]
         ry = v[i, 1] - body_vel[i, 1]
         rz = v[i, 2] - body_vel[i, 2]
@@ -177,7 +181,7 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
         v[i, 2] = body_vel[i, 2] + rz
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, bary, height, anchor, face_n):
     """Store each particle's coordinates relative to its nearest body face (S101 body following).
 
@@ -224,7 +228,7 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
                             + bary[i, 2] * body_x[tris[t, 2], k])
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, carrier, inv_dt, near, far,
                 followed, face_n):
     """S101 body following, before a step, after the body moved (with the Decision's distance blend).
@@ -310,7 +314,7 @@ def feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t, featur
 
 
 @njit(cache=True, inline="always")
-def ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx, face_n, q):
+def ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx, face_n, q):
     """Signed distance from p to the faces around body vertex vtx (negative inside).
 
     The exact closest point q over those faces; the sign from the surface's pseudo-normal
@@ -322,8 +326,8 @@ def ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx, fac
     qx = qy = qz = 0.0
     for k in range(tri_start[vtx], tri_start[vtx + 1]):
         t = tri_ids[k]
-        bv, bw = closest_point_triangle(p, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
-        d = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+        bv, bw = closest_point_triangle(px, py, pz, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
+        d = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
         if d < best:
             best = d
             best_t = t
@@ -334,16 +338,16 @@ def ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx, fac
     nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
     if nx == 0.0 and ny == 0.0 and nz == 0.0:
         return np.inf, 0.0, 0.0, 0.0, qx, qy, qz, best_t
-    side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
+    side = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
     dist = math.sqrt(best)
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
 
 
 @njit(cache=True, inline="always")
-def in_vertex_region(p, body_x, nbr_start, nbr_ids, vtx):
+def in_vertex_region(px, py, pz, body_x, nbr_start, nbr_ids, vtx):
     """Whether body vertex vtx is the closest point to p on every face around it:
     (p - v).(u - v) <= 0 for every neighbour u (then each face's closest point is v)."""
-    px, py, pz = p[0] - body_x[vtx, 0], p[1] - body_x[vtx, 1], p[2] - body_x[vtx, 2]
+    px, py, pz = px - body_x[vtx, 0], py - body_x[vtx, 1], pz - body_x[vtx, 2]
     for k in range(nbr_start[vtx], nbr_start[vtx + 1]):
         u = nbr_ids[k]
         if (px * (body_x[u, 0] - body_x[vtx, 0]) + py * (body_x[u, 1] - body_x[vtx, 1])
@@ -379,7 +383,8 @@ def closest_feature(v, w):
 
 
 @njit(cache=True, inline="always")
-def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n, q):
+def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start,
+                       face_n, q):
     """Signed distance from p to the body (negative inside) by a walk over faces from `start`.
 
     The exact closest point on the current face; inside the face it is a local minimum of the
@@ -392,6 +397,14 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     from the pseudo-normal of the closest feature (`feature_normal`), as in the ring.
     Returns (distance, nx, ny, nz, qx, qy, qz, face): `face` is where the next walk should start.
     q: (3,) scratch."""
+    # the usual case, written out first (it compiles to far less work than the general walk's
+    # first round): in front of the start face, closest point inside it
+    a, b, c = tris[start, 0], tris[start, 1], tris[start, 2]
+    v, w = closest_point_triangle(px, py, pz, body_x, a, b, c, q)
+    if closest_feature(v, w) == INSIDE_FACE:
+        side = (px - q[0]) * face_n[start, 0] + (py - q[1]) * face_n[start, 1] + (pz - q[2]) * face_n[start, 2]
+        if side >= 0.0:
+            return side, face_n[start, 0], face_n[start, 1], face_n[start, 2], q[0], q[1], q[2], start
     t = start
     best = np.inf
     best_t = -1
@@ -400,8 +413,8 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
     settled = False
     for _ in range(FACE_WALK_STEPS):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        v, w = closest_point_triangle(p, body_x, a, b, c, q)
-        d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+        v, w = closest_point_triangle(px, py, pz, body_x, a, b, c, q)
+        d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
         settled = True  # unless the walk goes on below
         if d2 >= best:
             break  # the face beyond is no closer: the closest point is on the shared edge
@@ -412,7 +425,7 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
         settled = False
         t = tri_nbrs[t, feature]
     if settled and feature == INSIDE_FACE and (
-            (p[0] - qx) * face_n[best_t, 0] + (p[1] - qy) * face_n[best_t, 1] + (p[2] - qz) * face_n[best_t, 2]) < 0.0:
+            (px - qx) * face_n[best_t, 0] + (py - qy) * face_n[best_t, 1] + (pz - qz) * face_n[best_t, 2]) < 0.0:
         # behind a face, a closest point inside it need not be the nearest: where the body is
         # convex a neighbouring face's plane can be nearer. Descend to the nearest neighbour
         # while one is nearer.
@@ -422,8 +435,8 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
                 o = tri_nbrs[cur, e]
                 if o < 0:
                     continue
-                v, w = closest_point_triangle(p, body_x, tris[o, 0], tris[o, 1], tris[o, 2], q)
-                d2 = (p[0] - q[0]) ** 2 + (p[1] - q[1]) ** 2 + (p[2] - q[2]) ** 2
+                v, w = closest_point_triangle(px, py, pz, body_x, tris[o, 0], tris[o, 1], tris[o, 2], q)
+                d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
                 if d2 < best:
                     best, best_t, feature = d2, o, closest_feature(v, w)
                     qx, qy, qz = q[0], q[1], q[2]
@@ -434,20 +447,20 @@ def face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
         vertex = tris[best_t, feature - 3]
         # the usual case on a vertex: it is the closest point of its whole ring, and the ring's
         # rule gives the sign without six more closest points
-        if in_vertex_region(p, body_x, nbr_start, nbr_ids, vertex):
+        if in_vertex_region(px, py, pz, body_x, nbr_start, nbr_ids, vertex):
             nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
             if nx != 0.0 or ny != 0.0 or nz != 0.0:
-                side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
+                side = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
                 dist = math.sqrt(best)
                 return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
     elif not settled:
-        vertex = walk_nearest(p, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
+        vertex = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
     if not settled or feature >= 3:
-        d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vertex,
-                                                             face_n, q)
+        d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
+                                                             vertex, face_n, q)
         return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
     nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
-    side = (p[0] - qx) * nx + (p[1] - qy) * ny + (p[2] - qz) * nz
+    side = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
     dist = math.sqrt(best)
     return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
 
@@ -456,7 +469,7 @@ CONTACT_ITERATIONS = 4  # nearest-surface pushes per particle and frame (a creas
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
                      nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
@@ -474,22 +487,23 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     MAX_CONTACT_DEPTH is left where it is.
     q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid` built for this pose."""
     for i in range(x.shape[0]):
-        p = x[i]
+        px, py, pz = x[i, 0], x[i, 1], x[i, 2]
         for _ in range(CONTACT_ITERATIONS):
             # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
-            vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
-            d2 = (body_x[vtx, 0] - p[0]) ** 2 + (body_x[vtx, 1] - p[1]) ** 2 + (body_x[vtx, 2] - p[2]) ** 2
-            found, d2 = grid_nearest(p, body_x, cell, grid_start, grid_ids, vtx, d2)
+            vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
+            d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
+            found, d2 = grid_nearest(px, py, pz, body_x, cell, grid_start, grid_ids, vtx, d2)
             if found != vtx:
-                vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, found, regions, 255)
+                vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, found, regions, 255)
             nearest_any[i] = vtx
-            side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx,
-                                                                   face_n, q)
+            side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
+                                                                   tri_ids, vtx, face_n, q)
             if side >= thickness * 0.999 or side < -MAX_CONTACT_DEPTH or (nx == 0.0 and ny == 0.0 and nz == 0.0):
                 break
-            p[0] = qx + thickness * nx
-            p[1] = qy + thickness * ny
-            p[2] = qz + thickness * nz
+            px = qx + thickness * nx
+            py = qy + thickness * ny
+            pz = qz + thickness * nz
+            x[i, 0], x[i, 1], x[i, 2] = px, py, pz
             if fixed[i]:
                 continue  # a gripped particle is placed, not moved: it has no velocity of its own
             rx = v[i, 0] - body_vel[i, 0]
@@ -541,7 +555,7 @@ def _cell_hash(i, j, k, mask):
     return ((i * 73856093) ^ (j * 19349663) ^ (k * 83492791)) & mask
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def build_vertex_grid(body_x, cell, start, ids, counts):
     """Counting sort of the body vertices by hashed cell (CSR: start, ids)."""
     mask = counts.shape[0] - 1
@@ -563,26 +577,26 @@ def build_vertex_grid(body_x, cell, start, ids, counts):
 
 
 @njit(cache=True, inline="always")
-def grid_nearest(p, body_x, cell, start, ids, best, best_d2):
+def grid_nearest(px, py, pz, body_x, cell, start, ids, best, best_d2):
     """Nearest body vertex to p within one grid cell of it, if nearer than best_d2 (returns
     (vertex, squared distance); (best, best_d2) when none is nearer). Only the cells that the
     ball of radius sqrt(best_d2) around p overlaps are visited: for a particle in contact
     that is a few cells, not 27."""
     mask = start.shape[0] - 2
     r = min(math.sqrt(best_d2), cell)
-    i0 = int(math.floor((p[0] - r) / cell))
-    i1 = int(math.floor((p[0] + r) / cell))
-    j0 = int(math.floor((p[1] - r) / cell))
-    j1 = int(math.floor((p[1] + r) / cell))
-    k0 = int(math.floor((p[2] - r) / cell))
-    k1 = int(math.floor((p[2] + r) / cell))
+    i0 = int(math.floor((px - r) / cell))
+    i1 = int(math.floor((px + r) / cell))
+    j0 = int(math.floor((py - r) / cell))
+    j1 = int(math.floor((py + r) / cell))
+    k0 = int(math.floor((pz - r) / cell))
+    k1 = int(math.floor((pz + r) / cell))
     for i in range(i0, i1 + 1):
         for j in range(j0, j1 + 1):
             for k in range(k0, k1 + 1):
                 c = _cell_hash(i, j, k, mask)
                 for e in range(start[c], start[c + 1]):
                     u = ids[e]
-                    d = (body_x[u, 0] - p[0]) ** 2 + (body_x[u, 1] - p[1]) ** 2 + (body_x[u, 2] - p[2]) ** 2
+                    d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
                     if d < best_d2:
                         best_d2 = d
                         best = u

@@ -8,7 +8,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from .jit import kernel
 
 
 def spring_table(si, sj, rest, k_stretch, k_compress, c_stretch, c_compress):
@@ -24,7 +25,7 @@ def spring_table(si, sj, rest, k_stretch, k_compress, c_stretch, c_compress):
     return pairs, params
 
 
-@njit(cache=True, nogil=True, fastmath=True)
+@kernel(fastmath=True)
 def spring_forces(x, v, pairs, params, force):
     """Add every spring's force to `force` (S101 springs).
 
@@ -58,7 +59,7 @@ def spring_forces(x, v, pairs, params, force):
         force[j, 2] -= fz
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, out):
     """a = (springs + air drag + gravity) / m.
 
@@ -78,14 +79,14 @@ def accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, out):
         out[i, 2] *= w
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _axpy(out, base, h, d):
     for i in range(out.shape[0]):
         for k in range(3):
             out[i, k] = base[i, k] + h * d[i, k]
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, work):
     """One classical 4th-order Runge-Kutta step of dx/dt = v, dv/dt = a(x, v) (S101 integrator).
 
@@ -111,7 +112,7 @@ def rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, wor
             v[i, k] += s * (a1[i, k] + 2.0 * a2[i, k] + 2.0 * a3[i, k] + a4[i, k])
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def limit_stretch(x, v, inv_mass, si, sj, rest, n_springs, max_strain):
     """Strain limiting (Provot 1995) on the first n_springs springs (the structural ones).
 

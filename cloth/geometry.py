@@ -7,6 +7,8 @@ import math
 import numpy as np
 from numba import njit
 
+from .jit import kernel
+
 
 @njit(cache=True, inline="always")
 def dot3(a0, a1, a2, b0, b1, b2):
@@ -14,7 +16,7 @@ def dot3(a0, a1, a2, b0, b1, b2):
 
 
 @njit(cache=True, inline="always")
-def closest_point_triangle(p, x, a, b, c, out):
+def closest_point_triangle(px, py, pz, x, a, b, c, out):
     """Closest point to p on triangle (x[a], x[b], x[c]) (Ericson, Real-Time Collision Detection 5.1.5).
 
     Writes the point to out and returns its barycentric weight of (b, c) as (v, w). The corners
@@ -23,7 +25,7 @@ def closest_point_triangle(p, x, a, b, c, out):
     ax, ay, az = x[a, 0], x[a, 1], x[a, 2]
     abx, aby, abz = x[b, 0] - ax, x[b, 1] - ay, x[b, 2] - az
     acx, acy, acz = x[c, 0] - ax, x[c, 1] - ay, x[c, 2] - az
-    apx, apy, apz = p[0] - ax, p[1] - ay, p[2] - az
+    apx, apy, apz = px - ax, py - ay, pz - az
     d1 = dot3(abx, aby, abz, apx, apy, apz)
     d2 = dot3(acx, acy, acz, apx, apy, apz)
     v = 0.0
@@ -62,7 +64,7 @@ def closest_point_triangle(p, x, a, b, c, out):
     return v, w
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def region_masks(points, vertices, regions, radius, out):
     """OR of the regions of every vertex within radius of each point (at least the nearest one's)."""
     r2 = radius * radius
@@ -81,7 +83,7 @@ def region_masks(points, vertices, regions, radius, out):
         out[i] = mask | regions[nearest]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True)  # allocates its scratch: setup only
 def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
     """Brute force: the closest triangle to each point and the point's barycentric coordinates there.
 
@@ -90,7 +92,8 @@ def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
     for i in range(points.shape[0]):
         best = np.inf
         for t in range(triangles.shape[0]):
-            v, w = closest_point_triangle(points[i], vertices, triangles[t, 0], triangles[t, 1], triangles[t, 2], q)
+            v, w = closest_point_triangle(points[i, 0], points[i, 1], points[i, 2], vertices, triangles[t, 0],
+                                          triangles[t, 1], triangles[t, 2], q)
             d = (q[0] - points[i, 0]) ** 2 + (q[1] - points[i, 1]) ** 2 + (q[2] - points[i, 2]) ** 2
             if d < best:
                 best = d
@@ -100,7 +103,7 @@ def nearest_triangles(points, vertices, triangles, tri_out, bary_out):
                 bary_out[i, 2] = w
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def nearest_vertices(points, vertices, out, regions, masks):
     """Brute force nearest vertex per point among vertices of its regions (setup and recovery only)."""
     for i in range(points.shape[0]):
@@ -128,7 +131,7 @@ def add_face_normal(x, triangles, t, out):
         out[p, 2] += nz
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def vertex_normals(x, triangles, out):
     """Area-weighted unit normals of a triangle mesh at its vertices (the cloth's air drag, S102's
     coarse N_i, S106's n_deform)."""

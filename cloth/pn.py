@@ -21,6 +21,7 @@ import numpy as np
 from numba import njit
 
 from .geometry import vertex_normals
+from .jit import kernel
 from .topology import unique_edges
 
 
@@ -184,7 +185,7 @@ def _hierarchy(lat: np.ndarray, L: int) -> tuple[np.ndarray, np.ndarray]:
     return order, parents
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def pn_control_points(x, normals, triangles, ctrl, nctrl):
     """Per coarse triangle: the 10 cubic Bézier control points and 6 quadratic normal
     coefficients of its PN triangle (S102 step 2-3).
@@ -239,7 +240,7 @@ def _edge_normal(x, normals, i, j, nctrl, t, slot):
     nctrl[t, slot, 2] = hz * inv
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def pn_evaluate(ctrl, nctrl, owner_face, owner_weights, p_out, n_out):
     """Every detailed vertex from its owner face's PN triangle: cubic position, quadratic
     normal (normalised). w, u, v are the weights of corners A, B, C."""

@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from .coarsen import coarsen
 from .collision import (BodyMesh, BodyPose, attach_to_body, collide_particles, face_normals, follow_body,
@@ -25,10 +24,11 @@ from .dynamics import limit_stretch, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
 from .geometry import nearest_vertices, region_masks, vertex_normals
+from .jit import kernel
 from .model import ClothModel, SimSettings, build_cloth_model
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj,
                       rest, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
                       tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n):
@@ -44,7 +44,7 @@ def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, g
             limit_stretch(x, v, inv_mass, si, sj, rest, n_structural, max_strain)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def recover_unstable(x, v, followed, si, sj, rest, n_structural, max_speed, max_stretch, bad):
     """Reset exploded particles to their body-following positions; returns how many were reset.
 

@@ -14,6 +14,7 @@ from numba import njit
 
 from .collision import deepest_plane, face_walk_distance, walk_nearest
 from .geometry import add_face_normal
+from .jit import kernel
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -23,7 +24,7 @@ UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test th
 @njit(cache=True, inline="always")
 def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                             body_face, face_n, q):
-    """Signed distance of detailed particle i (at p) to the body, by a walk over the body's
+    """Signed distance of detailed particle i (at p[i]) to the body, by a walk over the body's
     faces (`face_walk_distance`) from the face its last walk ended on (body_face[i]): the
     body and the cloth move little between two tests, so that is usually one exact closest
     point. The walk is local; when it is new (body_face[i] < 0) or its answer is farther than
@@ -31,25 +32,26 @@ def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tri
     from the face around the nearest vertex to p, found by a vertex walk from `seed`, whose
     plane p is least behind. (One call site of the walk: numba inlines it, and each copy
     lengthens compilation.)"""
+    px, py, pz = p[i, 0], p[i, 1], p[i, 2]
     f = body_face[i]
     fresh = f < 0
     while True:
         if fresh:
-            vtx = walk_nearest(p, body_x, nbr_start, nbr_ids, seed, regions, 255)
-            f = deepest_plane(p, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
+            vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, seed, regions, 255)
+            f = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
             if f < 0:  # no usable face around the vertex
                 body_face[i] = -1
-                return np.inf, 0.0, 0.0, 0.0, p[0], p[1], p[2]
-        d, nx, ny, nz, qx, qy, qz, last = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
-                                                             nbr_ids, regions, f, face_n, q)
-        d_seed = (body_x[seed, 0] - p[0]) ** 2 + (body_x[seed, 1] - p[1]) ** 2 + (body_x[seed, 2] - p[2]) ** 2
+                return np.inf, 0.0, 0.0, 0.0, px, py, pz
+        d, nx, ny, nz, qx, qy, qz, last = face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
+                                                             nbr_start, nbr_ids, regions, f, face_n, q)
+        d_seed = (body_x[seed, 0] - px) ** 2 + (body_x[seed, 1] - py) ** 2 + (body_x[seed, 2] - pz) ** 2
         if fresh or d_seed >= d * d:
             body_face[i] = last
             return d, nx, ny, nz, qx, qy, qz
         fresh = True
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                            body_face, face_n, q):
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
@@ -60,16 +62,16 @@ def detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris
 
 
 @njit(cache=True, inline="always")
-def _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift):
+def _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift):
     dh[vid] += lift - dh_pen[vid]
     dh_pen[vid] = lift
-    pi[0] = b0 + lift * normals[vid, 0]
-    pi[1] = b1 + lift * normals[vid, 1]
-    pi[2] = b2 + lift * normals[vid, 2]
+    p[vid, 0] = b0 + lift * normals[vid, 0]
+    p[vid, 1] = b1 + lift * normals[vid, 1]
+    p[vid, 2] = b2 + lift * normals[vid, 2]
 
 
-@njit(cache=True, nogil=True)
-def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
+@kernel
+def _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
               tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance, max_iterations, max_lift):
     """The smallest lift along n_i that puts particle vid `clearance` outside the body (S103).
 
@@ -79,7 +81,7 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
     lift doubles until outside and is then bisected. Lifts are capped at max_lift per frame;
     a particle no lift gets out of (caught where body parts intersect) keeps its height.
     Returns the signed distance at the end."""
-    b0, b1, b2 = pi[0], pi[1], pi[2]
+    b0, b1, b2 = p[vid, 0], p[vid, 1], p[vid, 2]
     it = 0
     while d < clearance and it < max_iterations:
         rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
@@ -88,8 +90,8 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
         lift = min(dh_pen[vid] + (clearance - d) / rate, max_lift)
         if lift <= dh_pen[vid]:
             break
-        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, lift)
-        d, bx, by, bz, qx, qy, qz = detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
+        _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift)
+        d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
                                                             tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
         it += 1
     if d >= clearance:
@@ -101,32 +103,32 @@ def _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_sta
     while hi < max_lift:
         hi = min(hi + step, max_lift)
         step *= 2.0
-        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
-        d, bx, by, bz, qx, qy, qz = detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
+        _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
+        d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
                                                             tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
         if d >= clearance:
             found = True
             break
         lo = hi
     if not found:
-        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
-        return detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+        _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
+        return detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
                                        tri_nbrs, body_face, face_n, q)[0]
     for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
         mid = 0.5 * (lo + hi)
-        _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, mid)
-        dm = detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+        _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, mid)
+        dm = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
                                      tri_nbrs, body_face, face_n, q)[0]
         if dm >= clearance:
             hi = mid
             d = dm
         else:
             lo = mid
-    _set_lift(pi, b0, b1, b2, normals, vid, dh, dh_pen, hi)
+    _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
     return d
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
                       nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance,
                       margin, max_iterations, max_lift, max_height):
@@ -167,14 +169,13 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
             if sd[vid] == UNTESTED:
                 tested += 1
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
-                pi = p[vid]
-                d, bx, by, bz, qx, qy, qz = _detail_signed_distance(pi, vid, seed, body_x, nbr_start, nbr_ids,
+                d, bx, by, bz, qx, qy, qz = _detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids,
                                                                     regions, tris, tri_start, tri_ids, tri_nbrs,
                                                                     body_face, face_n, q)
                 if d < clearance:
                     cap = min(max_lift, max_height - dh[vid])  # Δh never exceeds max_height
                     if cap > 0.0:
-                        d = _lift_out(pi, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
+                        d = _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
                                       nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n,
                                       q, clearance, max_iterations, cap)
                 sd[vid] = d
@@ -233,7 +234,7 @@ def _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, weight, accumu
                 ef[i, a] = val
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def coarse_edge_forces(x, edges, rest, k_stretch, k_compress, out):
     """S104 step 1 on each coarse edge: the elastic force of the edge at its two ends, as S101's
     springs define it (k_stretch longer than rest, k_compress shorter), taken as the reaction on
@@ -258,7 +259,7 @@ def coarse_edge_forces(x, edges, rest, k_stretch, k_compress, out):
         out[e, 1, 0], out[e, 1, 1], out[e, 1, 2] = -fx, -fy, -fz
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_length, interior_local, exponent,
                    rates, f1, fn, ids, ef):
     """S104 steps 1-4: elastic force ef_i of every detailed particle.
@@ -295,7 +296,7 @@ def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_
                 _interpolate_line(p, ids, cnt, f1, fn, exponent, rates, ef, third, True)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def normal_force(p, ef, edges, vf):
     """S104 step 5: vf_i = Σ_j (p_i - p_j)/|p_i - p_j| . ef_j over the detailed neighbours j.
     vf > 0: pushed by its surroundings (relief grows); vf < 0: pulled (the surface flattens).
@@ -315,7 +316,7 @@ def normal_force(p, ef, edges, vf):
 
 # ---------------------------------------------------------------- S105 length displacement
 
-@njit(cache=True, nogil=True)
+@kernel
 def length_displacement(p, edge_ids, edge_rest, coarse_tris, owner_face, owner_weights, edge_required,
                         vertex_required, vertex_count, required):
     """S105: per coarse edge ΔLE_required,e = L_rest,e - L_e (L_e: the detailed arc length along
@@ -348,7 +349,7 @@ def length_displacement(p, edge_ids, edge_rest, coarse_tris, owner_face, owner_w
 
 # ---------------------------------------------------------------- S106 surface deformation
 
-@njit(cache=True, nogil=True)
+@kernel
 def deformation_heights(vf, dh, required, edges, n_coarse, k_out, dt, expected, out):
     """S106 steps 1-4: Δh_deformation per detailed particle.
 
@@ -386,7 +387,7 @@ def deformation_heights(vf, dh, required, edges, n_coarse, k_out, dt, expected, 
         out[i] = h_length if abs(h_length) < abs(h_force) else h_force
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, interior_local,
                       d_edges, d_max, edge_start, edge_ids, passes, max_height, moved, stamp, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
@@ -446,7 +447,7 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
                     _set_height(p_smoothed, n_pn, dh, p, lo, t)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def offset_along_normals(p_smoothed, n_pn, dh, p):
     """p_i = p_smoothed,i + Δh_i n_i (S102 step 4, S106 step 6)."""
     for i in range(dh.shape[0]):
@@ -478,7 +479,7 @@ def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
     return t1 if abs(t1 - current) < abs(t2 - current) else t2
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
     """S106 step 7: n_i = normalize(α n_deform + (1 - α) n_pnt), α = min(1, Δh_i / h_normal);
     n_deform: area-weighted normals of the deformed detailed mesh.
@@ -512,7 +513,7 @@ def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
         out[i, 2] = z * m
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def penetration_floor(dh, sd, clearance, floor):
     """The lowest height S106 may give each particle without undoing S103: a tested particle
     may come down by its distance beyond the clearance, an untested one to the reference."""

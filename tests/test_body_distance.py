@@ -18,11 +18,11 @@ from tests.test_cloth_dynamics import box, uv_sphere
 def _walk_all(points, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n, out):
     q = np.zeros(3)
     for i in range(points.shape[0]):
-        p = points[i]
-        v = walk_nearest(p, body_x, nbr_start, nbr_ids, start[i], regions, 255)
-        f = deepest_plane(p, body_x, tris, tri_start, tri_ids, v, face_n)[1]
-        out[i] = face_walk_distance(p, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, f,
-                                    face_n, q)[0]
+        px, py, pz = points[i, 0], points[i, 1], points[i, 2]
+        v = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start[i], regions, 255)
+        f = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, v, face_n)[1]
+        out[i] = face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
+                                    f, face_n, q)[0]
 
 
 def test_triangle_neighbours_of_a_closed_mesh_are_mutual():
@@ -71,7 +71,7 @@ def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_s
                 face_n, out):
     q = np.zeros(3)
     for i in range(points.shape[0]):
-        out[i] = _detail_signed_distance(points[i], i, seeds[i], body_x, nbr_start, nbr_ids, regions, tris, tri_start,
+        out[i] = _detail_signed_distance(points, i, seeds[i], body_x, nbr_start, nbr_ids, regions, tris, tri_start,
                                          tri_ids, tri_nbrs, body_face, face_n, q)[0]
 
 
@@ -109,7 +109,8 @@ def test_detailed_particle_walk_starts_from_its_last_face_and_re_anchors_at_the_
 def _ring_all(points, vertices, body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, out, faces):
     q = np.zeros(3)
     for i in range(points.shape[0]):
-        r = ring_signed_distance(points[i], body_x, tris, tri_nbrs, tri_start, tri_ids, vertices[i], face_n, q)
+        r = ring_signed_distance(points[i, 0], points[i, 1], points[i, 2], body_x, tris, tri_nbrs, tri_start, tri_ids,
+                                 vertices[i], face_n, q)
         out[i] = r[0]
         faces[i] = r[7]
 
