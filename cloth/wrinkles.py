@@ -411,40 +411,52 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
                 dh[vid] = floor[vid]
     offset_along_normals(p_smoothed, n_pn, dh, p)
     count = 0
-    for r in range(passes):
-        this = r % 2
+    for e in range(d_edges.shape[0]):  # the first round: every edge
+        count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, p)
+    for r in range(1, passes):  # a later round: the edges around a particle moved in the round before
         last_count, count = count, 0
-        for k in range(d_edges.shape[0] if r == 0 else last_count):
-            if r == 0:  # every edge
-                first, end = k, k + 1
-            else:  # the edges around a particle moved in the round before
-                v = moved[1 - this, k]
-                first, end = edge_start[v], edge_start[v + 1]
-            for m in range(first, end):
-                e = m if r == 0 else edge_ids[m]
-                i, j = d_edges[e, 0], d_edges[e, 1]
-                lim = d_max[e]
-                d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
-                if d2 <= lim * lim:
-                    continue
-                hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
-                if stamp[hi] != r:
-                    stamp[hi] = r
-                    moved[this, count] = hi
-                    count += 1
-                # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
-                t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
-                if t >= floor[hi]:
-                    _set_height(p_smoothed, n_pn, dh, p, hi, t)
-                    continue
-                _set_height(p_smoothed, n_pn, dh, p, hi, max(floor[hi], min(t, dh[hi])))
-                t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
-                if t > dh[lo]:
-                    if stamp[lo] != r:
-                        stamp[lo] = r
-                        moved[this, count] = lo
-                        count += 1
-                    _set_height(p_smoothed, n_pn, dh, p, lo, t)
+        for k in range(last_count):
+            v = moved[(r - 1) % 2, k]
+            for m in range(edge_start[v], edge_start[v + 1]):
+                count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp,
+                                    p)
+
+
+@njit(cache=True, inline="always")
+def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, p):
+    """S106 step 5 on detailed edge e in round r: if its ends are farther apart than d_max[e],
+    the higher one comes down towards its floor, and if that is not enough the lower one goes
+    up. A particle whose height changed is listed once per round in moved[r % 2] (stamp: the
+    round it was listed in; one held at its floor by an edge no height can shorten is not,
+    or every later round would revisit it for nothing); returns the new length of that list."""
+    i, j = d_edges[e, 0], d_edges[e, 1]
+    lim = d_max[e]
+    d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
+    if d2 <= lim * lim:
+        return count
+    this = r % 2
+    hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
+    # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
+    t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
+    done = t >= floor[hi]
+    if not done:
+        t = max(floor[hi], min(t, dh[hi]))
+    if t != dh[hi]:
+        _set_height(p_smoothed, n_pn, dh, p, hi, t)
+        if stamp[hi] != r:
+            stamp[hi] = r
+            moved[this, count] = hi
+            count += 1
+    if done:
+        return count
+    t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
+    if t > dh[lo]:
+        if stamp[lo] != r:
+            stamp[lo] = r
+            moved[this, count] = lo
+            count += 1
+        _set_height(p_smoothed, n_pn, dh, p, lo, t)
+    return count
 
 
 @kernel
