@@ -137,7 +137,7 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
     friction * |removed normal speed| of its tangential part.
     face_n: the body's face normals for this pose (see `body_face_normals`)."""
     for i in range(x.shape[0]):
-        px, py, pz = x[i, 0], x[i, 1], x[i, 2]  # scalars, not a row view: a view costs atomic refcounts
+        px, py, pz = x[i, 0], x[i, 1], x[i, 2]  # the point as scalars (see the module docstring)
         vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
         nearest[i] = vtx
         d, t = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
@@ -347,11 +347,11 @@ def ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
 def in_vertex_region(px, py, pz, body_x, nbr_start, nbr_ids, vtx):
     """Whether body vertex vtx is the closest point to p on every face around it:
     (p - v).(u - v) <= 0 for every neighbour u (then each face's closest point is v)."""
-    px, py, pz = px - body_x[vtx, 0], py - body_x[vtx, 1], pz - body_x[vtx, 2]
+    rx, ry, rz = px - body_x[vtx, 0], py - body_x[vtx, 1], pz - body_x[vtx, 2]
     for k in range(nbr_start[vtx], nbr_start[vtx + 1]):
         u = nbr_ids[k]
-        if (px * (body_x[u, 0] - body_x[vtx, 0]) + py * (body_x[u, 1] - body_x[vtx, 1])
-                + pz * (body_x[u, 2] - body_x[vtx, 2])) > 0.0:
+        if (rx * (body_x[u, 0] - body_x[vtx, 0]) + ry * (body_x[u, 1] - body_x[vtx, 1])
+                + rz * (body_x[u, 2] - body_x[vtx, 2])) > 0.0:
             return False
     return True
 
