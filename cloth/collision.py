@@ -314,6 +314,14 @@ def feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t, featur
 
 
 @njit(cache=True, inline="always")
+def signed(px, py, pz, qx, qy, qz, nx, ny, nz, d2):
+    """The distance sqrt(d2) from p to its closest point q, negative when p is behind the
+    surface normal (nx, ny, nz) there."""
+    dist = math.sqrt(d2)
+    return dist if (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz >= 0.0 else -dist
+
+
+@njit(cache=True, inline="always")
 def ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx, face_n, q):
     """Signed distance from p to the faces around body vertex vtx (negative inside).
 
@@ -338,9 +346,7 @@ def ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
     nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
     if nx == 0.0 and ny == 0.0 and nz == 0.0:
         return np.inf, 0.0, 0.0, 0.0, qx, qy, qz, best_t
-    side = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
-    dist = math.sqrt(best)
-    return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
+    return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
 
 
 @njit(cache=True, inline="always")
@@ -411,9 +417,10 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
     feature = INSIDE_FACE
     qx = qy = qz = 0.0
     settled = False
-    for _ in range(FACE_WALK_STEPS):
-        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        v, w = closest_point_triangle(px, py, pz, body_x, a, b, c, q)
+    for step in range(FACE_WALK_STEPS):
+        if step > 0:  # the start face's closest point is in (v, w, q) already
+            a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+            v, w = closest_point_triangle(px, py, pz, body_x, a, b, c, q)
         d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
         settled = True  # unless the walk goes on below
         if d2 >= best:
@@ -450,9 +457,7 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
         if in_vertex_region(px, py, pz, body_x, nbr_start, nbr_ids, vertex):
             nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
             if nx != 0.0 or ny != 0.0 or nz != 0.0:
-                side = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
-                dist = math.sqrt(best)
-                return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
+                return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
     elif not settled:
         vertex = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
     if not settled or feature >= 3:
@@ -460,9 +465,7 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
                                                              vertex, face_n, q)
         return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
     nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
-    side = (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz
-    dist = math.sqrt(best)
-    return (dist if side >= 0.0 else -dist), nx, ny, nz, qx, qy, qz, best_t
+    return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
 
 
 CONTACT_ITERATIONS = 4  # nearest-surface pushes per particle and frame (a crease between two body parts takes 2-3)
