@@ -470,11 +470,13 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
 
 CONTACT_ITERATIONS = 4  # nearest-surface pushes per particle and frame (a crease between two body parts takes 2-3)
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
+MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 
 
 @kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
-                     nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids):
+                     nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, part, part_vertex, part_d2,
+                     inv_mass, placed_inv_mass):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
@@ -487,10 +489,20 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     between two body parts a push can land it behind the other part's faces: the test is
     repeated from the new position (CONTACT_ITERATIONS), which settles it outside both.
     Gripped particles (fixed) are placed too, their velocity untouched. One found deeper than
-    MAX_CONTACT_DEPTH is left where it is.
-    q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid` built for this pose."""
+    MAX_CONTACT_DEPTH is left where it is. Where two body parts meet (an arm against the torso,
+    the thighs), a face of the other part can be nearer than every vertex of it, and the ring
+    of the nearest vertex says "outside" while the particle is behind that face: the ring of
+    each other part's nearest vertex within one grid cell is tested too, and the most inside
+    side taken, unless it is more than MAX_OTHER_PART_DEPTH inside: that deep behind a thin
+    part's face the two parts intersect (linear blend skinning presses a thigh into the belly),
+    and a push out of one lands in the other.
+    q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid` built for this pose;
+    part (8,) uint8, part_vertex (8,) int32, part_d2 (8,) float64: scratch for the parts.
+    placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
+    strain-limiting pass after it pulls the cloth towards them and never them back inside."""
     for i in range(x.shape[0]):
         px, py, pz = x[i, 0], x[i, 1], x[i, 2]
+        placed_inv_mass[i] = inv_mass[i]
         for _ in range(CONTACT_ITERATIONS):
             # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
             vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
@@ -501,12 +513,26 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             nearest_any[i] = vtx
             side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
                                                                    tri_ids, vtx, face_n, q)
+            if d2 < cell * cell:
+                # another body part's face can be nearer than any of its vertices, and nearer
+                # than this vertex's ring (an arm against the torso, the thighs at the crotch):
+                # the ring of each other part's nearest vertex too, the most inside one decides
+                n_parts = grid_nearest_per_part(px, py, pz, body_x, regions, cell, grid_start, grid_ids, cell,
+                                                part, part_vertex, part_d2)
+                for k in range(n_parts):
+                    if part[k] == regions[vtx]:
+                        continue
+                    s2, mx, my, mz, ax, ay, az, _ = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
+                                                                         tri_ids, part_vertex[k], face_n, q)
+                    if s2 < side and s2 > -MAX_OTHER_PART_DEPTH and (mx != 0.0 or my != 0.0 or mz != 0.0):
+                        side, nx, ny, nz, qx, qy, qz = s2, mx, my, mz, ax, ay, az
             if side >= thickness * 0.999 or side < -MAX_CONTACT_DEPTH or (nx == 0.0 and ny == 0.0 and nz == 0.0):
                 break
             px = qx + thickness * nx
             py = qy + thickness * ny
             pz = qz + thickness * nz
             x[i, 0], x[i, 1], x[i, 2] = px, py, pz
+            placed_inv_mass[i] = 0.0
             if fixed[i]:
                 continue  # a gripped particle is placed, not moved: it has no velocity of its own
             rx = v[i, 0] - body_vel[i, 0]
@@ -577,6 +603,46 @@ def build_vertex_grid(body_x, cell, start, ids, counts):
                        int(math.floor(body_x[u, 2] / cell)), mask)
         ids[start[c] + counts[c]] = u
         counts[c] += 1
+
+
+@njit(cache=True, inline="always")
+def grid_nearest_per_part(px, py, pz, body_x, regions, cell, start, ids, radius, part, best, best_d2):
+    """The nearest body vertex of every body part (a distinct `regions` value) within `radius`
+    of p. Returns how many parts were found (at most len(part)): part k is region value
+    part[k], its nearest vertex best[k] at squared distance best_d2[k]."""
+    mask = start.shape[0] - 2
+    r2 = radius * radius
+    n = 0
+    i0 = int(math.floor((px - radius) / cell))
+    i1 = int(math.floor((px + radius) / cell))
+    j0 = int(math.floor((py - radius) / cell))
+    j1 = int(math.floor((py + radius) / cell))
+    k0 = int(math.floor((pz - radius) / cell))
+    k1 = int(math.floor((pz + radius) / cell))
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(k0, k1 + 1):
+                c = _cell_hash(i, j, k, mask)
+                for e in range(start[c], start[c + 1]):
+                    u = ids[e]
+                    d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
+                    if d >= r2:
+                        continue
+                    g = regions[u]
+                    slot = 0
+                    while slot < n and part[slot] != g:
+                        slot += 1
+                    if slot == n:
+                        if n == part.shape[0]:
+                            continue
+                        part[slot] = g
+                        best[slot] = u
+                        best_d2[slot] = d
+                        n += 1
+                    elif d < best_d2[slot]:
+                        best[slot] = u
+                        best_d2[slot] = d
+    return n
 
 
 @njit(cache=True, inline="always")

@@ -135,7 +135,11 @@ class ClothState:
         self.v = np.zeros((n, 3))  # velocities, m/s
         self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
         self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
-        self.q = np.zeros(3)  # contact pass scratch
+        self.q = np.zeros(3)  # contact pass scratch, and for the body parts near a particle:
+        self.part = np.zeros(8, dtype=np.uint8)
+        self.part_vertex = np.zeros(8, dtype=np.int32)
+        self.part_d2 = np.zeros(8)
+        self.placed_inv_mass = np.zeros(n)  # inverse masses with 0 for the particles the contact pass placed
         self.face = np.zeros(n, dtype=np.int32)  # body face of the relative coordinates
         self.bary = np.zeros((n, 3))  # barycentric coordinates on that face
         self.height = np.zeros(n)  # offset along the face normal, m
@@ -241,7 +245,11 @@ class ClothSim:
             s.nearest_any[idx] = near
         resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
-                         grid.ids)
+                         grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass)
+        # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
+        for _ in range(st.contact_limit_passes):
+            limit_stretch(s.x, s.v, s.placed_inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
+                          f.max_strain)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
                        s.height, s.anchor, face_n)
         self.stats.frames += 1

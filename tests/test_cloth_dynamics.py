@@ -193,6 +193,62 @@ def test_particle_inside_a_box_is_pushed_out_to_the_nearest_face():
     np.testing.assert_allclose(x[1], [-0.303, 0.0, 0.12], atol=1e-9)
 
 
+def contact_scratch(n, inv_mass=None):
+    """resolve_contacts' scratch for the body parts near a particle, the particles' inverse
+    masses (1 unless given) and the placed-particle inverse masses it writes."""
+    inv_mass = np.ones(n) if inv_mass is None else inv_mass
+    return np.zeros(8, np.uint8), np.zeros(8, np.int32), np.zeros(8), inv_mass, np.full(n, np.nan)
+
+
+def resolve_against_two_parts(x, v, coarse_height):
+    """resolve_contacts against two body parts: a finely meshed box (vertices every 2.5 mm,
+    top face at z = 0) and above it a coarse box (corners only, 4 cm wide, coarse_height tall,
+    bottom face at z = 0.012). Returns the nearest vertex found and the placed inverse masses."""
+    fine_v, fine_t = box(0.01, n=8)
+    fine_v = fine_v + [0.0, 0.0, -0.01]
+    coarse_v, coarse_t = box(1.0, n=1)
+    coarse_v = coarse_v * [0.02, 0.02, coarse_height / 2] + [0.0, 0.0, 0.012 + coarse_height / 2]
+    verts = np.concatenate([fine_v, coarse_v])
+    tris = np.concatenate([fine_t, coarse_t + len(fine_v)]).astype(np.int32)
+    regions = np.r_[np.full(len(fine_v), 1), np.full(len(coarse_v), 2)].astype(np.uint8)
+    mesh = BodyMesh.build(tris, len(verts), regions)
+    grid = VertexGrid(len(verts))
+    grid.update(verts)
+    nearest = np.zeros(1, np.int32)
+    scratch = contact_scratch(len(x))
+    resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                     mesh.tri_ids, mesh.tri_nbrs, mesh.regions, nearest, 0.003, np.zeros(1, np.uint8),
+                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *scratch)
+    assert nearest[0] < len(fine_v)  # the nearest vertex is the fine box's
+    return scratch[-1]
+
+
+def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices():
+    """A particle 2 mm inside the coarse box's bottom face is 14 mm from the fine box's nearest
+    vertex and 28 mm from the coarse box's: the nearest vertex's ring says "outside", the other
+    part's ring finds the face, and the particle ends thickness below it (z = 0.009), where
+    the fine box is 9 mm away."""
+    x = np.array([[0.001, 0.002, 0.014]])
+    v = np.array([[0.0, 0.0, 1.0]])
+    placed = resolve_against_two_parts(x, v, 0.02)
+    np.testing.assert_allclose(x[0], [0.001, 0.002, 0.009], atol=1e-9)
+    np.testing.assert_allclose(v[0], [0.0, 0.0, 0.0], atol=1e-12)  # into the coarse box: removed
+    assert placed[0] == 0.0
+
+
+def test_resolve_contacts_takes_no_push_from_deep_behind_another_part():
+    """The same two parts, the coarse box 6 cm tall, and a particle 11 mm above its bottom face
+    (17 mm from its sides; the fine box's nearest vertex 23 mm away, the coarse box's 26 mm):
+    that deep behind another part's face the parts intersect, and the particle is left for the
+    following frames (MAX_OTHER_PART_DEPTH = 1 cm)."""
+    x = np.array([[0.003, 0.003, 0.023]])
+    v = np.array([[0.0, 0.0, 1.0]])
+    placed = resolve_against_two_parts(x, v, 0.06)
+    np.testing.assert_array_equal(x[0], [0.003, 0.003, 0.023])
+    np.testing.assert_array_equal(v[0], [0.0, 0.0, 1.0])
+    assert placed[0] == 1.0
+
+
 def test_resolve_contacts_pushes_out_of_any_body_part():
     """The end-of-step pass finds the nearest body part over the whole body: a particle inside a
     second, unconnected box (another limb, which no walk over the mesh reaches from the first)
@@ -206,14 +262,16 @@ def test_resolve_contacts_pushes_out_of_any_body_part():
     grid = VertexGrid(len(verts))
     grid.update(verts)
     start = np.zeros(2, np.int32)  # both walks would start on the first box
+    scratch = contact_scratch(2, np.array([2.0, 3.0]))
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, start, 0.003, np.zeros(2, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids)
+                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *scratch)
     assert start[0] >= len(verts1)
     np.testing.assert_allclose(x[0], [2.1, 0.303, -0.05], atol=1e-9)
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
     np.testing.assert_array_equal(x[1], [2.0, 0.45, 0.0])  # outside: untouched
     np.testing.assert_array_equal(v[1], [0.0, -1.0, 0.0])
+    np.testing.assert_array_equal(scratch[-1], [0.0, 3.0])  # the placed one is held by later strain limiting
 
 
 def test_strain_limit_caps_an_edge_by_inverse_mass_and_keeps_momentum():
@@ -325,7 +383,7 @@ def test_resolve_contacts_settles_a_particle_in_a_concave_corner_away_from_both_
     grid.update(verts)
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.zeros(1, np.uint8),
-                     face_n, np.zeros(3), grid.cell, grid.start, grid.ids)
+                     face_n, np.zeros(3), grid.cell, grid.start, grid.ids, *contact_scratch(len(x)))
     assert x[0, 0] >= 1.003 - 1e-9 and x[0, 1] >= 1.003 - 1e-9, x
     assert x[0, 0] < 1.0031 and x[0, 1] < 1.0031 and x[0, 2] == 0.5, x
 
@@ -341,6 +399,6 @@ def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_veloc
     grid.update(verts)
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.ones(1, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids)
+                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *contact_scratch(len(x)))
     np.testing.assert_allclose(x[0], [0.1, 0.303, 0.0], atol=1e-9)
     np.testing.assert_array_equal(v[0], [0.0, -1.0, 0.0])
