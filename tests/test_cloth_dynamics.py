@@ -200,14 +200,12 @@ def contact_scratch(n, inv_mass=None):
     return np.zeros(8, np.uint8), np.zeros(8, np.int32), np.zeros(8), inv_mass, np.full(n, np.nan)
 
 
-def resolve_against_two_parts(x, v, coarse_height):
+def resolve_against_two_parts(x, v, coarse_v, coarse_t):
     """resolve_contacts against two body parts: a finely meshed box (vertices every 2.5 mm,
-    top face at z = 0) and above it a coarse box (corners only, 4 cm wide, coarse_height tall,
-    bottom face at z = 0.012). Returns the nearest vertex found and the placed inverse masses."""
+    top face at z = 0, bottom at z = -0.02) and a coarse one (coarse_v, coarse_t). Returns the
+    placed inverse masses; the nearest vertex found must be the fine box's."""
     fine_v, fine_t = box(0.01, n=8)
     fine_v = fine_v + [0.0, 0.0, -0.01]
-    coarse_v, coarse_t = box(1.0, n=1)
-    coarse_v = coarse_v * [0.02, 0.02, coarse_height / 2] + [0.0, 0.0, 0.012 + coarse_height / 2]
     verts = np.concatenate([fine_v, coarse_v])
     tris = np.concatenate([fine_t, coarse_t + len(fine_v)]).astype(np.int32)
     regions = np.r_[np.full(len(fine_v), 1), np.full(len(coarse_v), 2)].astype(np.uint8)
@@ -224,27 +222,32 @@ def resolve_against_two_parts(x, v, coarse_height):
 
 
 def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices():
-    """A particle 2 mm inside the coarse box's bottom face is 14 mm from the fine box's nearest
-    vertex and 28 mm from the coarse box's: the nearest vertex's ring says "outside", the other
-    part's ring finds the face, and the particle ends thickness below it (z = 0.009), where
-    the fine box is 9 mm away."""
-    x = np.array([[0.001, 0.002, 0.014]])
+    """Above the fine box a coarse one (corners only, 2 cm wide, bottom face at z = 0.006). A
+    particle 1 mm inside that bottom face is 7 mm from the fine box's nearest vertex and 13 mm
+    from the coarse box's: the nearest vertex's ring says "outside", the other part's ring
+    finds the face, and the particle ends thickness below it (z = 0.003)."""
+    coarse_v, coarse_t = box(1.0, n=1)
+    coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.016]
+    x = np.array([[0.0005, 0.001, 0.007]])
     v = np.array([[0.0, 0.0, 1.0]])
-    placed = resolve_against_two_parts(x, v, 0.02)
-    np.testing.assert_allclose(x[0], [0.001, 0.002, 0.009], atol=1e-9)
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t)
+    np.testing.assert_allclose(x[0], [0.0005, 0.001, 0.003], atol=1e-9)
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.0], atol=1e-12)  # into the coarse box: removed
     assert placed[0] == 0.0
 
 
 def test_resolve_contacts_takes_no_push_from_deep_behind_another_part():
-    """The same two parts, the coarse box 6 cm tall, and a particle 11 mm above its bottom face
-    (17 mm from its sides; the fine box's nearest vertex 23 mm away, the coarse box's 26 mm):
-    that deep behind another part's face the parts intersect, and the particle is left for the
-    following frames (MAX_OTHER_PART_DEPTH = 1 cm)."""
-    x = np.array([[0.003, 0.003, 0.023]])
+    """The two parts intersect: the coarse box (4 cm wide, 6 cm tall, a vertex in the middle of
+    each face) reaches 5 mm into the fine one. A particle 6 mm above the fine box is 11 mm
+    behind the coarse box's bottom face: a push out of the coarse box (to z = -0.008) would
+    land it inside the fine one, so past MAX_OTHER_PART_DEPTH (1 cm) it is left for the
+    following frames."""
+    coarse_v, coarse_t = box(1.0, n=2)
+    coarse_v = coarse_v * [0.02, 0.02, 0.03] + [0.0, 0.0, 0.025]
+    x = np.array([[0.0, 0.0, 0.006]])
     v = np.array([[0.0, 0.0, 1.0]])
-    placed = resolve_against_two_parts(x, v, 0.06)
-    np.testing.assert_array_equal(x[0], [0.003, 0.003, 0.023])
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t)
+    np.testing.assert_array_equal(x[0], [0.0, 0.0, 0.006])
     np.testing.assert_array_equal(v[0], [0.0, 0.0, 1.0])
     assert placed[0] == 1.0
 
