@@ -317,6 +317,42 @@ def test_two_concurrent_sessions_do_not_see_each_other(hub, body, data):
             b.close()
 
 
+class SlowFirstCall:
+    """An animator whose first call takes `seconds` longer (as when it loads its kernels)."""
+
+    def __init__(self, animator, seconds: float):
+        self.animator, self.seconds, self.calls = animator, seconds, 0
+
+    def __call__(self, *args):
+        self.calls += 1
+        if self.calls == 1:
+            time.sleep(self.seconds)
+        return self.animator(*args)
+
+    def __getattr__(self, name):
+        return getattr(self.animator, name)
+
+
+def test_ingest_keeps_the_clip_pace_after_a_slow_first_frame(body, data):
+    """Whatever the first frame takes (the first retarget loads kernels, a cloth service settles
+    the garments), the real-time schedule starts when that frame goes out: the next frames follow
+    at the clip's rate, not in a burst of late ones that would queue up at the cloth service."""
+    bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
+    try:
+        source = BVHSource(mocap_clip(data), pace="realtime", every=2, max_frames=8)
+        svc = IngestService(bus, "paced", body, source, {"outfit": OUTFIT, "level": LEVEL})
+        svc.animator = SlowFirstCall(svc.animator, 0.3)
+        bodies = Collector(bus, key("paced", "body"))
+        assert svc.run(start_frame=START_FRAME) == 7
+        wait_until(lambda: len(bodies.frames("body")) == 7, 10, "the body frames")
+        gaps = np.diff([m.stamp_ns for _, m in bodies.messages]) / 1e9
+        assert np.median(gaps) > 0.8 * source.frame_time, gaps  # a burst: about 1 ms apart
+        bodies.close()
+        svc.close()
+    finally:
+        bus.close()
+
+
 def test_live_pose_stream_drives_the_body_like_the_file(hub, body, data):
     """A capture system publishes skeleton + poses (quaternions); mocap-ingest turns them into the
     same body as when it reads the file itself."""
