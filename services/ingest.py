@@ -277,21 +277,25 @@ class IngestService:
                     continue
                 if before_frame is not None and before_frame(frame.index) is False:
                     break
-                t0 = time.monotonic()
+                t_first = time.monotonic()
                 out = self.animator(frame.local_rot, frame.root_position)
                 if not self._announced:
                     self.description["first_q"] = [float(v) for v in out.retarget.q]
                     self.announce()
+                    t0 = time.monotonic()
                     if wait_subscribers > 0 and not self.wait_for_subscribers(wait_subscribers):
                         log.warning("ingest: nothing subscribes to %s", key(self.session, "body"))
                     if wait_ready > 0 and not self.wait_ready(wait_ready):
                         log.warning("ingest: no cloth service reported %s ready in %.0f s", self.session, wait_ready)
-                    # the real-time schedule starts when the first frame goes out: what that frame
-                    # took (the first retarget loads the kernels, the cloth service settles the
-                    # garments) would otherwise come out as a burst of late frames, which queue up
-                    # at the cloth service (a 0.3 s first frame: 20 frames, 190 ms of latency)
-                    if hasattr(self.source, "hold"):
-                        self.source.hold(time.monotonic() - t0)
+                    waited = time.monotonic() - t0
+                    if getattr(self.source, "pace", None) == "realtime":
+                        # a paced file: its schedule starts when the first frame goes out. What that
+                        # frame took (the first retarget loads the kernels, the cloth service settles
+                        # the garments) would otherwise come out as a burst of late frames, which
+                        # queue up at the cloth service
+                        self.source.hold(time.monotonic() - t_first)
+                    elif waited > 0.1 and hasattr(self.source, "hold"):  # a live stream: stale poses dropped
+                        self.source.hold(waited)
                 self.publish(frame, getattr(self.source, "origin_ns", 0), out)
         finally:
             self.end()
