@@ -606,6 +606,14 @@ def build_vertex_grid(body_x, cell, start, ids, counts):
 
 
 @njit(cache=True, inline="always")
+def _cell_block(px, py, pz, r, cell):
+    """The grid cells (i0..i1, j0..j1, k0..k1) that the box of half-width r around p overlaps."""
+    return (int(math.floor((px - r) / cell)), int(math.floor((px + r) / cell)),
+            int(math.floor((py - r) / cell)), int(math.floor((py + r) / cell)),
+            int(math.floor((pz - r) / cell)), int(math.floor((pz + r) / cell)))
+
+
+@njit(cache=True, inline="always")
 def grid_nearest_per_part(px, py, pz, body_x, regions, cell, start, ids, radius, part, best, best_d2):
     """The nearest body vertex of every body part (a distinct `regions` value) within `radius`
     of p. Returns how many parts were found (at most len(part)): part k is region value
@@ -613,12 +621,7 @@ def grid_nearest_per_part(px, py, pz, body_x, regions, cell, start, ids, radius,
     mask = start.shape[0] - 2
     r2 = radius * radius
     n = 0
-    i0 = int(math.floor((px - radius) / cell))
-    i1 = int(math.floor((px + radius) / cell))
-    j0 = int(math.floor((py - radius) / cell))
-    j1 = int(math.floor((py + radius) / cell))
-    k0 = int(math.floor((pz - radius) / cell))
-    k1 = int(math.floor((pz + radius) / cell))
+    i0, i1, j0, j1, k0, k1 = _cell_block(px, py, pz, radius, cell)
     for i in range(i0, i1 + 1):
         for j in range(j0, j1 + 1):
             for k in range(k0, k1 + 1):
@@ -653,12 +656,7 @@ def grid_nearest(px, py, pz, body_x, cell, start, ids, best, best_d2):
     that is a few cells, not 27."""
     mask = start.shape[0] - 2
     r = min(math.sqrt(best_d2), cell)
-    i0 = int(math.floor((px - r) / cell))
-    i1 = int(math.floor((px + r) / cell))
-    j0 = int(math.floor((py - r) / cell))
-    j1 = int(math.floor((py + r) / cell))
-    k0 = int(math.floor((pz - r) / cell))
-    k1 = int(math.floor((pz + r) / cell))
+    i0, i1, j0, j1, k0, k1 = _cell_block(px, py, pz, r, cell)
     for i in range(i0, i1 + 1):
         for j in range(j0, j1 + 1):
             for k in range(k0, k1 + 1):
