@@ -39,18 +39,24 @@ class BVHSource:
     """Frames of a BVH file, read line by line.
 
     pace: "realtime" sleeps to the clip's frame rate (divided by `every`); "fast" does not wait.
+      The schedule starts when the first frame is delivered (opening the file and the first
+      parse take a moment). A consumer up to `max_lag` seconds behind catches up at full speed;
+      one further behind (a pause) shifts the schedule instead: a burst of late frames would
+      only queue up downstream.
     loop: start again from the first frame at the end (frame index and time keep counting).
     every: take one frame in `every` (e.g. 2 turns the 120 Hz CMU clips into 60 Hz).
     """
 
     def __init__(self, path: str | Path, pace: str = "fast", loop: bool = False, every: int = 1,
-                 unit: float = CMU_UNIT_M, max_frames: int | None = None):
+                 unit: float = CMU_UNIT_M, max_frames: int | None = None, max_lag: float = 0.1):
         if pace not in ("realtime", "fast"):
             raise ValueError(f"pace must be 'realtime' or 'fast', got {pace!r}")
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
         self.path = Path(path)
         self.pace, self.loop, self.every, self.unit, self.max_frames = pace, loop, every, unit, max_frames
+        self.max_lag = max_lag
+        self._clock: float | None = None  # perf_counter() of the session's time 0, set at the first frame
         self._reader = BVHReader(self.path, unit)
         self.header = self._reader.header
         self.skeleton = self.header.skeleton
@@ -61,7 +67,8 @@ class BVHSource:
 
     def hold(self, seconds: float) -> None:
         """Shift the real-time schedule by `seconds` (the consumer paused; no burst of late frames)."""
-        self._clock = getattr(self, "_clock", time.perf_counter()) + seconds
+        if self._clock is not None:
+            self._clock += seconds
 
     def __enter__(self):
         return self
@@ -72,7 +79,7 @@ class BVHSource:
     def __iter__(self) -> Iterator[PoseFrame]:
         n_bones = len(self.skeleton.names)
         index = 0
-        self._clock = time.perf_counter()
+        self._clock = None
         while True:
             for k, values in enumerate(self._reader.rows()):
                 if k % self.every:
@@ -82,9 +89,14 @@ class BVHSource:
                 rot, pos = local_pose(self.header, values, np.empty((n_bones, 3, 3)), np.empty(3))
                 t = index * self.frame_time
                 if self.pace == "realtime":
-                    delay = self._clock + t - time.perf_counter()
+                    now = time.perf_counter()
+                    if self._clock is None:
+                        self._clock = now - t
+                    delay = self._clock + t - now
                     if delay > 0:
                         time.sleep(delay)
+                    elif delay < -self.max_lag:
+                        self._clock -= delay  # too far behind: this frame now, the next on schedule
                 yield PoseFrame(index, t, rot, pos)
                 index += 1
             if not self.loop or index == 0:

@@ -292,3 +292,20 @@ def test_realtime_pacing_waits_for_the_clip_rate(mocap):
         elapsed = time.perf_counter() - t0
     assert n == 13
     assert elapsed >= 12 / 120 * 0.95  # never ahead of the clock
+
+
+def test_realtime_pacing_spreads_frames_after_a_pause(mocap):
+    """A consumer that pauses (a slow first frame, a stall) gets the next frame at once and the
+    ones after on the clip's schedule again, not a burst of late frames; a short lag is caught up."""
+    with BVHSource(mocap / "cmu_npybvh_example_75f.bvh", pace="realtime", every=2, max_frames=12) as src:
+        stamps = []
+        for frame in src:
+            stamps.append(time.perf_counter())
+            if frame.index == 1:
+                time.sleep(0.3)  # well beyond max_lag (0.1 s)
+    gaps = np.diff(stamps)
+    ft = src.frame_time  # 1/60 s
+    assert gaps[1] >= 0.3  # the pause itself
+    # after it, frames come on schedule: a burst would deliver them back to back (gaps ≈ 0)
+    assert np.all(gaps[2:] > 0.5 * ft), gaps
+    assert stamps[-1] - stamps[2] >= (len(stamps) - 3) * ft * 0.95
