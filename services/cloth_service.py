@@ -6,9 +6,13 @@ holds the backlog and the service catches up at full speed with the same fixed t
 simulation sees exactly the frames it would have seen in real time (and a replayed body stream
 gives bit-identical garments).
 
-A session starts on its first body frame: the service reads the latched session description
-(outfit, fabric, level), fits the outfit on the rest body and settles it into the frame's pose
-(pre-roll), then publishes tryon/<s>/garment/<name> per frame and latches each garment's topology.
+A session starts with its announcement (tryon/<s>/session: outfit, fabric, level and the first
+pose): the service fits the outfit on the rest body and settles it into that pose (pre-roll),
+reports it ready, then publishes tryon/<s>/garment/<name> per frame and latches each garment's
+topology. The fitting and pre-roll (about a second) run on a setup thread, so the sessions
+already running keep their frame rate while a new one joins; body frames of a session still
+being set up wait for it, in order. A session that starts without an announcement (its first
+body frame comes first) reads the latched description and settles into that frame's pose.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import logging
 import queue
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -98,7 +103,8 @@ class GarmentSession:
     def preroll(self, q: np.ndarray) -> None:
         """Settle the garments from the rest pose into pose q, then tell the session we are ready."""
         t0 = time.perf_counter()
-        self.sim.preroll(np.array(q, dtype=np.float64), self.dt)
+        with self.service.animator_lock:  # the service's one animator poses the blend
+            self.sim.preroll(np.array(q, dtype=np.float64), self.dt)
         self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
         self.started = True
         ready = Message("control", self.session, meta={"event": "ready", "from": "cloth", "garments": self.names})
@@ -197,6 +203,11 @@ class ClothService:
         self.closed_stats: dict[str, dict] = {}  # final stats of the sessions that ended
         self.stats = Stats(self.SERVICE, "_service")  # rejections of messages with no usable session
         self._models: dict[OutfitSpec, tuple[Outfit, list | None]] = {}
+        self._models_lock = threading.Lock()
+        self.animator_lock = threading.Lock()
+        # sessions being fitted and settled on the setup thread: (its result, messages held for it)
+        self._setup = ThreadPoolExecutor(1, thread_name_prefix="session-setup")
+        self._preparing: dict[str, tuple[Future, list[tuple[str, bytes, bool]]]] = {}
         self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
         self._subs = [bus.declare_subscriber(key(sessions, k), self._queue.put) for k in ("session", "body", "control")]
         self._stop = threading.Event()
@@ -206,6 +217,10 @@ class ClothService:
 
     # -- models shared by sessions with the same outfit, fabric and level (built once) --
     def outfit_models(self, spec: OutfitSpec):
+        with self._models_lock:
+            return self._outfit_models(spec)
+
+    def _outfit_models(self, spec: OutfitSpec):
         if spec not in self._models:
             outfit_dir = Path(spec.outfit) if Path(spec.outfit).is_dir() else self.data / "garments" / spec.outfit
             if not outfit_dir.is_dir():
@@ -236,6 +251,11 @@ class ClothService:
         for s in self._subs:
             s.undeclare()
         self._subs.clear()
+        self._setup.shutdown(wait=True)
+        for fut, _ in self._preparing.values():
+            if fut.exception() is None:
+                fut.result().close()
+        self._preparing.clear()
         for gs in self.sessions.values():
             gs.close()
         self.sessions.clear()
@@ -243,8 +263,9 @@ class ClothService:
     def serve(self) -> None:
         """Consume body frames until stop(); every error is logged and counted, never fatal."""
         while not self._stop.is_set():
+            self._finish_setups()
             try:
-                batch = [self._queue.get(timeout=0.2)]
+                batch = [self._queue.get(timeout=0.01 if self._preparing else 0.2)]
             except queue.Empty:
                 self._drop_idle()
                 continue
@@ -260,24 +281,71 @@ class ClothService:
                 if k.endswith("/body"):
                     newest[k] = i
             for i, sample in enumerate(batch):
-                k = str(sample.key_expr)
-                try:
-                    self.handle(k, sample.payload.to_bytes(), publish=newest.get(k, i) == i)
-                except Exception:  # noqa: BLE001 - a bug in one session must not stop the others
-                    log.exception("cloth: failed on %s", k)
-                    self.stats.add("errors")
-                with self.done:
-                    self.frames_done += 1
-                    self.done.notify_all()
+                self._handle_counted(str(sample.key_expr), sample.payload.to_bytes(), newest.get(str(sample.key_expr), i) == i)
 
-    def handle(self, key_expr: str, payload: bytes, publish: bool = True) -> None:
+    def _handle_counted(self, key_expr: str, payload: bytes, publish: bool) -> None:
+        """handle() one message and count it done, unless it waits for its session's setup."""
+        try:
+            held = self.handle(key_expr, payload, publish=publish)
+        except Exception:  # noqa: BLE001 - a bug in one session must not stop the others
+            log.exception("cloth: failed on %s", key_expr)
+            self.stats.add("errors")
+            held = False
+        if not held:
+            self._count_done()
+
+    def _count_done(self) -> None:
+        with self.done:
+            self.frames_done += 1
+            self.done.notify_all()
+
+    def _finish_setups(self) -> None:
+        """Start serving the sessions whose setup has finished, with the messages held for them."""
+        for session, (fut, held) in list(self._preparing.items()):
+            if not fut.done():
+                continue
+            del self._preparing[session]
+            err = fut.exception()
+            if err is None:
+                self.sessions[session] = fut.result()
+            else:
+                if not isinstance(err, (MessageError, FileNotFoundError, ValueError)):
+                    log.error("cloth: setting up session %s failed", session, exc_info=err)
+                    self.stats.add("errors")
+                self.failed[session] = f"session cannot be served: {err}"
+                self.stats.reject(MessageError(key(session, "session"), self.failed[session]))
+            self._count_done()  # the announcement
+            bodies = [j for j, (k, _, _) in enumerate(held) if k.endswith("/body")]
+            for j, (k, payload, publish) in enumerate(held):
+                # catching up: of the frames that waited, only the newest gets its surface published
+                newest = not k.endswith("/body") or not self.catch_up or j == bodies[-1]
+                self._handle_counted(k, payload, publish and newest)
+
+    def _set_up(self, session: str, key_expr: str, desc: dict) -> "GarmentSession":
+        """On the setup thread: fit the outfit and settle it into the announced first pose."""
+        gs = self._new_session(session, key_expr, desc)
+        try:
+            gs.start_from_description(desc, key_expr)
+        except BaseException:
+            gs.close()
+            raise
+        return gs
+
+    def handle(self, key_expr: str, payload: bytes, publish: bool = True) -> bool:
+        """Act on one message. Returns True when it is held until its session's setup finishes
+        (it is handled again then)."""
         try:
             session, rest = parse_key(key_expr)
             msg = decode(payload, key_expr, session, rest[0] if rest[0] in ("session", "body", "control") else None)
         except MessageError as err:
             gs = self.sessions.get(parse_key(key_expr)[0]) if key_expr.startswith("tryon/") else None
             (gs.stats if gs else self.stats).reject(err)
-            return
+            return False
+        if session in self._preparing:
+            if msg.kind == "session":
+                return False  # announced again while being set up
+            self._preparing[session][1].append((key_expr, payload, publish))
+            return True
         if msg.kind == "control":
             if msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
                 last = msg.meta.get("last_frame", -1)
@@ -286,31 +354,27 @@ class ClothService:
                 if gs is not None:  # frames still on their way (other key, other order) finish it
                     gs.end_frame = last if isinstance(last, int) else -1
                     self._close_if_done(session)
-            return
+            return False
         if msg.kind == "session":  # announced: fit and settle the outfit before the first body frame
             if session not in self.sessions and msg.stamp_ns > self.ended.get(session, -1):
                 self.failed.pop(session, None)
-                try:
-                    gs = self._open(session, key_expr, msg.meta)
-                    gs.start_from_description(msg.meta, key_expr)
-                except (MessageError, FileNotFoundError, ValueError) as err:
-                    self.failed[session] = f"session cannot be served: {err}"
-                    self.stats.reject(MessageError(key_expr, self.failed[session]))
-            return
+                self._preparing[session] = (self._setup.submit(self._set_up, session, key_expr, msg.meta), [])
+                return True  # counted when the setup is done
+            return False
         gs = self.sessions.get(session)
         if gs is None and msg.stamp_ns <= self.ended.get(session, -1):
             self.stats.reject(MessageError(key_expr, f"frame {msg.frame} arrives after the session's end"))
-            return
+            return False
         if gs is None:
             if session in self.failed:
                 self.stats.reject(MessageError(key_expr, self.failed[session]))
-                return
+                return False
             try:
                 gs = self._open(session, key_expr)
             except (MessageError, FileNotFoundError, ValueError) as err:
                 self.failed[session] = f"session cannot be served: {err}"
                 self.stats.reject(MessageError(key_expr, self.failed[session]))
-                return
+                return False
         gs.last_seen = time.monotonic()
         try:
             gs.on_body(msg, key_expr, publish)
@@ -318,6 +382,7 @@ class ClothService:
             gs.stats.reject(err)
             gs.stats.publish(self.bus)
         self._close_if_done(session)
+        return False
 
     def _close_if_done(self, session: str) -> None:
         gs = self.sessions.get(session)
@@ -327,6 +392,11 @@ class ClothService:
             self.sessions.pop(session).close()
 
     def _open(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
+        gs = self._new_session(session, key_expr, desc)
+        self.sessions[session] = gs
+        return gs
+
+    def _new_session(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
         found = {} if desc is not None else fetch_latched(self.bus, key(session, "session"), timeout=2.0,
                                                          stats=self.stats)
         desc = desc if desc is not None else (next(iter(found.values())).meta if found else {})
@@ -339,9 +409,7 @@ class ClothService:
             raise MessageError(key(session, "session"), f"'frame_time' must be seconds in (0, 1), got {ft!r}")
         log.info("cloth: session %s: outfit %s, fabric %s, level %s, dt %.4f s", session, spec.outfit,
                  spec.fabric or "presets", spec.level, ft)
-        gs = GarmentSession(self, session, spec, float(ft))
-        self.sessions[session] = gs
-        return gs
+        return GarmentSession(self, session, spec, float(ft))
 
     def _drop_idle(self) -> None:
         now = time.monotonic()

@@ -333,6 +333,49 @@ class SlowFirstCall:
         return getattr(self.animator, name)
 
 
+def test_a_joining_session_does_not_stall_the_running_ones(hub, body, data, monkeypatch):
+    """A new session's fitting and pre-roll (about a second) run beside the sessions already
+    served: their garments keep coming at their frame rate meanwhile. The newcomer's body
+    frames wait for its setup and are all served, in order, after it."""
+    from services import cloth_service
+
+    port, cloth = hub
+    slow = 1.5  # s: a pre-roll made slow on purpose
+    real_preroll = cloth_service.GarmentSession.preroll
+
+    def slow_preroll(self, q):
+        if self.session == "newcomer":
+            time.sleep(slow)
+        real_preroll(self, q)
+
+    monkeypatch.setattr(cloth_service.GarmentSession, "preroll", slow_preroll)
+    buses = [peer(port), peer(port)]
+    watch = peer(port)
+    arrivals: list[float] = []
+    sub = watch.declare_subscriber(key("steady", "garment", GARMENTS[0]), lambda _: arrivals.append(time.monotonic()))
+    newcomer = Collector(watch, key("newcomer", "garment", GARMENTS[0]))
+    stop = threading.Event()
+    try:
+        steady, _ = run_ingest(buses[0], "steady", body, data, pace="realtime", loop=True, stop=stop, every=8)
+        wait_until(lambda: len(arrivals) >= 5, 60, "the running session's garments")
+        t_join = time.monotonic()
+        joining, svc = run_ingest(buses[1], "newcomer", body, data, max_frames=8)
+        joining.join(60)
+        wait_until(lambda: len(newcomer.frames(f"garment/{GARMENTS[0]}")) == svc.frames, 60, "the newcomer's garments")
+        assert time.monotonic() - t_join > slow
+        during = [t for t in arrivals if t_join <= t <= t_join + slow]
+        gaps = np.diff([t_join, *during, t_join + slow])
+        assert gaps.max() < 0.5 * slow, gaps  # held up for the whole pre-roll: one gap of 1.5 s
+        assert newcomer.frames(f"garment/{GARMENTS[0]}") == list(range(START_FRAME, START_FRAME + svc.frames))
+    finally:
+        stop.set()
+        steady.join(30)
+        sub.undeclare()
+        newcomer.close()
+        for b in (*buses, watch):
+            b.close()
+
+
 def test_ingest_keeps_the_clip_pace_after_a_slow_first_frame(body, data):
     """Whatever the first frame takes (the first retarget loads kernels, a cloth service settles
     the garments), the real-time schedule starts when that frame goes out: the next frames follow
