@@ -89,6 +89,7 @@ class GarmentSession:
         self.body_x = np.empty((service.body.n_visible, 3))
         self.last_frame = -1
         self.started = False
+        self.announced_ns = 0  # stamp of the announcement it was set up from (0: none)
         self.end_frame: int | None = None  # set by the session's end message
         self.skipped_since = 0  # frames stepped without their surface since the last published one
         self.last_seen = time.monotonic()
@@ -321,9 +322,10 @@ class ClothService:
                 newest = not k.endswith("/body") or not self.catch_up or j == bodies[-1]
                 self._handle_counted(k, payload, publish and newest)
 
-    def _set_up(self, session: str, key_expr: str, desc: dict) -> "GarmentSession":
+    def _set_up(self, session: str, key_expr: str, desc: dict, stamp_ns: int) -> "GarmentSession":
         """On the setup thread: fit the outfit and settle it into the announced first pose."""
         gs = self._new_session(session, key_expr, desc)
+        gs.announced_ns = stamp_ns
         try:
             gs.start_from_description(desc, key_expr)
         except BaseException:
@@ -356,11 +358,21 @@ class ClothService:
                     self._close_if_done(session)
             return False
         if msg.kind == "session":  # announced: fit and settle the outfit before the first body frame
-            if session not in self.sessions and msg.stamp_ns > self.ended.get(session, -1):
-                self.failed.pop(session, None)
-                self._preparing[session] = (self._setup.submit(self._set_up, session, key_expr, msg.meta), [])
-                return True  # counted when the setup is done
-            return False
+            if msg.stamp_ns <= self.ended.get(session, -1):
+                return False
+            old = self.sessions.get(session)
+            if old is not None:
+                if msg.stamp_ns <= old.announced_ns:
+                    return False  # the announcement it was set up from
+                # announced anew while its last run never ended (its ingest stopped without an
+                # end message): a new run under the same name, which starts from its own pose
+                log.warning("cloth: session %s announced again; its earlier run is closed", session)
+                self.closed_stats[session] = old.stats.snapshot()
+                self.sessions.pop(session).close()
+            self.failed.pop(session, None)
+            self._preparing[session] = (self._setup.submit(self._set_up, session, key_expr, msg.meta, msg.stamp_ns),
+                                        [])
+            return True  # counted when the setup is done
         gs = self.sessions.get(session)
         if gs is None and msg.stamp_ns <= self.ended.get(session, -1):
             self.stats.reject(MessageError(key_expr, f"frame {msg.frame} arrives after the session's end"))

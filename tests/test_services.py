@@ -376,6 +376,32 @@ def test_a_joining_session_does_not_stall_the_running_ones(hub, body, data, monk
             b.close()
 
 
+def test_a_session_announced_again_starts_a_new_run(hub, body, data):
+    """An ingest that stopped without its end message (a crash) and starts again under the
+    same session name: the cloth service closes the unfinished run and serves the new one
+    from its own first frame (before, every frame of it was rejected as out of order)."""
+    port, _ = hub
+    bus, watch = peer(port), peer(port)
+    garments = Collector(watch, key("again", "garment", GARMENTS[0]))
+    try:
+        runs = []
+        for crash in (True, False):
+            source = BVHSource(mocap_clip(data), every=2, max_frames=6)
+            svc = IngestService(bus, "again", body, source, {"outfit": OUTFIT, "level": LEVEL})
+            if crash:
+                svc.end = lambda: None
+            assert svc.run(start_frame=START_FRAME, wait_subscribers=10, wait_ready=20) == 5
+            runs.append(list(range(START_FRAME, START_FRAME + 5)))
+            wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) == 5 * len(runs), 30,
+                       f"the garments of run {len(runs)}")
+            svc.close()
+        assert garments.frames(f"garment/{GARMENTS[0]}") == runs[0] + runs[1]
+    finally:
+        garments.close()
+        bus.close()
+        watch.close()
+
+
 def test_ingest_keeps_the_clip_pace_after_a_slow_first_frame(body, data):
     """Whatever the first frame takes (the first retarget loads kernels, a cloth service settles
     the garments), the real-time schedule starts when that frame goes out: the next frames follow
