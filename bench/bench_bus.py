@@ -128,13 +128,19 @@ def start_cloth(endpoint: str, level: int, catch_up: bool) -> subprocess.Popen:
     return cloth
 
 
+def pct(lat: np.ndarray, q: float) -> str:
+    """A latency percentile in whole ms, or "-" when no frame came back."""
+    return f"{np.percentile(lat, q):.0f}" if len(lat) else "-"
+
+
 def latency_rows(endpoint: str, seconds: float, level: int, label: str) -> None:
     for rate, every in (("60 Hz", 2), ("120 Hz (native)", 1)):
         n = int(seconds * 120 / every)
-        a = run(endpoint, ["one"], every, "realtime", n, level)
-        lat, dropped, total, compute = a.result("one")
-        print(f"| {label} | {rate} | {total} | {np.percentile(lat, 50):.0f} | {np.percentile(lat, 99):.0f} | "
-              f"{lat.max():.0f} | {dropped} | {np.median(compute):.1f} |", flush=True)
+        name = f"one-{label.strip('-').replace(' ', '-')}-{every}"  # a fresh session per run
+        a = run(endpoint, [name], every, "realtime", n, level)
+        lat, dropped, total, compute = a.result(name)
+        print(f"| {label} | {rate} | {total} | {pct(lat, 50)} | {pct(lat, 99)} | {pct(lat, 100)} | {dropped} | "
+              f"{np.median(compute) if len(compute) else float('nan'):.1f} |", flush=True)
 
 
 def main() -> None:
@@ -171,7 +177,7 @@ def main() -> None:
         print("\n| concurrent 60 Hz sessions | latency p50 ms | p99 ms | dropped | holds |")
         print("|---|---|---|---|---|")
         for k in range(1, args.max_sessions + 1):
-            names = [f"s{i}" for i in range(k)]
+            names = [f"s{k}-{i}" for i in range(k)]
             a = run(endpoint, names, 2, "realtime", n, args.level)
             lats, drops = [], 0
             growing = False
@@ -180,10 +186,10 @@ def main() -> None:
                 lats.append(lat)
                 drops += dropped
                 q = max(1, len(lat) // 4)
-                growing |= np.median(lat[-q:]) > 2 * np.median(lat[:q]) + 10
+                growing |= len(lat) == 0 or np.median(lat[-q:]) > 2 * np.median(lat[:q]) + 10
             lat = np.concatenate(lats)
-            holds = drops == 0 and not growing and np.percentile(lat, 99) < 100
-            print(f"| {k} | {np.percentile(lat, 50):.0f} | {np.percentile(lat, 99):.0f} | {drops} | "
+            holds = drops == 0 and not growing and len(lat) > 0 and np.percentile(lat, 99) < 100
+            print(f"| {k} | {pct(lat, 50)} | {pct(lat, 99)} | {drops} | "
                   f"{'yes' if holds else 'no'} |", flush=True)
             if not holds:
                 break
