@@ -282,7 +282,8 @@ class ClothService:
                 if k.endswith("/body"):
                     newest[k] = i
             for i, sample in enumerate(batch):
-                self._handle_counted(str(sample.key_expr), sample.payload.to_bytes(), newest.get(str(sample.key_expr), i) == i)
+                k = str(sample.key_expr)
+                self._handle_counted(k, sample.payload.to_bytes(), newest.get(k, i) == i)
 
     def _handle_counted(self, key_expr: str, payload: bytes, publish: bool) -> None:
         """handle() one message and count it done, unless it waits for its session's setup."""
