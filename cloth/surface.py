@@ -32,7 +32,8 @@ class SurfaceSettings:
     contact_margin: float = 0.005  # m: S103 tests a face / a finer particle only near a particle this close
     penetration_iterations: int = 4  # S103 lifts per particle (one suffices on a flat body)
     max_lift: float = 0.02  # m: S103 lifts a particle at most this far per frame
-    max_height: float = 0.03  # m: Δh never exceeds this (wrinkles and lifts together)
+    max_height: float = 0.03  # m: Δh is clamped to this (wrinkles and lifts together) before the
+    # S106 neighbour-distance rounds, which may raise a particle beyond it to keep an edge within d_max
     constraint_passes: int = 3  # S106 maximum-neighbour-distance rounds
 
 
