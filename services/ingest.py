@@ -277,7 +277,6 @@ class IngestService:
                     continue
                 if before_frame is not None and before_frame(frame.index) is False:
                     break
-                t_first = time.monotonic()
                 out = self.animator(frame.local_rot, frame.root_position)
                 if not self._announced:
                     self.description["first_q"] = [float(v) for v in out.retarget.q]
@@ -287,14 +286,12 @@ class IngestService:
                         log.warning("ingest: nothing subscribes to %s", key(self.session, "body"))
                     if wait_ready > 0 and not self.wait_ready(wait_ready):
                         log.warning("ingest: no cloth service reported %s ready in %.0f s", self.session, wait_ready)
+                    # the waits paused the source: a paced file shifts its schedule by them, a live
+                    # stream drops the poses that went stale (a burst of late frames would queue up
+                    # at the cloth service); a paced file also shifts itself when it falls further
+                    # behind than its max_lag (a slow first retarget)
                     waited = time.monotonic() - t0
-                    if getattr(self.source, "pace", None) == "realtime":
-                        # a paced file: its schedule starts when the first frame goes out. What that
-                        # frame took (the first retarget loads the kernels, the cloth service settles
-                        # the garments) would otherwise come out as a burst of late frames, which
-                        # queue up at the cloth service
-                        self.source.hold(time.monotonic() - t_first)
-                    elif waited > 0.1 and hasattr(self.source, "hold"):  # a live stream: stale poses dropped
+                    if waited > 0.1 and hasattr(self.source, "hold"):
                         self.source.hold(waited)
                 self.publish(frame, getattr(self.source, "origin_ns", 0), out)
         finally:
