@@ -40,27 +40,28 @@ class BVHSource:
 
     pace: "realtime" sleeps to the clip's frame rate (divided by `every`); "fast" does not wait.
       The schedule starts when the first frame is delivered (opening the file and the first
-      parse take a moment). A consumer up to `max_lag` seconds behind catches up at full speed;
-      one further behind (a pause) shifts the schedule instead: a burst of late frames would
-      only queue up downstream.
+      parse take a moment). A consumer up to `max_lag` seconds behind (default: one frame time)
+      gets the next frame at once; one further behind (a pause, a slow first retarget) shifts
+      the schedule instead: a burst of late frames would only queue up downstream (a cloth
+      service a few frames behind adds their whole backlog to every frame's latency).
     loop: start again from the first frame at the end (frame index and time keep counting).
     every: take one frame in `every` (e.g. 2 turns the 120 Hz CMU clips into 60 Hz).
     """
 
     def __init__(self, path: str | Path, pace: str = "fast", loop: bool = False, every: int = 1,
-                 unit: float = CMU_UNIT_M, max_frames: int | None = None, max_lag: float = 0.1):
+                 unit: float = CMU_UNIT_M, max_frames: int | None = None, max_lag: float | None = None):
         if pace not in ("realtime", "fast"):
             raise ValueError(f"pace must be 'realtime' or 'fast', got {pace!r}")
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
         self.path = Path(path)
         self.pace, self.loop, self.every, self.unit, self.max_frames = pace, loop, every, unit, max_frames
-        self.max_lag = max_lag
         self._clock: float | None = None  # perf_counter() of the session's time 0, set at the first frame
         self._reader = BVHReader(self.path, unit)
         self.header = self._reader.header
         self.skeleton = self.header.skeleton
         self.frame_time = self.header.frame_time * every
+        self.max_lag = self.frame_time if max_lag is None else max_lag
 
     def close(self) -> None:
         self._reader.close()

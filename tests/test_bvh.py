@@ -302,10 +302,24 @@ def test_realtime_pacing_spreads_frames_after_a_pause(mocap):
         for frame in src:
             stamps.append(time.perf_counter())
             if frame.index == 1:
-                time.sleep(0.3)  # well beyond max_lag (0.1 s)
+                time.sleep(0.3)  # well beyond max_lag (one frame)
     gaps = np.diff(stamps)
     ft = src.frame_time  # 1/60 s
     assert gaps[1] >= 0.3  # the pause itself
     # after it, frames come on schedule: a burst would deliver them back to back (gaps ≈ 0)
     assert np.all(gaps[2:] > 0.5 * ft), gaps
     assert stamps[-1] - stamps[2] >= (len(stamps) - 3) * ft * 0.95
+
+
+def test_realtime_pacing_has_no_burst_after_a_slow_first_frame(mocap):
+    """A slow first frame (the ingest's first retarget and announcement, tens of ms) is not
+    made up by a burst: the frames after it keep the clip's spacing, or the first few would
+    queue up at the cloth service and come out late."""
+    with BVHSource(mocap / "cmu_npybvh_example_75f.bvh", pace="realtime", every=2, max_frames=8) as src:
+        stamps = []
+        for frame in src:
+            stamps.append(time.perf_counter())
+            if frame.index == 0:
+                time.sleep(0.06)  # 3.6 frames at 60 Hz
+    gaps = np.diff(stamps)
+    assert np.all(gaps[1:] > 0.5 * src.frame_time), gaps
