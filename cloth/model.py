@@ -31,6 +31,7 @@ class SimSettings:
     max_speed: float = 30.0  # m/s: a faster particle is treated as exploded
     max_stretch: float = 3.0  # a structural spring longer than this times rest marks an explosion
     limit_passes: int = 4  # strain-limiting passes after the last substep (one after each other substep)
+    slide_passes: int = 1  # free strain-limiting passes after the contact pass, then a second one (0: neither)
     contact_limit_passes: int = 2  # strain-limiting passes after the contact pass, its placed particles held
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
 

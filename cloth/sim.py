@@ -246,6 +246,16 @@ class ClothSim:
         resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
                          grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass)
+        if st.slide_passes:
+            # the pass puts a particle where the skin under it went, and skin stretches more than
+            # the cloth may (hips and thighs in a stride): free strain-limiting passes let the
+            # placed particles slide back towards their neighbours, and a second contact pass puts
+            # out again what slid inside (it also catches what the first pass's pushes left behind)
+            for _ in range(st.slide_passes):
+                limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural, f.max_strain)
+            resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
+                             b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
+                             grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass)
         # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
         for _ in range(st.contact_limit_passes):
             limit_stretch(s.x, s.v, s.placed_inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
