@@ -7,7 +7,9 @@
 A frame: body following (relative coordinates to the nearest face, distance-blended), then
 `substeps` × (RK4 step, vertex collision, strain limiting), then the instability check (NaN,
 speed, runaway stretch → reset to the body-following positions, counted), the contact pass
-over the whole body, and the new relative coordinates.
+over the whole body (then a slide pass: strain limiting with the placed particles free and the
+contact pass again), strain limiting with the placed particles held, and the new relative
+coordinates.
 """
 
 from __future__ import annotations
@@ -199,7 +201,7 @@ class ClothSim:
             body_pose = self.own_pose
             body_pose.update(body_vertices)
         self.pose = body_pose
-        body_x, face_n, grid = body_pose.x, body_pose.face_n, body_pose.grid
+        body_x, face_n = body_pose.x, body_pose.face_n
         follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
                     1.0 / dt, st.follow_near, st.follow_far, s.followed, face_n)
         vertex_normals(s.x, m.triangles, s.normals)  # for air drag
@@ -243,9 +245,7 @@ class ClothSim:
             nearest_vertices(s.x[idx], body_x, near, b.regions, m.region_mask[idx])
             s.nearest[idx] = near
             s.nearest_any[idx] = near
-        resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                         b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
-                         grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass)
+        self._contact_pass(body_pose)
         if st.slide_passes:
             # the pass puts a particle where the skin under it went, and skin stretches more than
             # the cloth may (hips and thighs in a stride): free strain-limiting passes let the
@@ -253,9 +253,7 @@ class ClothSim:
             # out again what slid inside (it also catches what the first pass's pushes left behind)
             for _ in range(st.slide_passes):
                 limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural, f.max_strain)
-            resolve_contacts(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                             b.tri_nbrs, b.regions, s.nearest_any, f.thickness, m.grip, face_n, s.q, grid.cell, grid.start,
-                             grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass)
+            self._contact_pass(body_pose)
         # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
         for _ in range(st.contact_limit_passes):
             limit_stretch(s.x, s.v, s.placed_inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
@@ -265,6 +263,14 @@ class ClothSim:
         self.stats.frames += 1
         self.stats.last_substeps = n_sub
         return s.x
+
+    def _contact_pass(self, pose: BodyPose) -> None:
+        """`resolve_contacts` against the whole body in this pose; marks the placed particles."""
+        s, m, b = self.state, self.model, self.body
+        grid = pose.grid
+        resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
+                         b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q, grid.cell,
+                         grid.start, grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass)
 
 
 __all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",
