@@ -468,7 +468,7 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
     return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
 
 
-CONTACT_ITERATIONS = 4  # nearest-surface pushes per particle and frame (a crease between two body parts takes 2-3)
+CONTACT_ITERATIONS = 8  # nearest-surface pushes per particle and frame (alternate pushes in a narrow crease between two body parts converge slowly)
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 
@@ -476,7 +476,7 @@ MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts i
 @kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
                      nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, part, part_vertex, part_d2,
-                     inv_mass, placed_inv_mass):
+                     inv_mass, placed_inv_mass, active):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
@@ -499,8 +499,12 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid` built for this pose;
     part (8,) uint8, part_vertex (8,) int32, part_d2 (8,) float64: scratch for the parts.
     placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
-    strain-limiting pass after it pulls the cloth towards them and never them back inside."""
+    strain-limiting pass after it pulls the cloth towards them and never them back inside.
+    active (n,) uint8: the particles to test; the others (and their placed_inv_mass) are left
+    as they are."""
     for i in range(x.shape[0]):
+        if not active[i]:
+            continue
         px, py, pz = x[i, 0], x[i, 1], x[i, 2]
         placed_inv_mass[i] = inv_mass[i]
         for _ in range(CONTACT_ITERATIONS):

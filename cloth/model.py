@@ -33,6 +33,7 @@ class SimSettings:
     limit_passes: int = 4  # strain-limiting passes after the last substep (one after each other substep)
     slide_passes: int = 1  # free strain-limiting passes after the contact pass, then a second one (0: neither)
     contact_limit_passes: int = 2  # strain-limiting passes after the contact pass, its placed particles held
+    final_contact: bool = True  # after those, the contact pass again for the particles they moved
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
 
 

@@ -8,8 +8,8 @@ A frame: body following (relative coordinates to the nearest face, distance-blen
 `substeps` × (RK4 step, vertex collision, strain limiting), then the instability check (NaN,
 speed, runaway stretch → reset to the body-following positions, counted), the contact pass
 over the whole body (then a slide pass: strain limiting with the placed particles free and the
-contact pass again), strain limiting with the placed particles held, and the new relative
-coordinates.
+contact pass again), strain limiting with the placed particles held, the contact pass once
+more for the particles that moved, and the new relative coordinates.
 """
 
 from __future__ import annotations
@@ -73,6 +73,15 @@ def recover_unstable(x, v, followed, si, sj, rest, n_structural, max_speed, max_
                 x[i, k] = followed[i, k]
                 v[i, k] = 0.0  # at rest relative to the body, which carries it
     return count
+
+
+@kernel
+def mark_moved(x, before, distance, out):
+    """out[i] = 1 where particle i moved more than distance from before[i], else 0."""
+    d2 = distance * distance
+    for i in range(x.shape[0]):
+        out[i] = 1 if ((x[i, 0] - before[i, 0]) ** 2 + (x[i, 1] - before[i, 1]) ** 2
+                       + (x[i, 2] - before[i, 2]) ** 2) > d2 else 0
 
 
 REGION_RADIUS = 0.06  # m: a particle may attach to the body parts within this distance at rest
@@ -142,6 +151,9 @@ class ClothState:
         self.part_vertex = np.zeros(8, dtype=np.int32)
         self.part_d2 = np.zeros(8)
         self.placed_inv_mass = np.zeros(n)  # inverse masses with 0 for the particles the contact pass placed
+        self.held_from = np.zeros((n, 3))  # positions before the strain-limiting passes with those held
+        self.all_particles = np.ones(n, dtype=np.uint8)  # contact pass masks: every particle,
+        self.recheck = np.zeros(n, dtype=np.uint8)  # those the held passes moved far enough to test again
         self.face = np.zeros(n, dtype=np.int32)  # body face of the relative coordinates
         self.bary = np.zeros((n, 3))  # barycentric coordinates on that face
         self.height = np.zeros(n)  # offset along the face normal, m
@@ -255,22 +267,31 @@ class ClothSim:
                 limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural, f.max_strain)
             self._contact_pass(body_pose)
         # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
+        s.held_from[:] = s.x
         for _ in range(st.contact_limit_passes):
             limit_stretch(s.x, s.v, s.placed_inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
                           f.max_strain)
+        if st.final_contact and st.contact_limit_passes:
+            # pulled after a placed particle, a free one cuts the chord across a curved limb:
+            # what moved far enough to have reached the body is tested once more
+            mark_moved(s.x, s.held_from, 0.5 * f.thickness, s.recheck)
+            self._contact_pass(body_pose, s.recheck)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
                        s.height, s.anchor, face_n)
         self.stats.frames += 1
         self.stats.last_substeps = n_sub
         return s.x
 
-    def _contact_pass(self, pose: BodyPose) -> None:
-        """`resolve_contacts` against the whole body in this pose; marks the placed particles."""
+    def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
+        """`resolve_contacts` against the whole body in this pose for the active particles (all
+        unless given); marks the placed particles."""
         s, m, b = self.state, self.model, self.body
         grid = pose.grid
+        active = s.all_particles if active is None else active
         resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q, grid.cell,
-                         grid.start, grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass)
+                         grid.start, grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass,
+                         active)
 
 
 __all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",

@@ -10,6 +10,7 @@ from cloth.collision import (BodyMesh, VertexGrid, attach_to_body, collide_parti
                              resolve_contacts)
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
+from cloth.sim import mark_moved
 
 G = 9.81
 
@@ -195,9 +196,10 @@ def test_particle_inside_a_box_is_pushed_out_to_the_nearest_face():
 
 def contact_scratch(n, inv_mass=None):
     """resolve_contacts' scratch for the body parts near a particle, the particles' inverse
-    masses (1 unless given) and the placed-particle inverse masses it writes."""
+    masses (1 unless given), the placed-particle inverse masses it writes and the active mask
+    (every particle)."""
     inv_mass = np.ones(n) if inv_mass is None else inv_mass
-    return np.zeros(8, np.uint8), np.zeros(8, np.int32), np.zeros(8), inv_mass, np.full(n, np.nan)
+    return np.zeros(8, np.uint8), np.zeros(8, np.int32), np.zeros(8), inv_mass, np.full(n, np.nan), np.ones(n, np.uint8)
 
 
 def resolve_against_two_parts(x, v, coarse_v, coarse_t):
@@ -218,7 +220,7 @@ def resolve_against_two_parts(x, v, coarse_v, coarse_t):
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, nearest, 0.003, np.zeros(1, np.uint8),
                      face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *scratch)
     assert nearest[0] < len(fine_v)  # the nearest vertex is the fine box's
-    return scratch[-1]
+    return scratch[-2]
 
 
 def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices():
@@ -274,7 +276,7 @@ def test_resolve_contacts_pushes_out_of_any_body_part():
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
     np.testing.assert_array_equal(x[1], [2.0, 0.45, 0.0])  # outside: untouched
     np.testing.assert_array_equal(v[1], [0.0, -1.0, 0.0])
-    np.testing.assert_array_equal(scratch[-1], [0.0, 3.0])  # the placed one is held by later strain limiting
+    np.testing.assert_array_equal(scratch[-2], [0.0, 3.0])  # the placed one is held by later strain limiting
 
 
 def test_strain_limit_caps_an_edge_by_inverse_mass_and_keeps_momentum():
@@ -405,3 +407,30 @@ def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_veloc
                      face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *contact_scratch(len(x)))
     np.testing.assert_allclose(x[0], [0.1, 0.303, 0.0], atol=1e-9)
     np.testing.assert_array_equal(v[0], [0.0, -1.0, 0.0])
+
+
+def test_resolve_contacts_tests_only_the_active_particles():
+    """The frame's last contact pass re-tests only the particles the held strain-limiting passes
+    moved (`mark_moved`): an inactive particle is left where it is, even inside the body, and
+    its placed inverse mass is not written."""
+    verts, tris = box(0.3)
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[0.1, 0.28, -0.05], [0.1, 0.28, 0.05]])  # both 2 cm below the top face
+    before = x.copy()
+    x[0, 0] += 0.0016  # moved 1.6 mm, the other 1.4 mm: only the first past 0.5 × 3 mm
+    x[1, 0] += 0.0014
+    active = np.zeros(2, np.uint8)
+    mark_moved(x, before, 0.0015, active)
+    np.testing.assert_array_equal(active, [1, 0])
+    v = np.zeros_like(x)
+    grid = VertexGrid(len(verts))
+    grid.update(verts)
+    scratch = contact_scratch(2)[:-1] + (active,)
+    inside = x[1].copy()
+    resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                     mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(2, np.int32), 0.003, np.zeros(2, np.uint8),
+                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *scratch)
+    np.testing.assert_allclose(x[0], [0.1016, 0.303, -0.05], atol=1e-9)
+    np.testing.assert_array_equal(x[1], inside)
+    placed = scratch[-2]
+    assert placed[0] == 0.0 and np.isnan(placed[1])
