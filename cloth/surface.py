@@ -101,6 +101,8 @@ class SurfaceState:
         self.vf = np.zeros(N)  # S104 normal force, N
         self.required = np.zeros(N)  # S105 ΔL_required,i, m
         self.edge_required = np.zeros(E)  # S105 ΔLE_required,e, m
+        self.edge_deficit = np.zeros(E)  # S105: L_rest,e minus the reference surface's arc length, m
+        self.flat_edge = np.zeros(E, dtype=np.uint8)  # S106 scratch: coarse edges inside a stretched region
         self.vertex_required = np.zeros(n)
         self.dh_def = np.zeros(N)  # S106 Δh_deformation
         self.expected = np.zeros(N)  # S106 ΔL_expected
@@ -164,14 +166,15 @@ class DetailedSurface:
                        t.interior_local, m.transfer_exponent, s.rates, s.f1, s.fn, s.ids, s.ef)
         normal_force(s.p, s.ef, m.d_edges, s.vf)
         # S105: length displacement
-        length_displacement(s.p, t.edge_ids, m.edge_rest, t.coarse_triangles, t.owner_face, t.owner_weights,
-                            s.edge_required, s.vertex_required, m.vertex_edge_count, s.required)
+        length_displacement(s.p, s.p_smoothed, t.edge_ids, m.edge_rest, t.coarse_triangles, t.owner_face,
+                            t.owner_weights, s.edge_required, s.edge_deficit, s.vertex_required, m.vertex_edge_count,
+                            s.required)
         # S106: deformation, constraints, positions, shading normals
         deformation_heights(s.vf, s.dh, s.required, m.d_edges, t.n_coarse, m.k_out_plane, dt, s.expected, s.dh_def)
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
-                          t.interior_local, m.d_edges, m.d_max, m.d_edge_start, m.d_edge_ids, st.constraint_passes,
-                          st.max_height, s.moved, s.stamp, s.p)
+                          s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.d_edge_start,
+                          m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved, s.stamp, s.p)
         shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
         self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)

@@ -165,6 +165,82 @@ def test_fully_stretched_faces_stay_flat():
     np.testing.assert_allclose(p[:, 1], 0.0, atol=1e-15)
 
 
+def test_stretched_region_comes_down_flat_edges_included():
+    """Heights left from earlier wrinkles (3 mm on every detailed particle) on a sheet now
+    stretched everywhere: one frame later the whole sheet is flat, the particles on the coarse
+    edges between the stretched faces included (Decision in S106's flat rule: before it, an
+    edge's particles kept their height, a bump on every edge)."""
+    m = sheet_model()
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions * np.array([1.1, 1.0, 1.1])
+    n_coarse = m.tess.n_coarse
+    surf.state.dh[n_coarse:] = 0.003
+    p, _ = surf.step(x, None, None, None, None, DT)
+    assert np.all(surf.state.edge_required < 0) and np.all(surf.state.edge_deficit < 0)
+    np.testing.assert_array_equal(surf.state.dh, 0.0)
+    np.testing.assert_allclose(p[:, 1], 0.0, atol=1e-15)
+
+
+def test_wrinkles_on_a_compressed_edge_stay_when_they_make_its_faces_look_stretched():
+    """Along x the coarse cloth is 10 % short, along z 10 % long (the diagonals a little long
+    too). Heights of 6 mm on the x edges' particles make those edges longer than at rest, so
+    every face looks fully stretched: the faces' interiors come down (S106), but the x edges
+    keep their wrinkles, because the reference surface is short along them; the z edges'
+    particles come down."""
+    m = sheet_model()
+    surf = DetailedSurface(m)
+    t = m.tess
+    x = m.cloth.rest_positions * np.array([0.9, 1.0, 1.1])
+    rest = m.cloth.rest_positions
+    along_x = np.abs(rest[t.coarse_edges[:, 0], 2] - rest[t.coarse_edges[:, 1], 2]) < 1e-12
+    along_z = np.abs(rest[t.coarse_edges[:, 0], 0] - rest[t.coarse_edges[:, 1], 0]) < 1e-12
+    x_particles = t.edge_ids[along_x][:, 1:-1].ravel()
+    z_particles = t.edge_ids[along_z][:, 1:-1].ravel()
+    surf.state.dh[x_particles] = 0.006
+    surf.step(x, None, None, None, None, DT)
+    s = surf.state
+    assert np.all(s.edge_required < 0)  # every face looks fully stretched
+    assert np.all(s.edge_deficit[along_x] > 0) and np.all(s.edge_deficit[~along_x] < 0)
+    np.testing.assert_array_equal(s.dh[t.face_ids[:, t.interior_local]], 0.0)
+    np.testing.assert_array_equal(s.dh[z_particles], 0.0)
+    assert np.all(s.dh[x_particles] > 0.003)  # the neighbour-distance limit takes some off
+
+
+def test_length_requirement_per_vertex_counts_only_compressed_edges():
+    """S105 with the per-vertex Decision: along x the cloth is 5 % short, along z 20 % long. A
+    coarse vertex's requirement is the mean of its compressed edges' ΔLE_required (the long
+    ones add 0, where a signed mean would be negative: no wrinkle at all); the particles on a
+    long edge take none; those on a compressed edge between two vertices get the vertices'
+    interpolated value."""
+    m = sheet_model()
+    surf = DetailedSurface(m)
+    t = m.tess
+    x = m.cloth.rest_positions * np.array([0.95, 1.0, 1.2])
+    surf.step(x, None, None, None, None, DT)  # flat sheet: the reference surface is the surface
+    s = surf.state
+    req = s.edge_required
+    arc = np.linalg.norm(np.diff(s.p_smoothed[t.edge_ids], axis=1), axis=2).sum(axis=1)  # no heights yet
+    np.testing.assert_allclose(req, m.edge_rest - arc, atol=1e-15)
+    np.testing.assert_allclose(s.edge_deficit, req, atol=1e-15)
+    positive = np.zeros(t.n_coarse)
+    signed = np.zeros(t.n_coarse)
+    for (a, b), r in zip(t.coarse_edges, req):
+        positive[[a, b]] += max(r, 0.0)
+        signed[[a, b]] += r
+    count = np.bincount(t.coarse_edges.ravel(), minlength=t.n_coarse)
+    np.testing.assert_allclose(s.vertex_required, positive / count, atol=1e-15)
+    assert np.all(s.vertex_required > 0) and np.all(signed < 0)
+    for e, r in enumerate(req):
+        inner = t.edge_ids[e, 1:-1]
+        if r <= 0:
+            np.testing.assert_array_equal(s.required[inner], 0.0)
+        else:
+            a, b = t.coarse_edges[e]
+            w = np.arange(1, t.level) / t.level
+            np.testing.assert_allclose(s.required[inner], (1 - w) * s.vertex_required[a] + w * s.vertex_required[b],
+                                       atol=1e-15)
+
+
 def body_mesh_of(verts, tris):
     return BodyMesh.build(tris, len(verts))
 
