@@ -46,7 +46,6 @@ class SurfaceModel:
     cloth: ClothModel
     edge_rest: np.ndarray  # (E,) m: detailed arc length along each coarse edge at rest (S105 L_rest,e)
     edge_rest_coarse: np.ndarray  # (E,) m: straight length of each coarse edge at rest
-    vertex_edge_count: np.ndarray  # (n_coarse,) coarse edges per coarse vertex
     d_edges: np.ndarray  # (D, 2) int32 detailed mesh edges
     d_max: np.ndarray  # (D,) m: maximum neighbour distance per detailed edge
     d_edge_start: np.ndarray  # (N + 1,) int64: CSR of each detailed vertex's edges (into d_edges)
@@ -72,13 +71,12 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     pn_surface(tess, x, np.zeros((n, 3)), np.zeros((T, 10, 3)), np.zeros((T, 6, 3)), p_rest, n_rest)
     seg = np.linalg.norm(np.diff(p_rest[tess.edge_ids], axis=1), axis=2)
     edge_rest = seg.sum(axis=1)
-    count = np.bincount(tess.coarse_edges.ravel(), minlength=n).astype(np.float64)
     d_edges = tess.detail_edges
     rest_len = np.linalg.norm(p_rest[d_edges[:, 0]] - p_rest[d_edges[:, 1]], axis=1)
     f = cloth.fabric
     straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)
     es, ei = vertex_cells(tess.n_vertices, d_edges)
-    return SurfaceModel(tess, settings, cloth, edge_rest, straight, count, d_edges,
+    return SurfaceModel(tess, settings, cloth, edge_rest, straight, d_edges,
                         f.max_neighbour_ratio * rest_len, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent)
 
 
@@ -104,6 +102,7 @@ class SurfaceState:
         self.edge_deficit = np.zeros(E)  # S105: L_rest,e minus the reference surface's arc length, m
         self.flat_edge = np.zeros(E, dtype=np.uint8)  # S106 scratch: coarse edges inside a stretched region
         self.vertex_required = np.zeros(n)
+        self.vertex_compressed = np.zeros(n)  # S105 scratch: compressed coarse edges per coarse vertex
         self.dh_def = np.zeros(N)  # S106 Δh_deformation
         self.expected = np.zeros(N)  # S106 ΔL_expected
         self.moved = np.zeros((2, N), dtype=np.int32)  # S106 constraint rounds: who moved in the last one
@@ -167,7 +166,7 @@ class DetailedSurface:
         normal_force(s.p, s.ef, m.d_edges, s.vf)
         # S105: length displacement
         length_displacement(s.p, s.p_smoothed, t.edge_ids, m.edge_rest, t.coarse_triangles, t.owner_face,
-                            t.owner_weights, s.edge_required, s.edge_deficit, s.vertex_required, m.vertex_edge_count,
+                            t.owner_weights, s.edge_required, s.edge_deficit, s.vertex_required, s.vertex_compressed,
                             s.required)
         # S106: deformation, constraints, positions, shading normals
         deformation_heights(s.vf, s.dh, s.required, m.d_edges, t.n_coarse, m.k_out_plane, dt, s.expected, s.dh_def)

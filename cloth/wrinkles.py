@@ -318,24 +318,25 @@ def normal_force(p, ef, edges, vf):
 
 @kernel
 def length_displacement(p, p_smoothed, edge_ids, edge_rest, coarse_tris, owner_face, owner_weights, edge_required,
-                        edge_deficit, vertex_required, vertex_count, required):
+                        edge_deficit, vertex_required, vertex_compressed, required):
     """S105: per coarse edge ΔLE_required,e = L_rest,e - L_e (L_e: the detailed arc length along
-    it; > 0 when compressed); per coarse vertex the mean over its edges of the compressed
-    edges' requirement (Decision: max(ΔLE_required, 0), see below); then interpolated
-    linearly along the edges and inside the faces (plain interpolation: for values linear
-    along the edges this is the barycentric interpolation of the corner values, used here).
-    Decision, the per-vertex mean: a compressed edge wrinkles whatever the other edges at its
-    ends do (cloth buckles across the compressed direction while tense along the other: a
-    tension field), so an over-long edge adds 0 to the mean instead of cancelling its
-    neighbour's requirement; S106's flat rule flattens what is over-long. With the signed
-    mean, 92-97 % of the detailed particles on the walk clip's compressed T-shirt edges had
-    no requirement left, and old wrinkles stayed as isolated bumps.
+    it; > 0 when compressed); per coarse vertex the mean over its compressed edges (Decision,
+    below); then interpolated linearly along the edges and inside the faces (plain
+    interpolation: for values linear along the edges this is the barycentric interpolation of
+    the corner values, used here); the particles on an edge that is long enough take none.
+    Decision, the per-vertex mean: over the edges with ΔLE_required > 0 only (0 where there
+    are none). Cloth buckles across a compressed direction while it is tense along the other
+    (a tension field), so an over-long edge must neither cancel its neighbour's requirement
+    nor dilute it. With the signed mean over every edge, 92-97 % of the detailed particles on
+    the walk clip's compressed T-shirt edges had no requirement left, and old wrinkles stayed
+    as isolated bumps; S106's flat rule takes down what is over-long.
     edge_deficit: written, L_rest,e minus the arc length of the reference surface (p_smoothed)
     along the edge: > 0 where the coarse cloth itself is short along it, whatever the heights.
-    vertex_count: how many coarse edges meet at each coarse vertex (built once)."""
+    vertex_compressed (n_coarse,): scratch, the compressed edges at each coarse vertex."""
     n_coarse = vertex_required.shape[0]
     for v in range(n_coarse):
         vertex_required[v] = 0.0
+        vertex_compressed[v] = 0.0
     L1 = edge_ids.shape[1]
     for e in range(edge_ids.shape[0]):
         length = 0.0
@@ -348,11 +349,13 @@ def length_displacement(p, p_smoothed, edge_ids, edge_rest, coarse_tris, owner_f
         dl = edge_rest[e] - length
         edge_required[e] = dl
         edge_deficit[e] = edge_rest[e] - reference
-        vertex_required[edge_ids[e, 0]] += max(dl, 0.0)
-        vertex_required[edge_ids[e, L1 - 1]] += max(dl, 0.0)
+        if dl > 0.0:
+            for end in (edge_ids[e, 0], edge_ids[e, L1 - 1]):
+                vertex_required[end] += dl
+                vertex_compressed[end] += 1.0
     for v in range(n_coarse):
-        if vertex_count[v] > 0:
-            vertex_required[v] /= vertex_count[v]
+        if vertex_compressed[v] > 0.0:
+            vertex_required[v] /= vertex_compressed[v]
     for i in range(p.shape[0]):
         t = owner_face[i]
         required[i] = (owner_weights[i, 0] * vertex_required[coarse_tris[t, 0]]
