@@ -468,7 +468,9 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
     return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
 
 
-CONTACT_ITERATIONS = 8  # nearest-surface pushes per particle and frame (alternate pushes in a narrow crease between two body parts converge slowly)
+# nearest-surface pushes per particle and frame (alternate pushes in a narrow crease between
+# two body parts converge slowly)
+CONTACT_ITERATIONS = 8
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 

@@ -344,7 +344,8 @@ def length_displacement(p, p_smoothed, edge_ids, edge_rest, coarse_tris, owner_f
         for m in range(L1 - 1):
             a, b = edge_ids[e, m], edge_ids[e, m + 1]
             length += math.sqrt((p[b, 0] - p[a, 0]) ** 2 + (p[b, 1] - p[a, 1]) ** 2 + (p[b, 2] - p[a, 2]) ** 2)
-            reference += math.sqrt((p_smoothed[b, 0] - p_smoothed[a, 0]) ** 2 + (p_smoothed[b, 1] - p_smoothed[a, 1]) ** 2
+            reference += math.sqrt((p_smoothed[b, 0] - p_smoothed[a, 0]) ** 2
+                                   + (p_smoothed[b, 1] - p_smoothed[a, 1]) ** 2
                                    + (p_smoothed[b, 2] - p_smoothed[a, 2]) ** 2)
         dl = edge_rest[e] - length
         edge_required[e] = dl
