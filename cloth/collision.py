@@ -477,8 +477,8 @@ MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts i
 
 @kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
-                     nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, part, part_vertex, part_d2,
-                     inv_mass, placed_inv_mass, active):
+                     nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, grid_x, grid_regions,
+                     grid_parts, part, part_vertex, part_d2, inv_mass, placed_inv_mass, active):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
@@ -498,7 +498,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     side taken, unless it is more than MAX_OTHER_PART_DEPTH inside: that deep behind a thin
     part's face the two parts intersect (linear blend skinning presses a thigh into the belly),
     and a push out of one lands in the other.
-    q: (3,) scratch; cell, grid_start, grid_ids: a `VertexGrid` built for this pose;
+    q: (3,) scratch; cell, grid_start, grid_ids, grid_x, grid_regions, grid_parts: a
+    `VertexGrid` built for this pose (`VertexGrid.arrays()`);
     part (8,) uint8, part_vertex (8,) int32, part_d2 (8,) float64: scratch for the parts.
     placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
     strain-limiting pass after it pulls the cloth towards them and never them back inside.
@@ -513,7 +514,7 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
             vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
             d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
-            found, d2 = grid_nearest(px, py, pz, body_x, cell, grid_start, grid_ids, vtx, d2)
+            found, d2 = grid_nearest(px, py, pz, grid_x, cell, grid_start, grid_ids, vtx, d2)
             if found != vtx:
                 vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, found, regions, 255)
             nearest_any[i] = vtx
@@ -523,11 +524,9 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
                 # another body part's face can be nearer than any of its vertices, and nearer
                 # than this vertex's ring (an arm against the torso, the thighs at the crotch):
                 # the ring of each other part's nearest vertex too, the most inside one decides
-                n_parts = grid_nearest_per_part(px, py, pz, body_x, regions, cell, grid_start, grid_ids, cell,
-                                                part, part_vertex, part_d2)
+                n_parts = grid_nearest_per_part(px, py, pz, grid_x, grid_regions, grid_parts, cell, grid_start,
+                                                grid_ids, cell, regions[vtx], part, part_vertex, part_d2)
                 for k in range(n_parts):
-                    if part[k] == regions[vtx]:
-                        continue
                     s2, mx, my, mz, ax, ay, az, _ = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
                                                                          tri_ids, part_vertex[k], face_n, q)
                     if s2 < side and s2 > -MAX_OTHER_PART_DEPTH and (mx != 0.0 or my != 0.0 or mz != 0.0):
@@ -565,7 +564,7 @@ class BodyPose:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
         self.x[:] = body_vertices[: self.body.n_vertices]
         body_face_normals(self.x, self.body.triangles, self.face_n)
-        self.grid.update(self.x)
+        self.grid.update(self.x, self.body.regions)
 
 
 class VertexGrid:
@@ -573,16 +572,31 @@ class VertexGrid:
 
     It answers "which body vertex is nearest to this point" over the whole body, where a
     walk over the mesh can only reach vertices connected to where it starts (a thigh cannot
-    walk to the other thigh). One grid serves every garment on the same body pose."""
+    walk to the other thigh). One grid serves every garment on the same body pose.
+    Bucket c holds ids[start[c]:start[c + 1]]; x and regions are the vertices' positions and
+    region bits in that same order (a bucket's scan reads contiguous memory), and parts[c] is
+    the OR of its vertices' region bits (a block of buckets with one body part in it needs no
+    scan for the others)."""
 
     def __init__(self, n_vertices: int, cell: float = 0.03, table_bits: int = 15):
         self.cell = cell
         self.start = np.zeros((1 << table_bits) + 1, dtype=np.int64)
         self.ids = np.zeros(n_vertices, dtype=np.int32)
+        self.x = np.zeros((n_vertices, 3))
+        self.regions = np.zeros(n_vertices, dtype=np.uint8)
+        self.parts = np.zeros(1 << table_bits, dtype=np.uint8)
         self.counts = np.zeros(1 << table_bits, dtype=np.int64)
 
-    def update(self, body_x: np.ndarray) -> None:
-        build_vertex_grid(body_x, self.cell, self.start, self.ids, self.counts)
+    def update(self, body_x: np.ndarray, regions: np.ndarray | None = None) -> None:
+        """regions: (n,) uint8 region bits of the vertices (None: all one part)."""
+        if regions is None:
+            regions = np.ones(len(self.ids), dtype=np.uint8)
+        build_vertex_grid(body_x, regions, self.cell, self.start, self.ids, self.counts, self.x, self.regions,
+                          self.parts)
+
+    def arrays(self) -> tuple:
+        """What `resolve_contacts` takes of the grid: (cell, start, ids, x, regions, parts)."""
+        return self.cell, self.start, self.ids, self.x, self.regions, self.parts
 
 
 @njit(cache=True, inline="always")
@@ -591,15 +605,18 @@ def _cell_hash(i, j, k, mask):
 
 
 @kernel
-def build_vertex_grid(body_x, cell, start, ids, counts):
-    """Counting sort of the body vertices by hashed cell (CSR: start, ids)."""
+def build_vertex_grid(body_x, regions, cell, start, ids, counts, grid_x, grid_regions, parts):
+    """Counting sort of the body vertices by hashed cell (CSR: start, ids), with their
+    positions and regions copied in that order and each cell's OR of region bits."""
     mask = counts.shape[0] - 1
     counts[:] = 0
+    parts[:] = 0
     n = ids.shape[0]
     for u in range(n):
         c = _cell_hash(int(math.floor(body_x[u, 0] / cell)), int(math.floor(body_x[u, 1] / cell)),
                        int(math.floor(body_x[u, 2] / cell)), mask)
         counts[c] += 1
+        parts[c] |= regions[u]
     start[0] = 0
     for c in range(counts.shape[0]):
         start[c + 1] = start[c] + counts[c]
@@ -607,7 +624,10 @@ def build_vertex_grid(body_x, cell, start, ids, counts):
     for u in range(n):
         c = _cell_hash(int(math.floor(body_x[u, 0] / cell)), int(math.floor(body_x[u, 1] / cell)),
                        int(math.floor(body_x[u, 2] / cell)), mask)
-        ids[start[c] + counts[c]] = u
+        e = start[c] + counts[c]
+        ids[e] = u
+        grid_x[e, 0], grid_x[e, 1], grid_x[e, 2] = body_x[u, 0], body_x[u, 1], body_x[u, 2]
+        grid_regions[e] = regions[u]
         counts[c] += 1
 
 
@@ -620,10 +640,12 @@ def _cell_block(px, py, pz, r, cell):
 
 
 @njit(cache=True, inline="always")
-def grid_nearest_per_part(px, py, pz, body_x, regions, cell, start, ids, radius, part, best, best_d2):
-    """The nearest body vertex of every body part (a distinct `regions` value) within `radius`
-    of p. Returns how many parts were found (at most len(part)): part k is region value
-    part[k], its nearest vertex best[k] at squared distance best_d2[k]."""
+def grid_nearest_per_part(px, py, pz, grid_x, grid_regions, parts, cell, start, ids, radius, own, part, best,
+                          best_d2):
+    """The nearest body vertex of every body part (a distinct region bit) other than `own`
+    within `radius` of p. Returns how many parts were found (at most len(part)): part k is
+    region bit part[k], its nearest vertex best[k] at squared distance best_d2[k]. The cells
+    whose vertices are all of `own` are not scanned (on most of a garment, all of them)."""
     mask = start.shape[0] - 2
     r2 = radius * radius
     n = 0
@@ -632,12 +654,15 @@ def grid_nearest_per_part(px, py, pz, body_x, regions, cell, start, ids, radius,
         for j in range(j0, j1 + 1):
             for k in range(k0, k1 + 1):
                 c = _cell_hash(i, j, k, mask)
+                if (parts[c] & ~own) == 0:
+                    continue
                 for e in range(start[c], start[c + 1]):
-                    u = ids[e]
-                    d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
+                    g = grid_regions[e]
+                    if g == own:
+                        continue
+                    d = (grid_x[e, 0] - px) ** 2 + (grid_x[e, 1] - py) ** 2 + (grid_x[e, 2] - pz) ** 2
                     if d >= r2:
                         continue
-                    g = regions[u]
                     slot = 0
                     while slot < n and part[slot] != g:
                         slot += 1
@@ -645,17 +670,17 @@ def grid_nearest_per_part(px, py, pz, body_x, regions, cell, start, ids, radius,
                         if n == part.shape[0]:
                             continue
                         part[slot] = g
-                        best[slot] = u
+                        best[slot] = ids[e]
                         best_d2[slot] = d
                         n += 1
                     elif d < best_d2[slot]:
-                        best[slot] = u
+                        best[slot] = ids[e]
                         best_d2[slot] = d
     return n
 
 
 @njit(cache=True, inline="always")
-def grid_nearest(px, py, pz, body_x, cell, start, ids, best, best_d2):
+def grid_nearest(px, py, pz, grid_x, cell, start, ids, best, best_d2):
     """Nearest body vertex to p within one grid cell of it, if nearer than best_d2 (returns
     (vertex, squared distance); (best, best_d2) when none is nearer). Only the cells that the
     ball of radius sqrt(best_d2) around p overlaps are visited: for a particle in contact
@@ -668,9 +693,8 @@ def grid_nearest(px, py, pz, body_x, cell, start, ids, best, best_d2):
             for k in range(k0, k1 + 1):
                 c = _cell_hash(i, j, k, mask)
                 for e in range(start[c], start[c + 1]):
-                    u = ids[e]
-                    d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
+                    d = (grid_x[e, 0] - px) ** 2 + (grid_x[e, 1] - py) ** 2 + (grid_x[e, 2] - pz) ** 2
                     if d < best_d2:
                         best_d2 = d
-                        best = u
+                        best = ids[e]
     return best, best_d2

@@ -289,9 +289,8 @@ class ClothSim:
         grid = pose.grid
         active = s.all_particles if active is None else active
         resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                         b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q, grid.cell,
-                         grid.start, grid.ids, s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass,
-                         active)
+                         b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q,
+                         *grid.arrays(), s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active)
 
 
 __all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",

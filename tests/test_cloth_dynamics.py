@@ -213,14 +213,31 @@ def resolve_against_two_parts(x, v, coarse_v, coarse_t):
     regions = np.r_[np.full(len(fine_v), 1), np.full(len(coarse_v), 2)].astype(np.uint8)
     mesh = BodyMesh.build(tris, len(verts), regions)
     grid = VertexGrid(len(verts))
-    grid.update(verts)
+    grid.update(verts, mesh.regions)
     nearest = np.zeros(1, np.int32)
     scratch = contact_scratch(len(x))
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, nearest, 0.003, np.zeros(1, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *scratch)
+                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *scratch)
     assert nearest[0] < len(fine_v)  # the nearest vertex is the fine box's
     return scratch[-2]
+
+
+def test_vertex_grid_buckets_copy_positions_and_or_the_parts_of_each_cell():
+    """Four vertices: two of part 1 in one 3 cm cell, one of part 2 in the same cell and one of
+    part 4 in a cell of its own. Each bucket lists its vertices with their positions and
+    region bits in the same order, and a cell's part mask is the OR of its vertices' bits."""
+    verts = np.array([[0.001, 0.001, 0.001], [0.02, 0.01, 0.005], [0.015, 0.025, 0.02], [0.1, 0.0, 0.0]])
+    regions = np.array([1, 1, 2, 4], np.uint8)
+    grid = VertexGrid(len(verts))
+    grid.update(verts, regions)
+    np.testing.assert_array_equal(grid.x, verts[grid.ids])
+    np.testing.assert_array_equal(grid.regions, regions[grid.ids])
+    buckets = {int(c): sorted(grid.ids[grid.start[c]:grid.start[c + 1]]) for c in np.flatnonzero(np.diff(grid.start))}
+    assert sorted(buckets.values()) == [[0, 1, 2], [3]]
+    parts = {tuple(ids): int(grid.parts[c]) for c, ids in buckets.items()}
+    assert parts == {(0, 1, 2): 3, (3,): 4}
+    assert np.count_nonzero(grid.parts) == 2
 
 
 def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices():
@@ -265,12 +282,12 @@ def test_resolve_contacts_pushes_out_of_any_body_part():
     x = np.array([[2.1, 0.28, -0.05], [2.0, 0.45, 0.0]])
     v = np.array([[0.0, -1.0, 0.5], [0.0, -1.0, 0.0]])
     grid = VertexGrid(len(verts))
-    grid.update(verts)
+    grid.update(verts, mesh.regions)
     start = np.zeros(2, np.int32)  # both walks would start on the first box
     scratch = contact_scratch(2, np.array([2.0, 3.0]))
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, start, 0.003, np.zeros(2, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *scratch)
+                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *scratch)
     assert start[0] >= len(verts1)
     np.testing.assert_allclose(x[0], [2.1, 0.303, -0.05], atol=1e-9)
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
@@ -385,10 +402,10 @@ def test_resolve_contacts_settles_a_particle_in_a_concave_corner_away_from_both_
     x = np.array([[0.999, 0.9985, 0.5]])
     v = np.zeros_like(x)
     grid = VertexGrid(len(verts))
-    grid.update(verts)
+    grid.update(verts, mesh.regions)
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.zeros(1, np.uint8),
-                     face_n, np.zeros(3), grid.cell, grid.start, grid.ids, *contact_scratch(len(x)))
+                     face_n, np.zeros(3), *grid.arrays(), *contact_scratch(len(x)))
     assert x[0, 0] >= 1.003 - 1e-9 and x[0, 1] >= 1.003 - 1e-9, x
     assert x[0, 0] < 1.0031 and x[0, 1] < 1.0031 and x[0, 2] == 0.5, x
 
@@ -401,10 +418,10 @@ def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_veloc
     x = np.array([[0.1, 0.29, 0.0]])
     v = np.array([[0.0, -1.0, 0.0]])
     grid = VertexGrid(len(verts))
-    grid.update(verts)
+    grid.update(verts, mesh.regions)
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.ones(1, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *contact_scratch(len(x)))
+                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *contact_scratch(len(x)))
     np.testing.assert_allclose(x[0], [0.1, 0.303, 0.0], atol=1e-9)
     np.testing.assert_array_equal(v[0], [0.0, -1.0, 0.0])
 
@@ -424,12 +441,12 @@ def test_resolve_contacts_tests_only_the_active_particles():
     np.testing.assert_array_equal(active, [1, 0])
     v = np.zeros_like(x)
     grid = VertexGrid(len(verts))
-    grid.update(verts)
+    grid.update(verts, mesh.regions)
     scratch = contact_scratch(2)[:-1] + (active,)
     inside = x[1].copy()
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(2, np.int32), 0.003, np.zeros(2, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), grid.cell, grid.start, grid.ids, *scratch)
+                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *scratch)
     np.testing.assert_allclose(x[0], [0.1016, 0.303, -0.05], atol=1e-9)
     np.testing.assert_array_equal(x[1], inside)
     placed = scratch[-2]
