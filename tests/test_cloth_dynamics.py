@@ -223,6 +223,14 @@ def resolve_against_two_parts(x, v, coarse_v, coarse_t):
     return scratch[-2]
 
 
+def test_body_face_normals_are_unit_normals_and_twice_the_areas():
+    """Three faces: a 3 × 4 right triangle in the xy plane (normal +z, twice the area 12), the
+    same one wound the other way (normal -z), and a degenerate one (no normal, no area)."""
+    verts = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0], [6.0, 0.0, 0.0]])
+    tris = np.array([[0, 1, 2], [0, 2, 1], [0, 1, 3]], np.int32)
+    np.testing.assert_allclose(face_normals(verts, tris), [[0, 0, 1, 12], [0, 0, -1, 12], [0, 0, 0, 0]], atol=1e-15)
+
+
 def test_vertex_grid_buckets_copy_positions_and_or_the_parts_of_each_cell():
     """Four vertices: two of part 1 in one 3 cm cell, one of part 2 in the same cell and one of
     part 4 in a cell of its own. Each bucket lists its vertices with their positions and
