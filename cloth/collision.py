@@ -51,16 +51,13 @@ class BodyMesh:
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles))
 
 
-@kernel(fastmath=True)
-def body_face_normals(body_x, tris, face_n, area2):
+@kernel
+def body_face_normals(body_x, tris, face_n):
     """face_n[t] = (unit normal, twice the area) of every body face, once per body pose.
 
     The body stands still during a frame's substeps and its surface stage, and every garment
     on it reads the same faces: one flat pass per pose, shared, costs less than computing
-    them on demand behind a per-face check in every walk.
-    area2 (m,): scratch. The square roots have a pass of their own over it, which LLVM
-    vectorises; in the pass with the cross products they waited on the scalar divider
-    (26,756 faces: 155 → 92 µs)."""
+    them on demand behind a per-face check in every walk."""
     for t in range(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         ux = body_x[b, 0] - body_x[a, 0]
@@ -72,25 +69,19 @@ def body_face_normals(body_x, tris, face_n, area2):
         nx = uy * vz - uz * vy
         ny = uz * vx - ux * vz
         nz = ux * vy - uy * vx
-        face_n[t, 0] = nx
-        face_n[t, 1] = ny
-        face_n[t, 2] = nz
-        area2[t] = nx * nx + ny * ny + nz * nz
-    for t in range(area2.shape[0]):
-        area2[t] = math.sqrt(area2[t])
-    for t in range(tris.shape[0]):
-        inv = 1.0 / area2[t] if area2[t] > 0.0 else 0.0
-        face_n[t, 0] *= inv
-        face_n[t, 1] *= inv
-        face_n[t, 2] *= inv
-        face_n[t, 3] = area2[t]
+        area2 = math.sqrt(nx * nx + ny * ny + nz * nz)
+        inv = 1.0 / area2 if area2 > 0.0 else 0.0
+        face_n[t, 0] = nx * inv
+        face_n[t, 1] = ny * inv
+        face_n[t, 2] = nz * inv
+        face_n[t, 3] = area2
 
 
 def face_normals(body_x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(m, 4) float64: unit normal and twice the area of each face (allocating; see body_face_normals)."""
     out = np.zeros((len(triangles), 4))
     body_face_normals(np.ascontiguousarray(body_x, dtype=np.float64), np.ascontiguousarray(triangles, dtype=np.int32),
-                      out, np.zeros(len(triangles)))
+                      out)
     return out
 
 
@@ -567,13 +558,12 @@ class BodyPose:
         self.body = body
         self.x = np.zeros((body.n_vertices, 3))  # m
         self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
-        self.area2 = np.zeros(len(body.triangles))  # its scratch
         self.grid = VertexGrid(body.n_vertices)
 
     def update(self, body_vertices: np.ndarray) -> None:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
         self.x[:] = body_vertices[: self.body.n_vertices]
-        body_face_normals(self.x, self.body.triangles, self.face_n, self.area2)
+        body_face_normals(self.x, self.body.triangles, self.face_n)
         self.grid.update(self.x, self.body.regions)
 
 
