@@ -126,21 +126,39 @@ def deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
     return best, best_t
 
 
+# a particle this many thicknesses in front of the faces it was last tested against, less how
+# far it moved since, cannot have reached them (the margin covers a walk to another vertex's faces)
+SKIP_CLEARANCE = 2.0
+
+
 @kernel
 def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
-                      nearest, thickness, friction, contact, fixed, face_n):
+                      nearest, thickness, friction, contact, fixed, face_n, tested_at, clear):
     """S101 collision: update each particle's nearest body vertex by a walk; if the particle is
     behind every face around it (closer than `thickness`), move it onto the surface plus thickness.
 
     Velocity relative to the body (body_vel: the body's velocity at the particle not already
     carried by body following) loses its inward normal part, and Coulomb friction removes up to
     friction * |removed normal speed| of its tangential part.
-    face_n: the body's face normals for this pose (see `body_face_normals`)."""
+    face_n: the body's face normals for this pose (see `body_face_normals`).
+    tested_at (n, 3), clear (n,): where each particle was last tested and its distance in front
+    of the faces there (-inf: test it now). The body stands still during a frame's substeps,
+    and a point's distance to a plane changes by at most how far the point moved: a particle
+    still farther than SKIP_CLEARANCE thicknesses from the faces it was tested against
+    is not tested again (loose cloth: a skirt's hem, a blouse's back). The caller sets clear
+    to -inf when the body moves (each frame)."""
     for i in range(x.shape[0]):
         px, py, pz = x[i, 0], x[i, 1], x[i, 2]  # the point as scalars (see the module docstring)
+        if clear[i] > SKIP_CLEARANCE * thickness:
+            moved = math.sqrt((px - tested_at[i, 0]) ** 2 + (py - tested_at[i, 1]) ** 2 + (pz - tested_at[i, 2]) ** 2)
+            if clear[i] - moved > SKIP_CLEARANCE * thickness:
+                contact[i] = 0
+                continue
         vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
         nearest[i] = vtx
         d, t = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
+        tested_at[i, 0], tested_at[i, 1], tested_at[i, 2] = px, py, pz
+        clear[i] = d if t >= 0 else -np.inf
         if d >= thickness or fixed[i] or t < 0:
             contact[i] = 0
             continue

@@ -33,14 +33,15 @@ from .model import ClothModel, SimSettings, build_cloth_model
 @kernel
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj,
                       rest, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
-                      tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n):
+                      tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n, tested_at,
+                      clear):
     """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
     call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
         rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
             collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
-                              masks, nearest, thickness, friction, contact, fixed, face_n)
+                              masks, nearest, thickness, friction, contact, fixed, face_n, tested_at, clear)
         # one Gauss-Seidel pass per substep, more on the last: the frame's output is what must hold
         for _ in range(1 if k < n_sub - 1 else limit_passes):
             limit_stretch(x, v, inv_mass, si, sj, rest, n_structural, max_strain)
@@ -103,9 +104,12 @@ def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh
     contact = np.zeros(len(x), dtype=np.uint8)
     free = np.zeros(len(x), dtype=np.uint8)
     face_n = face_normals(body_x, body.triangles)
+    tested_at = np.zeros_like(x)
+    clear = np.full(len(x), -np.inf)
     for _ in range(iterations):
         collide_particles(x, v, body_x, v, body.nbr_start, body.nbr_ids, body.triangles, body.tri_start,
-                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free, face_n)
+                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free, face_n, tested_at,
+                          clear)
     return x
 
 
@@ -162,6 +166,8 @@ class ClothState:
         self.carrier = np.zeros((n, 3))  # part of it not transported by body following, m/s
         self.followed = np.zeros((n, 3))  # fully body-following positions (recovery targets)
         self.contact = np.zeros(n, dtype=np.uint8)  # in contact after the last collision
+        self.tested_at = np.zeros((n, 3))  # substep collision: where each particle was last tested,
+        self.clear = np.zeros(n)  # and how far in front of the body's faces it was (see collide_particles)
         self.normals = np.zeros((n, 3))  # particle normals of this frame (air drag)
         self.bad = np.zeros(n, dtype=np.uint8)
         self.work = np.zeros((9, n, 3))
@@ -217,6 +223,7 @@ class ClothSim:
         follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
                     1.0 / dt, st.follow_near, st.follow_far, s.followed, face_n)
         vertex_normals(s.x, m.triangles, s.normals)  # for air drag
+        s.clear[:] = -np.inf  # the body moved: every particle is tested at the first collision
         n_sub = m.substeps_for(dt)
         h = dt / n_sub
         g = -st.gravity
@@ -229,7 +236,7 @@ class ClothSim:
                 if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
                     collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
                                       b.tri_ids, b.regions, m.region_mask, s.nearest, f.thickness, f.friction,
-                                      s.contact, m.grip, face_n)
+                                      s.contact, m.grip, face_n, s.tested_at, s.clear)
                 t2 = time.perf_counter()
                 for _ in range(1 if k < n_sub - 1 else st.limit_passes):
                     limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
@@ -243,7 +250,8 @@ class ClothSim:
                               m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.work, m.n_structural,
                               f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
-                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, face_n)
+                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, face_n,
+                              s.tested_at, s.clear)
         # recovery before the contact pass: a reset particle's body-following place can lie in
         # another body part, and what leaves the step has been through the contact pass
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,

@@ -164,8 +164,43 @@ def collide_once(points, verts, tris, thickness):
     free = np.zeros(len(x), dtype=np.uint8)
     collide_particles(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                       mesh.tri_ids, mesh.regions, masks, nearest, thickness, 0.5, contact, free,
-                      face_normals(verts, tris))
+                      face_normals(verts, tris), np.zeros_like(x), np.full(len(x), -np.inf))
     return x, contact
+
+
+def test_collision_skips_a_particle_that_cannot_have_reached_the_body_since_its_last_test():
+    """Box of half-width 0.3 m, thickness 3 mm. A particle 3 cm above the top face is tested
+    (clear = 0.03 m). Moved 5 mm down it is still more than 2 thicknesses + 5 mm in front:
+    not tested (its nearest vertex, set elsewhere on purpose, stays). Moved inside the box, it
+    is tested again, its walk finds the top, and it is pushed out to thickness above it."""
+    verts, tris = box(0.3)
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[0.01, 0.33, 0.02]])
+    v = np.zeros_like(x)
+    nearest = np.zeros(1, np.int32)
+    contact = np.zeros(1, np.uint8)
+    tested_at, clear = np.zeros_like(x), np.full(1, -np.inf)
+    args = (verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start, mesh.tri_ids,
+            mesh.regions, np.full(1, 255, np.uint8), nearest, 0.003, 0.0, contact, np.zeros(1, np.uint8),
+            face_normals(verts, tris), tested_at, clear)
+
+    def collide():
+        collide_particles(x, v, *args)
+
+    collide()
+    assert clear[0] == pytest.approx(0.03)
+    np.testing.assert_array_equal(tested_at[0], x[0])
+    far = int(np.argmin(verts[:, 1]))  # a bottom vertex
+    nearest[0] = far
+    x[0, 1] = 0.325
+    collide()
+    assert nearest[0] == far and contact[0] == 0  # skipped
+    np.testing.assert_array_equal(x[0], [0.01, 0.325, 0.02])
+    x[0, 1] = 0.29
+    collide()
+    assert nearest[0] != far and verts[nearest[0], 1] == pytest.approx(0.3)
+    assert contact[0] == 1
+    np.testing.assert_allclose(x[0], [0.01, 0.303, 0.02], atol=1e-12)
 
 
 def test_particle_inside_a_sphere_is_pushed_out_to_its_surface():
