@@ -127,7 +127,7 @@ def deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
 
 
 # a particle this many thicknesses in front of the faces it was last tested against, less how
-# far it moved since, cannot have reached them (the margin covers a walk to another vertex's faces)
+# far it moved since, is not tested again in the frame (see collide_particles)
 SKIP_CLEARANCE = 2.0
 
 
@@ -146,7 +146,10 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
     and a point's distance to a plane changes by at most how far the point moved: a particle
     still farther than SKIP_CLEARANCE thicknesses from the faces it was tested against
     is not tested again (loose cloth: a skirt's hem, a blouse's back). The caller sets clear
-    to -inf when the body moves (each frame)."""
+    to -inf when the body moves (each frame). Not exact: in a crease the walk would have
+    moved on to a vertex whose faces the particle is behind (on the walk clip's elegant
+    outfit 275 of 3.5 million particle tests, 300 frames); the end-of-frame contact pass,
+    which skips nothing, puts those out."""
     for i in range(x.shape[0]):
         px, py, pz = x[i, 0], x[i, 1], x[i, 2]  # the point as scalars (see the module docstring)
         if clear[i] > SKIP_CLEARANCE * thickness:

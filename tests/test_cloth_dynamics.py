@@ -168,7 +168,7 @@ def collide_once(points, verts, tris, thickness):
     return x, contact
 
 
-def test_collision_skips_a_particle_that_cannot_have_reached_the_body_since_its_last_test():
+def test_collision_skips_a_particle_far_in_front_of_the_faces_of_its_last_test():
     """Box of half-width 0.3 m, thickness 3 mm. A particle 3 cm above the top face is tested
     (clear = 0.03 m). Moved 5 mm down it is still more than 2 thicknesses + 5 mm in front:
     not tested (its nearest vertex, set elsewhere on purpose, stays). Moved inside the box, it
