@@ -609,10 +609,8 @@ class VertexGrid:
         self.counts = np.zeros(1 << table_bits, dtype=np.int64)
         self.slot = np.zeros(n_vertices, dtype=np.int64)  # each vertex's bucket (build scratch)
 
-    def update(self, body_x: np.ndarray, regions: np.ndarray | None = None) -> None:
-        """regions: (n,) uint8 region bits of the vertices (None: all one part)."""
-        if regions is None:
-            regions = np.ones(len(self.ids), dtype=np.uint8)
+    def update(self, body_x: np.ndarray, regions: np.ndarray) -> None:
+        """regions: (n,) uint8 region bits of the vertices (`BodyMesh.regions`)."""
         build_vertex_grid(body_x, regions, self.cell, self.start, self.ids, self.counts, self.x, self.regions,
                           self.parts, self.slot)
 
