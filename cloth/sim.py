@@ -265,7 +265,20 @@ class ClothSim:
             nearest_vertices(s.x[idx], body_x, near, b.regions, m.region_mask[idx])
             s.nearest[idx] = near
             s.nearest_any[idx] = near
-        self._contact_pass(body_pose)
+        self.settle_contacts(body_pose)
+        attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
+                       s.height, s.anchor, face_n)
+        self.stats.frames += 1
+        self.stats.last_substeps = n_sub
+        return s.x
+
+    def settle_contacts(self, pose: BodyPose) -> None:
+        """After the substeps: the contact pass against the whole body, the slide pass, the
+        strain-limiting passes with the placed particles held, and the final contact pass
+        (see `SimSettings`)."""
+        s, m, st = self.state, self.model, self.model.settings
+        f = m.fabric
+        self._contact_pass(pose)
         if st.slide_passes:
             # the pass puts a particle where the skin under it went, and skin stretches more than
             # the cloth may (hips and thighs in a stride): free strain-limiting passes let the
@@ -273,7 +286,7 @@ class ClothSim:
             # out again what slid inside (it also catches what the first pass's pushes left behind)
             for _ in range(st.slide_passes):
                 limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural, f.max_strain)
-            self._contact_pass(body_pose)
+            self._contact_pass(pose)
         # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
         s.held_from[:] = s.x
         for _ in range(st.contact_limit_passes):
@@ -283,12 +296,7 @@ class ClothSim:
             # pulled after a placed particle, a free one cuts the chord across a curved limb:
             # what moved far enough to have reached the body is tested once more
             mark_moved(s.x, s.held_from, 0.5 * f.thickness, s.recheck)
-            self._contact_pass(body_pose, s.recheck)
-        attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
-                       s.height, s.anchor, face_n)
-        self.stats.frames += 1
-        self.stats.last_substeps = n_sub
-        return s.x
+            self._contact_pass(pose, s.recheck)
 
     def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
         """`resolve_contacts` against the whole body in this pose for the active particles (all
