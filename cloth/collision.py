@@ -33,12 +33,17 @@ class BodyMesh:
     tri_ids: np.ndarray  # int32
     regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each leg)
     tri_nbrs: np.ndarray  # (m, 3) int32: the triangle across each edge (see topology.triangle_neighbours)
+    clothed_faces: np.ndarray  # (m,) bool: the faces clothes can touch (see build)
 
     @classmethod
-    def build(cls, triangles: np.ndarray, n_vertices: int, regions: np.ndarray | None = None) -> "BodyMesh":
+    def build(cls, triangles: np.ndarray, n_vertices: int, regions: np.ndarray | None = None,
+              clothed_faces: np.ndarray | None = None) -> "BodyMesh":
         """regions: a bit per vertex naming its body part. A particle's nearest-vertex walk stays in
         the parts it lay near at rest, so an arm swinging past the torso cannot carry a shirt's
-        side away, nor one leg the other trouser leg. None: one region."""
+        side away, nor one leg the other trouser leg. None: one region.
+        clothed_faces: (m,) bool, the faces a garment can touch; only those go into the contact
+        pass's face grid (`FaceGrid`). The head, hands and toes are two thirds of a MakeHuman
+        body's triangles, and a cell full of them is scanned for nothing. None: every face."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
@@ -48,7 +53,12 @@ class BodyMesh:
         regions = np.ascontiguousarray(regions, dtype=np.uint8)
         if regions.shape != (n_vertices,) or np.any(regions == 0):
             raise ValueError(f"regions must be ({n_vertices},) uint8 with a bit set for every vertex")
-        return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles))
+        if clothed_faces is None:
+            clothed_faces = np.ones(len(triangles), dtype=bool)
+        clothed_faces = np.asarray(clothed_faces, dtype=bool)
+        if clothed_faces.shape != (len(triangles),):
+            raise ValueError(f"clothed_faces must be ({len(triangles)},) bool")
+        return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles), clothed_faces)
 
 
 @kernel
@@ -493,13 +503,15 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
 # two body parts converge slowly)
 CONTACT_ITERATIONS = 8
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
+REFINE_RADIUS = 0.02  # m: a contact result nearer than this is checked against every face (FaceGrid)
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 
 
 @kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
                      nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, grid_x, grid_regions,
-                     grid_parts, part, part_vertex, part_d2, inv_mass, placed_inv_mass, active):
+                     grid_parts, fcell, fstart, fids, fsphere, refine, part, part_vertex, part_d2, inv_mass, placed_inv_mass,
+                     active):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
@@ -519,8 +531,14 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     side taken, unless it is more than MAX_OTHER_PART_DEPTH inside: that deep behind a thin
     part's face the two parts intersect (linear blend skinning presses a thigh into the belly),
     and a push out of one lands in the other.
+    A surface that folds (the skinned skin between the buttocks, at the groin in a stride) has
+    faces of the same part nearer than every face around the nearest vertex: a result within
+    `refine` of the particle is checked against every body face in the `FaceGrid`
+    (`grid_nearest_face`), and the nearest face the particle is behind (or less than thickness
+    in front of) takes over. refine = 0 turns that off.
     q: (3,) scratch; cell, grid_start, grid_ids, grid_x, grid_regions, grid_parts: a
-    `VertexGrid` built for this pose (`VertexGrid.arrays()`);
+    `VertexGrid` built for this pose (`VertexGrid.arrays()`); fcell, fstart, fids, fsphere: a
+    `FaceGrid` for this pose (`FaceGrid.arrays()`);
     part (8,) uint8, part_vertex (8,) int32, part_d2 (8,) float64: scratch for the parts.
     placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
     strain-limiting pass after it pulls the cloth towards them and never them back inside.
@@ -541,6 +559,15 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             nearest_any[i] = vtx
             side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
                                                                    tri_ids, vtx, face_n, q)
+            if abs(side) < refine:
+                t, b2, fv, fw = grid_nearest_face(px, py, pz, body_x, tris, fcell, fstart, fids, fsphere,
+                                                  side * side, thickness, q)
+                if t >= 0:
+                    mx, my, mz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t,
+                                                closest_feature(fv, fw))
+                    if mx != 0.0 or my != 0.0 or mz != 0.0:
+                        side = signed(px, py, pz, q[0], q[1], q[2], mx, my, mz, b2)
+                        nx, ny, nz, qx, qy, qz = mx, my, mz, q[0], q[1], q[2]
             if d2 < cell * cell:
                 # another body part's face can be nearer than any of its vertices, and nearer
                 # than this vertex's ring (an arm against the torso, the thighs at the crotch):
@@ -573,19 +600,22 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
 
 class BodyPose:
     """What every garment reads from one body pose, computed once per pose and shared: the
-    vertices (float64, contiguous), the face normals and the vertex grid."""
+    vertices (float64, contiguous), the face normals, the vertex grid and the face grid (of
+    the faces clothes can touch, `BodyMesh.clothed_faces`)."""
 
     def __init__(self, body: BodyMesh):
         self.body = body
         self.x = np.zeros((body.n_vertices, 3))  # m
         self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
         self.grid = VertexGrid(body.n_vertices)
+        self.faces = FaceGrid(body.triangles, np.flatnonzero(body.clothed_faces))
 
     def update(self, body_vertices: np.ndarray) -> None:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
         self.x[:] = body_vertices[: self.body.n_vertices]
         body_face_normals(self.x, self.body.triangles, self.face_n)
         self.grid.update(self.x, self.body.regions)
+        self.faces.update(self.x, self.face_n)
 
 
 class VertexGrid:
@@ -721,3 +751,119 @@ def grid_nearest(px, py, pz, grid_x, cell, start, ids, best, best_d2):
                         best_d2 = d
                         best = ids[e]
     return best, best_d2
+
+
+class FaceGrid:
+    """The body's faces bucketed in a hashed uniform grid by the cells their bounding boxes
+    overlap, with each face's bounding sphere, rebuilt once per body pose.
+
+    It answers "is any body face nearer to p than r" exactly, where the ring of the nearest
+    vertex holds the nearest face only when the surface does not fold: in a crease of the
+    skinned skin (between the buttocks, the groin in a stride) a face of another sheet of the
+    same part can be nearer than every face around the nearest vertex."""
+
+    def __init__(self, triangles: np.ndarray, faces: np.ndarray | None = None, cell: float = 0.02,
+                 table_bits: int = 15):
+        self.cell = cell
+        self.triangles = triangles
+        self.faces = np.arange(len(triangles), dtype=np.int32) if faces is None else faces.astype(np.int32)
+        self.start = np.zeros((1 << table_bits) + 1, dtype=np.int64)
+        self.counts = np.zeros(1 << table_bits, dtype=np.int64)
+        self.ids = np.zeros(4 * len(triangles), dtype=np.int32)
+        self.record = np.zeros((len(triangles), 8))  # per face: bounding sphere (centre, radius), unit normal, n·a
+        self.span = np.zeros((len(triangles), 6), dtype=np.int64)  # build scratch: each face's cell block
+
+    def update(self, body_x: np.ndarray, face_n: np.ndarray) -> None:
+        """face_n: the pose's face normals (`body_face_normals`)."""
+        used = build_face_grid(body_x, self.triangles, self.faces, face_n, self.cell, self.start, self.counts,
+                               self.ids, self.record, self.span)
+        if used > len(self.ids):
+            self.ids = np.zeros(int(used * 1.25), dtype=np.int32)
+            build_face_grid(body_x, self.triangles, self.faces, face_n, self.cell, self.start, self.counts,
+                            self.ids, self.record, self.span)
+
+    def arrays(self) -> tuple:
+        """What `resolve_contacts` takes of the grid: (cell, start, ids, sphere)."""
+        return self.cell, self.start, self.ids, self.record
+
+
+@kernel
+def build_face_grid(body_x, tris, faces, face_n, cell, start, counts, ids, sphere, span):
+    """Counting sort of the faces by every hashed cell their bounding box overlaps (CSR: start,
+    ids) and each face's bounding sphere (centroid, farthest corner). Returns the entries
+    needed; when that exceeds len(ids) nothing is filled (the caller grows ids and calls again)."""
+    mask = counts.shape[0] - 1
+    counts[:] = 0
+    total = 0
+    for t in faces:
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        r2 = 0.0
+        for k in range(3):
+            lo = min(body_x[a, k], min(body_x[b, k], body_x[c, k]))
+            hi = max(body_x[a, k], max(body_x[b, k], body_x[c, k]))
+            span[t, 2 * k] = int(math.floor(lo / cell))
+            span[t, 2 * k + 1] = int(math.floor(hi / cell))
+            sphere[t, k] = (body_x[a, k] + body_x[b, k] + body_x[c, k]) / 3.0
+        for u in (a, b, c):
+            r2 = max(r2, (body_x[u, 0] - sphere[t, 0]) ** 2 + (body_x[u, 1] - sphere[t, 1]) ** 2
+                     + (body_x[u, 2] - sphere[t, 2]) ** 2)
+        sphere[t, 3] = math.sqrt(r2)
+        sphere[t, 4], sphere[t, 5], sphere[t, 6] = face_n[t, 0], face_n[t, 1], face_n[t, 2]
+        sphere[t, 7] = face_n[t, 0] * body_x[a, 0] + face_n[t, 1] * body_x[a, 1] + face_n[t, 2] * body_x[a, 2]
+        for i in range(span[t, 0], span[t, 1] + 1):
+            for j in range(span[t, 2], span[t, 3] + 1):
+                for k in range(span[t, 4], span[t, 5] + 1):
+                    counts[_cell_hash(i, j, k, mask)] += 1
+                    total += 1
+    if total > ids.shape[0]:
+        return total
+    acc = 0
+    for c in range(counts.shape[0]):
+        start[c] = acc
+        acc += counts[c]
+        counts[c] = 0
+    start[counts.shape[0]] = acc
+    for t in faces:
+        for i in range(span[t, 0], span[t, 1] + 1):
+            for j in range(span[t, 2], span[t, 3] + 1):
+                for k in range(span[t, 4], span[t, 5] + 1):
+                    c = _cell_hash(i, j, k, mask)
+                    ids[start[c] + counts[c]] = t
+                    counts[c] += 1
+    return total
+
+
+@njit(cache=True, inline="always")
+def grid_nearest_face(px, py, pz, body_x, tris, cell, start, ids, record, best_d2, front, q):
+    """The body face nearest to p among those p is less than `front` in front of (by its plane),
+    if one is nearer than sqrt(best_d2): returns (face, squared distance, v, w) with the closest
+    point in q and its barycentric weights of the face's second and third corners; face -1 when
+    none is. Only the cells that the ball of radius sqrt(best_d2) overlaps are visited; a face
+    costs one cache line (`FaceGrid.record`) unless its bounding sphere meets the ball and p
+    is behind or near its plane. A face p is farther in front of cannot put p inside."""
+    mask = start.shape[0] - 2
+    r = math.sqrt(best_d2)
+    best_t = -1
+    bv = bw = 0.0
+    qx = qy = qz = 0.0
+    i0, i1, j0, j1, k0, k1 = _cell_block(px, py, pz, r, cell)
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            for k in range(k0, k1 + 1):
+                c = _cell_hash(i, j, k, mask)
+                for e in range(start[c], start[c + 1]):
+                    t = ids[e]
+                    plane = px * record[t, 4] + py * record[t, 5] + pz * record[t, 6] - record[t, 7]
+                    if plane >= front or plane <= -r:
+                        continue
+                    dc2 = (record[t, 0] - px) ** 2 + (record[t, 1] - py) ** 2 + (record[t, 2] - pz) ** 2
+                    if dc2 >= (r + record[t, 3]) ** 2:
+                        continue
+                    v, w = closest_point_triangle(px, py, pz, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
+                    d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
+                    if d2 < best_d2:
+                        best_d2, best_t, bv, bw = d2, t, v, w
+                        qx, qy, qz = q[0], q[1], q[2]
+                        r = math.sqrt(best_d2)
+    q[0], q[1], q[2] = qx, qy, qz
+    return best_t, best_d2, bv, bw

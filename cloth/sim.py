@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .coarsen import coarsen
-from .collision import (BodyMesh, BodyPose, attach_to_body, collide_particles, face_normals, follow_body,
-                        resolve_contacts)
+from .collision import (REFINE_RADIUS, BodyMesh, BodyPose, attach_to_body, collide_particles, face_normals,
+                        follow_body, resolve_contacts)
 from .dynamics import limit_stretch, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
@@ -278,7 +278,8 @@ class ClothSim:
         (see `SimSettings`)."""
         s, m, st = self.state, self.model, self.model.settings
         f = m.fabric
-        self._contact_pass(pose)
+        # with a second full pass to come, the first one leaves the nearest-face query to it
+        self._contact_pass(pose, refine=not st.slide_passes)
         if st.slide_passes:
             # the pass puts a particle where the skin under it went, and skin stretches more than
             # the cloth may (hips and thighs in a stride): free strain-limiting passes let the
@@ -298,15 +299,16 @@ class ClothSim:
             mark_moved(s.x, s.held_from, 0.5 * f.thickness, s.recheck)
             self._contact_pass(pose, s.recheck)
 
-    def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
+    def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None, refine: bool = True) -> None:
         """`resolve_contacts` against the whole body in this pose for the active particles (all
-        unless given); marks the placed particles."""
+        unless given); marks the placed particles. refine: with the nearest-face query."""
         s, m, b = self.state, self.model, self.body
         grid = pose.grid
         active = s.all_particles if active is None else active
         resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q,
-                         *grid.arrays(), s.part, s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active)
+                         *grid.arrays(), *pose.faces.arrays(), REFINE_RADIUS if refine else 0.0, s.part,
+                         s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active)
 
 
 __all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",

@@ -33,7 +33,7 @@ from cloth.fabric import fabric as fabric_preset
 from cloth.geometry import vertex_normals
 from cloth.surface import SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
-from skinning.body import Body, body_regions
+from skinning.body import Body, body_clothed_faces, body_regions
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, load_outfit_models
@@ -197,7 +197,7 @@ class ClothService:
         self.catch_up = catch_up
         self.idle_seconds = idle_seconds
         self.animator = BodyAnimator(body)
-        self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body))
+        self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
         self.sessions: dict[str, GarmentSession] = {}
         self.failed: dict[str, str] = {}  # session -> why it cannot be served
         self.ended: dict[str, int] = {}  # session -> stamp_ns of its end message

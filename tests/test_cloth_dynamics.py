@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import (BodyMesh, VertexGrid, attach_to_body, collide_particles, face_normals, follow_body,
+from cloth.collision import (REFINE_RADIUS, BodyMesh, BodyPose, FaceGrid, VertexGrid, attach_to_body, collide_particles, face_normals, follow_body,
                              resolve_contacts)
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
@@ -229,6 +229,14 @@ def test_particle_inside_a_box_is_pushed_out_to_the_nearest_face():
     np.testing.assert_allclose(x[1], [-0.303, 0.0, 0.12], atol=1e-9)
 
 
+def contact_grids(verts, mesh):
+    """resolve_contacts' grids for the body in this pose (vertices, then faces) and the
+    refinement radius of the faces' nearest-face query."""
+    pose = BodyPose(mesh)
+    pose.update(verts)
+    return (*pose.grid.arrays(), *pose.faces.arrays(), REFINE_RADIUS)
+
+
 def contact_scratch(n, inv_mass=None):
     """resolve_contacts' scratch for the body parts near a particle, the particles' inverse
     masses (1 unless given), the placed-particle inverse masses it writes and the active mask
@@ -237,23 +245,23 @@ def contact_scratch(n, inv_mass=None):
     return np.zeros(8, np.uint8), np.zeros(8, np.int32), np.zeros(8), inv_mass, np.full(n, np.nan), np.ones(n, np.uint8)
 
 
-def resolve_against_two_parts(x, v, coarse_v, coarse_t):
+def resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=False, refine=REFINE_RADIUS):
     """resolve_contacts against two body parts: a finely meshed box (vertices every 2.5 mm,
-    top face at z = 0, bottom at z = -0.02) and a coarse one (coarse_v, coarse_t). Returns the
-    placed inverse masses; the nearest vertex found must be the fine box's."""
+    top face at z = 0, bottom at z = -0.02) and a coarse one (coarse_v, coarse_t); same_part:
+    both boxes are one body part (two sheets of a fold); refine: the nearest-face query's
+    radius (0: off). Returns the placed inverse masses; the nearest vertex found must be the
+    fine box's."""
     fine_v, fine_t = box(0.01, n=8)
     fine_v = fine_v + [0.0, 0.0, -0.01]
     verts = np.concatenate([fine_v, coarse_v])
     tris = np.concatenate([fine_t, coarse_t + len(fine_v)]).astype(np.int32)
-    regions = np.r_[np.full(len(fine_v), 1), np.full(len(coarse_v), 2)].astype(np.uint8)
+    regions = np.r_[np.full(len(fine_v), 1), np.full(len(coarse_v), 1 if same_part else 2)].astype(np.uint8)
     mesh = BodyMesh.build(tris, len(verts), regions)
-    grid = VertexGrid(len(verts))
-    grid.update(verts, mesh.regions)
     nearest = np.zeros(1, np.int32)
     scratch = contact_scratch(len(x))
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, nearest, 0.003, np.zeros(1, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *scratch)
+                     face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh)[:-1], refine, *scratch)
     assert nearest[0] < len(fine_v)  # the nearest vertex is the fine box's
     return scratch[-2]
 
@@ -298,6 +306,48 @@ def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices(
     assert placed[0] == 0.0
 
 
+@pytest.mark.parametrize("refine", [0.0, REFINE_RADIUS])
+def test_resolve_contacts_finds_a_nearer_face_of_the_same_part_by_the_face_grid(refine):
+    """The boxes of the test above as one body part, two sheets of a fold: no other part to
+    look at, and the rings of the fine box's vertices say "outside". Without the nearest-face
+    query (refine = 0) the particle 1 mm inside the coarse box stays where it is; with it, the
+    face grid finds the coarse box's bottom face 1 mm away (nearer than the 7 mm to the fine
+    box), and the particle ends thickness below it (z = 0.003)."""
+    coarse_v, coarse_t = box(1.0, n=1)
+    coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.016]
+    x = np.array([[0.0005, 0.001, 0.007]])
+    v = np.array([[0.0, 0.0, 1.0]])
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=True, refine=refine)
+    if refine == 0.0:
+        np.testing.assert_array_equal(x[0], [0.0005, 0.001, 0.007])
+        assert placed[0] == 1.0
+    else:
+        np.testing.assert_allclose(x[0], [0.0005, 0.001, 0.003], atol=1e-9)
+        np.testing.assert_allclose(v[0], [0.0, 0.0, 0.0], atol=1e-12)
+        assert placed[0] == 0.0
+
+
+def test_face_grid_lists_each_face_in_every_cell_its_box_overlaps():
+    """Two faces against a 2 cm grid: a small one inside one cell, and one spanning 2 × 2 × 1
+    cells. Each cell the boxes overlap lists the face; the records hold the bounding sphere
+    (centroid, farthest corner), the unit normal and the plane offset; an excluded face is in
+    no cell."""
+    verts = np.array([[0.001, 0.001, 0.001], [0.005, 0.001, 0.001], [0.001, 0.005, 0.001],
+                      [0.011, 0.011, 0.003], [0.031, 0.011, 0.003], [0.011, 0.031, 0.003],
+                      [0.5, 0.5, 0.5], [0.6, 0.5, 0.5], [0.5, 0.6, 0.5]])
+    tris = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]], np.int32)
+    grid = FaceGrid(tris, np.array([0, 1]), cell=0.02)
+    grid.update(verts, face_normals(verts, tris))
+    cells = {}
+    for c in np.flatnonzero(np.diff(grid.start)):
+        for t in grid.ids[grid.start[c]:grid.start[c + 1]]:
+            cells.setdefault(int(t), []).append(int(c))
+    assert sorted(cells) == [0, 1] and len(cells[0]) == 1 and len(cells[1]) == 4
+    np.testing.assert_allclose(grid.record[1, :3], [0.0176667, 0.0176667, 0.003], atol=1e-6)
+    np.testing.assert_allclose(grid.record[1, 3], np.hypot(0.0133333, 0.0066667), atol=1e-6)
+    np.testing.assert_allclose(grid.record[1, 4:], [0.0, 0.0, 1.0, 0.003], atol=1e-12)
+
+
 def test_resolve_contacts_takes_no_push_from_deep_behind_another_part():
     """The two parts intersect: the coarse box (4 cm wide, 6 cm tall, a vertex in the middle of
     each face) reaches 5 mm into the fine one. A particle 6 mm above the fine box is 11 mm
@@ -324,13 +374,11 @@ def test_resolve_contacts_pushes_out_of_any_body_part():
     mesh = BodyMesh.build(tris, len(verts))
     x = np.array([[2.1, 0.28, -0.05], [2.0, 0.45, 0.0]])
     v = np.array([[0.0, -1.0, 0.5], [0.0, -1.0, 0.0]])
-    grid = VertexGrid(len(verts))
-    grid.update(verts, mesh.regions)
     start = np.zeros(2, np.int32)  # both walks would start on the first box
     scratch = contact_scratch(2, np.array([2.0, 3.0]))
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, start, 0.003, np.zeros(2, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *scratch)
+                     face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh), *scratch)
     assert start[0] >= len(verts1)
     np.testing.assert_allclose(x[0], [2.1, 0.303, -0.05], atol=1e-9)
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
@@ -444,11 +492,9 @@ def test_resolve_contacts_settles_a_particle_in_a_concave_corner_away_from_both_
     assert np.allclose(face_n[8:10, :3], [0, -1, 0])  # the first side, y = 0, faces out
     x = np.array([[0.999, 0.9985, 0.5]])
     v = np.zeros_like(x)
-    grid = VertexGrid(len(verts))
-    grid.update(verts, mesh.regions)
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.zeros(1, np.uint8),
-                     face_n, np.zeros(3), *grid.arrays(), *contact_scratch(len(x)))
+                     face_n, np.zeros(3), *contact_grids(verts, mesh), *contact_scratch(len(x)))
     assert x[0, 0] >= 1.003 - 1e-9 and x[0, 1] >= 1.003 - 1e-9, x
     assert x[0, 0] < 1.0031 and x[0, 1] < 1.0031 and x[0, 2] == 0.5, x
 
@@ -460,11 +506,9 @@ def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_veloc
     mesh = BodyMesh.build(tris, len(verts))
     x = np.array([[0.1, 0.29, 0.0]])
     v = np.array([[0.0, -1.0, 0.0]])
-    grid = VertexGrid(len(verts))
-    grid.update(verts, mesh.regions)
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.ones(1, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *contact_scratch(len(x)))
+                     face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh), *contact_scratch(len(x)))
     np.testing.assert_allclose(x[0], [0.1, 0.303, 0.0], atol=1e-9)
     np.testing.assert_array_equal(v[0], [0.0, -1.0, 0.0])
 
@@ -483,13 +527,11 @@ def test_resolve_contacts_tests_only_the_active_particles():
     mark_moved(x, before, 0.0015, active)
     np.testing.assert_array_equal(active, [1, 0])
     v = np.zeros_like(x)
-    grid = VertexGrid(len(verts))
-    grid.update(verts, mesh.regions)
     scratch = contact_scratch(2)[:-1] + (active,)
     inside = x[1].copy()
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(2, np.int32), 0.003, np.zeros(2, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), *grid.arrays(), *scratch)
+                     face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh), *scratch)
     np.testing.assert_allclose(x[0], [0.1016, 0.303, -0.05], atol=1e-9)
     np.testing.assert_array_equal(x[1], inside)
     placed = scratch[-2]
