@@ -510,8 +510,8 @@ MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts i
 @kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
                      nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, grid_x, grid_regions,
-                     grid_parts, fcell, fstart, fids, fsphere, refine, part, part_vertex, part_d2, inv_mass, placed_inv_mass,
-                     active):
+                     grid_parts, fcell, fstart, fids, fsphere, refine, part, part_vertex, part_d2, inv_mass,
+                     placed_inv_mass, active):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the

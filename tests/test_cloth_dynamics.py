@@ -6,7 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import (REFINE_RADIUS, BodyMesh, BodyPose, FaceGrid, VertexGrid, attach_to_body, collide_particles, face_normals, follow_body,
+from cloth.collision import (REFINE_RADIUS, BodyMesh, BodyPose, FaceGrid, VertexGrid, attach_to_body,
+                             collide_particles, face_normals, follow_body,
                              resolve_contacts)
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
