@@ -42,8 +42,8 @@ class BodyMesh:
         the parts it lay near at rest, so an arm swinging past the torso cannot carry a shirt's
         side away, nor one leg the other trouser leg. None: one region.
         clothed_faces: (m,) bool, the faces a garment can touch; only those go into the contact
-        pass's face grid (`FaceGrid`). The head, hands and toes are two thirds of a MakeHuman
-        body's triangles, and a cell full of them is scanned for nothing. None: every face."""
+        pass's face tree (`FaceTree`). The head, hands and toes are two thirds of a MakeHuman
+        body's triangles, and boxes full of them would be searched for nothing. None: every face."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
@@ -503,15 +503,16 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
 # two body parts converge slowly)
 CONTACT_ITERATIONS = 8
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
-REFINE_RADIUS = 0.02  # m: a contact result nearer than this is checked against every face (FaceGrid)
+FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most this deep, less two)
+REFINE_RADIUS = 0.02  # m: a contact result nearer than this is checked against every clothed face (FaceTree)
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 
 
 @kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
                      nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, grid_x, grid_regions,
-                     grid_parts, fcell, fstart, fids, fsphere, refine, part, part_vertex, part_d2, inv_mass,
-                     placed_inv_mass, active):
+                     grid_parts, fbox, fchild, ffirst, fcount, forder, refine, stack, part, part_vertex, part_d2,
+                     inv_mass, placed_inv_mass, active):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
@@ -533,12 +534,13 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     and a push out of one lands in the other.
     A surface that folds (the skinned skin between the buttocks, at the groin in a stride) has
     faces of the same part nearer than every face around the nearest vertex: a result within
-    `refine` of the particle is checked against every body face in the `FaceGrid`
-    (`grid_nearest_face`), and the nearest face the particle is behind (or less than thickness
+    `refine` of the particle is checked against every clothed body face (`FaceTree`,
+    `tree_nearest_face`), and the nearest face the particle is behind (or less than thickness
     in front of) takes over. refine = 0 turns that off.
     q: (3,) scratch; cell, grid_start, grid_ids, grid_x, grid_regions, grid_parts: a
-    `VertexGrid` built for this pose (`VertexGrid.arrays()`); fcell, fstart, fids, fsphere: a
-    `FaceGrid` for this pose (`FaceGrid.arrays()`);
+    `VertexGrid` built for this pose (`VertexGrid.arrays()`); fbox, fchild, ffirst, fcount, forder:
+    a `FaceTree` refitted to this pose (`FaceTree.arrays()`); stack: its traversal scratch
+    (int32, at least `FaceTree.stack_depth`);
     part (8,) uint8, part_vertex (8,) int32, part_d2 (8,) float64: scratch for the parts.
     placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
     strain-limiting pass after it pulls the cloth towards them and never them back inside.
@@ -560,8 +562,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
                                                                    tri_ids, vtx, face_n, q)
             if abs(side) < refine:
-                t, b2, fv, fw = grid_nearest_face(px, py, pz, body_x, tris, fcell, fstart, fids, fsphere,
-                                                  side * side, thickness, q)
+                t, b2, fv, fw = tree_nearest_face(px, py, pz, body_x, tris, face_n, fbox, fchild, ffirst, fcount,
+                                                  forder, stack, side * side, thickness, q)
                 if t >= 0:
                     mx, my, mz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t,
                                                 closest_feature(fv, fw))
@@ -608,14 +610,14 @@ class BodyPose:
         self.x = np.zeros((body.n_vertices, 3))  # m
         self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
         self.grid = VertexGrid(body.n_vertices)
-        self.faces = FaceGrid(body.triangles, np.flatnonzero(body.clothed_faces))
+        self.faces = FaceTree(body.triangles, np.flatnonzero(body.clothed_faces), body.regions)
 
     def update(self, body_vertices: np.ndarray) -> None:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
         self.x[:] = body_vertices[: self.body.n_vertices]
         body_face_normals(self.x, self.body.triangles, self.face_n)
         self.grid.update(self.x, self.body.regions)
-        self.faces.update(self.x, self.face_n)
+        self.faces.update(self.x)
 
 
 class VertexGrid:
@@ -753,117 +755,154 @@ def grid_nearest(px, py, pz, grid_x, cell, start, ids, best, best_d2):
     return best, best_d2
 
 
-class FaceGrid:
-    """The body's faces bucketed in a hashed uniform grid by the cells their bounding boxes
-    overlap, with each face's bounding sphere, rebuilt once per body pose.
+class FaceTree:
+    """A bounding-box tree over the faces clothes can touch, its shape built once from the
+    first pose it sees and its boxes refitted to every pose after (one bottom-up pass).
 
-    It answers "is any body face nearer to p than r" exactly, where the ring of the nearest
+    It answers "which face is nearest to p within r" exactly, where the ring of the nearest
     vertex holds the nearest face only when the surface does not fold: in a crease of the
     skinned skin (between the buttocks, the groin in a stride) a face of another sheet of the
-    same part can be nearer than every face around the nearest vertex."""
+    same part can be nearer than every face around the nearest vertex. The top levels split
+    the faces by body part, so that a refitted box never spans an arm and the torso; below,
+    median splits along the longest axis, down to LEAF_FACES faces. Nodes are in pre-order
+    (a child after its parent): the refit walks them backwards."""
 
-    def __init__(self, triangles: np.ndarray, faces: np.ndarray | None = None, cell: float = 0.02,
-                 table_bits: int = 15):
-        self.cell = cell
+    LEAF_FACES = 4
+
+    def __init__(self, triangles: np.ndarray, faces: np.ndarray, regions: np.ndarray):
         self.triangles = triangles
-        self.faces = np.arange(len(triangles), dtype=np.int32) if faces is None else faces.astype(np.int32)
-        self.start = np.zeros((1 << table_bits) + 1, dtype=np.int64)
-        self.counts = np.zeros(1 << table_bits, dtype=np.int64)
-        self.ids = np.zeros(4 * len(triangles), dtype=np.int32)
-        self.record = np.zeros((len(triangles), 8))  # per face: bounding sphere (centre, radius), unit normal, n·a
-        self.span = np.zeros((len(triangles), 6), dtype=np.int64)  # build scratch: each face's cell block
+        self.faces = np.asarray(faces, dtype=np.int32)
+        self.face_region = regions[triangles[self.faces, 0]]
+        self.built = False
 
-    def update(self, body_x: np.ndarray, face_n: np.ndarray) -> None:
-        """face_n: the pose's face normals (`body_face_normals`)."""
-        used = build_face_grid(body_x, self.triangles, self.faces, face_n, self.cell, self.start, self.counts,
-                               self.ids, self.record, self.span)
-        if used > len(self.ids):
-            self.ids = np.zeros(int(used * 1.25), dtype=np.int32)
-            build_face_grid(body_x, self.triangles, self.faces, face_n, self.cell, self.start, self.counts,
-                            self.ids, self.record, self.span)
+    def update(self, body_x: np.ndarray) -> None:
+        if not self.built:
+            self._build(body_x)
+        refit_face_tree(body_x, self.triangles, self.order, self.child, self.first, self.count, self.box)
+
+    def _build(self, body_x: np.ndarray) -> None:
+        centre = body_x[self.triangles[self.faces]].mean(axis=1)
+        child, first, count, order = [], [], [], []
+        todo = [(-1, 0, np.arange(len(self.faces)))]  # (parent, which child, faces); pre-order
+        while todo:
+            parent, side, ids = todo.pop()
+            node = len(child)
+            child.append([-1, -1])
+            first.append(0)
+            count.append(0)
+            if parent >= 0:
+                child[parent][side] = node
+            if len(ids) <= self.LEAF_FACES:
+                first[node] = len(order)
+                count[node] = len(ids)
+                order.extend(self.faces[ids])
+                continue
+            reg = self.face_region[ids]
+            if np.any(reg != reg[0]):
+                left = reg == reg[0]  # one body part apart from the others
+            else:
+                c = centre[ids]
+                axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+                rank = np.argsort(c[:, axis], kind="stable")
+                left = np.zeros(len(ids), dtype=bool)
+                left[rank[: len(ids) // 2]] = True
+            # pushed right first, so the left subtree is numbered next (pre-order)
+            todo.append((node, 1, ids[~left]))
+            todo.append((node, 0, ids[left]))
+        self.child = np.array(child, dtype=np.int32)
+        self.first = np.array(first, dtype=np.int32)
+        self.count = np.array(count, dtype=np.int32)
+        self.order = np.array(order, dtype=np.int32)
+        self.box = np.zeros((len(child), 6))  # lo xyz, hi xyz
+        self.stack_depth = self._depth() + 2
+        if self.stack_depth > FACE_TREE_STACK:
+            raise ValueError(f"face tree {self.stack_depth - 2} levels deep; FACE_TREE_STACK allows "
+                             f"{FACE_TREE_STACK - 2}")
+        self.built = True
+
+    def _depth(self) -> int:
+        depth = np.zeros(len(self.child), dtype=np.int64)
+        for node in range(len(self.child)):  # pre-order: a parent's depth is set before its children's
+            for c in self.child[node]:
+                if c >= 0:
+                    depth[c] = depth[node] + 1
+        return int(depth.max())
 
     def arrays(self) -> tuple:
-        """What `resolve_contacts` takes of the grid: (cell, start, ids, sphere)."""
-        return self.cell, self.start, self.ids, self.record
+        """What `resolve_contacts` takes of the tree: (box, child, first, count, order)."""
+        return self.box, self.child, self.first, self.count, self.order
 
 
 @kernel
-def build_face_grid(body_x, tris, faces, face_n, cell, start, counts, ids, sphere, span):
-    """Counting sort of the faces by every hashed cell their bounding box overlaps (CSR: start,
-    ids) and each face's bounding sphere (centroid, farthest corner). Returns the entries
-    needed; when that exceeds len(ids) nothing is filled (the caller grows ids and calls again)."""
-    mask = counts.shape[0] - 1
-    counts[:] = 0
-    total = 0
-    for t in faces:
-        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        r2 = 0.0
-        for k in range(3):
-            lo = min(body_x[a, k], min(body_x[b, k], body_x[c, k]))
-            hi = max(body_x[a, k], max(body_x[b, k], body_x[c, k]))
-            span[t, 2 * k] = int(math.floor(lo / cell))
-            span[t, 2 * k + 1] = int(math.floor(hi / cell))
-            sphere[t, k] = (body_x[a, k] + body_x[b, k] + body_x[c, k]) / 3.0
-        for u in (a, b, c):
-            r2 = max(r2, (body_x[u, 0] - sphere[t, 0]) ** 2 + (body_x[u, 1] - sphere[t, 1]) ** 2
-                     + (body_x[u, 2] - sphere[t, 2]) ** 2)
-        sphere[t, 3] = math.sqrt(r2)
-        sphere[t, 4], sphere[t, 5], sphere[t, 6] = face_n[t, 0], face_n[t, 1], face_n[t, 2]
-        sphere[t, 7] = face_n[t, 0] * body_x[a, 0] + face_n[t, 1] * body_x[a, 1] + face_n[t, 2] * body_x[a, 2]
-        for i in range(span[t, 0], span[t, 1] + 1):
-            for j in range(span[t, 2], span[t, 3] + 1):
-                for k in range(span[t, 4], span[t, 5] + 1):
-                    counts[_cell_hash(i, j, k, mask)] += 1
-                    total += 1
-    if total > ids.shape[0]:
-        return total
-    acc = 0
-    for c in range(counts.shape[0]):
-        start[c] = acc
-        acc += counts[c]
-        counts[c] = 0
-    start[counts.shape[0]] = acc
-    for t in faces:
-        for i in range(span[t, 0], span[t, 1] + 1):
-            for j in range(span[t, 2], span[t, 3] + 1):
-                for k in range(span[t, 4], span[t, 5] + 1):
-                    c = _cell_hash(i, j, k, mask)
-                    ids[start[c] + counts[c]] = t
-                    counts[c] += 1
-    return total
+def refit_face_tree(body_x, tris, order, child, first, count, box):
+    """Every node's box around its faces' corners for this pose: the leaves from their faces,
+    the inner nodes from their children (nodes are in pre-order: backwards, children first)."""
+    for node in range(child.shape[0] - 1, -1, -1):
+        if child[node, 0] < 0:
+            for k in range(3):
+                box[node, k] = np.inf
+                box[node, 3 + k] = -np.inf
+            for e in range(first[node], first[node] + count[node]):
+                t = order[e]
+                for c in range(3):
+                    u = tris[t, c]
+                    for k in range(3):
+                        box[node, k] = min(box[node, k], body_x[u, k])
+                        box[node, 3 + k] = max(box[node, 3 + k], body_x[u, k])
+        else:
+            a, b = child[node, 0], child[node, 1]
+            for k in range(3):
+                box[node, k] = min(box[a, k], box[b, k])
+                box[node, 3 + k] = max(box[a, 3 + k], box[b, 3 + k])
 
 
 @njit(cache=True, inline="always")
-def grid_nearest_face(px, py, pz, body_x, tris, cell, start, ids, record, best_d2, front, q):
+def _box_d2(px, py, pz, box, node):
+    """Squared distance from p to the node's box (0 inside)."""
+    dx = max(box[node, 0] - px, 0.0, px - box[node, 3])
+    dy = max(box[node, 1] - py, 0.0, py - box[node, 4])
+    dz = max(box[node, 2] - pz, 0.0, pz - box[node, 5])
+    return dx * dx + dy * dy + dz * dz
+
+
+@njit(cache=True, inline="always")
+def tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count, order, stack, best_d2, front, q):
     """The body face nearest to p among those p is less than `front` in front of (by its plane),
     if one is nearer than sqrt(best_d2): returns (face, squared distance, v, w) with the closest
     point in q and its barycentric weights of the face's second and third corners; face -1 when
-    none is. Only the cells that the ball of radius sqrt(best_d2) overlaps are visited; a face
-    costs one cache line (`FaceGrid.record`) unless its bounding sphere meets the ball and p
-    is behind or near its plane. A face p is farther in front of cannot put p inside."""
-    mask = start.shape[0] - 2
-    r = math.sqrt(best_d2)
+    none is. A subtree whose box is no nearer than the best so far is not entered, and a face
+    p is farther in front of than `front`, or farther behind than the best distance, costs a
+    plane test: a face p is well in front of cannot put p inside. stack: (depth,) int32 scratch."""
     best_t = -1
     bv = bw = 0.0
     qx = qy = qz = 0.0
-    i0, i1, j0, j1, k0, k1 = _cell_block(px, py, pz, r, cell)
-    for i in range(i0, i1 + 1):
-        for j in range(j0, j1 + 1):
-            for k in range(k0, k1 + 1):
-                c = _cell_hash(i, j, k, mask)
-                for e in range(start[c], start[c + 1]):
-                    t = ids[e]
-                    plane = px * record[t, 4] + py * record[t, 5] + pz * record[t, 6] - record[t, 7]
-                    if plane >= front or plane <= -r:
-                        continue
-                    dc2 = (record[t, 0] - px) ** 2 + (record[t, 1] - py) ** 2 + (record[t, 2] - pz) ** 2
-                    if dc2 >= (r + record[t, 3]) ** 2:
-                        continue
-                    v, w = closest_point_triangle(px, py, pz, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
-                    d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
-                    if d2 < best_d2:
-                        best_d2, best_t, bv, bw = d2, t, v, w
-                        qx, qy, qz = q[0], q[1], q[2]
-                        r = math.sqrt(best_d2)
+    top = 0
+    stack[0] = 0
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        if _box_d2(px, py, pz, box, node) >= best_d2:
+            continue
+        if child[node, 0] >= 0:
+            # not ordered by distance: nearly every query finds nothing nearer than its bound,
+            # and ordering would test each child's box twice
+            stack[top + 1] = child[node, 1]
+            stack[top + 2] = child[node, 0]
+            top += 2
+            continue
+        r = math.sqrt(best_d2)
+        for e in range(first[node], first[node] + count[node]):
+            t = order[e]
+            a0 = tris[t, 0]
+            plane = ((px - body_x[a0, 0]) * face_n[t, 0] + (py - body_x[a0, 1]) * face_n[t, 1]
+                     + (pz - body_x[a0, 2]) * face_n[t, 2])
+            if plane >= front or plane <= -r:
+                continue
+            v, w = closest_point_triangle(px, py, pz, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
+            d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
+            if d2 < best_d2:
+                best_d2, best_t, bv, bw = d2, t, v, w
+                qx, qy, qz = q[0], q[1], q[2]
+                r = math.sqrt(best_d2)
     q[0], q[1], q[2] = qx, qy, qz
     return best_t, best_d2, bv, bw

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .coarsen import coarsen
-from .collision import (REFINE_RADIUS, BodyMesh, BodyPose, attach_to_body, collide_particles, face_normals,
-                        follow_body, resolve_contacts)
+from .collision import (FACE_TREE_STACK, REFINE_RADIUS, BodyMesh, BodyPose, attach_to_body, collide_particles,
+                        face_normals, follow_body, resolve_contacts)
 from .dynamics import limit_stretch, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
@@ -151,6 +151,7 @@ class ClothState:
         self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
         self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
         self.q = np.zeros(3)  # contact pass scratch, and for the body parts near a particle:
+        self.stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # the face tree's traversal
         self.part = np.zeros(8, dtype=np.uint8)
         self.part_vertex = np.zeros(8, dtype=np.int32)
         self.part_d2 = np.zeros(8)
@@ -307,7 +308,7 @@ class ClothSim:
         active = s.all_particles if active is None else active
         resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q,
-                         *grid.arrays(), *pose.faces.arrays(), REFINE_RADIUS if refine else 0.0, s.part,
+                         *grid.arrays(), *pose.faces.arrays(), REFINE_RADIUS if refine else 0.0, s.stack, s.part,
                          s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active)
 
 

@@ -6,9 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import (REFINE_RADIUS, BodyMesh, BodyPose, FaceGrid, VertexGrid, attach_to_body,
-                             collide_particles, face_normals, follow_body,
-                             resolve_contacts)
+from cloth.collision import (FACE_TREE_STACK, REFINE_RADIUS, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
+                             collide_particles, face_normals, follow_body, resolve_contacts, tree_nearest_face)
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 from cloth.sim import mark_moved
@@ -235,7 +234,7 @@ def contact_grids(verts, mesh):
     refinement radius of the faces' nearest-face query."""
     pose = BodyPose(mesh)
     pose.update(verts)
-    return (*pose.grid.arrays(), *pose.faces.arrays(), REFINE_RADIUS)
+    return (*pose.grid.arrays(), *pose.faces.arrays(), REFINE_RADIUS, np.zeros(FACE_TREE_STACK, np.int32))
 
 
 def contact_scratch(n, inv_mass=None):
@@ -262,7 +261,8 @@ def resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=False, refine=
     scratch = contact_scratch(len(x))
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, nearest, 0.003, np.zeros(1, np.uint8),
-                     face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh)[:-1], refine, *scratch)
+                     face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh)[:-2], refine,
+                     np.zeros(FACE_TREE_STACK, np.int32), *scratch)
     assert nearest[0] < len(fine_v)  # the nearest vertex is the fine box's
     return scratch[-2]
 
@@ -328,25 +328,46 @@ def test_resolve_contacts_finds_a_nearer_face_of_the_same_part_by_the_face_grid(
         assert placed[0] == 0.0
 
 
-def test_face_grid_lists_each_face_in_every_cell_its_box_overlaps():
-    """Two faces against a 2 cm grid: a small one inside one cell, and one spanning 2 × 2 × 1
-    cells. Each cell the boxes overlap lists the face; the records hold the bounding sphere
-    (centroid, farthest corner), the unit normal and the plane offset; an excluded face is in
-    no cell."""
-    verts = np.array([[0.001, 0.001, 0.001], [0.005, 0.001, 0.001], [0.001, 0.005, 0.001],
-                      [0.011, 0.011, 0.003], [0.031, 0.011, 0.003], [0.011, 0.031, 0.003],
-                      [0.5, 0.5, 0.5], [0.6, 0.5, 0.5], [0.5, 0.6, 0.5]])
-    tris = np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]], np.int32)
-    grid = FaceGrid(tris, np.array([0, 1]), cell=0.02)
-    grid.update(verts, face_normals(verts, tris))
-    cells = {}
-    for c in np.flatnonzero(np.diff(grid.start)):
-        for t in grid.ids[grid.start[c]:grid.start[c + 1]]:
-            cells.setdefault(int(t), []).append(int(c))
-    assert sorted(cells) == [0, 1] and len(cells[0]) == 1 and len(cells[1]) == 4
-    np.testing.assert_allclose(grid.record[1, :3], [0.0176667, 0.0176667, 0.003], atol=1e-6)
-    np.testing.assert_allclose(grid.record[1, 3], np.hypot(0.0133333, 0.0066667), atol=1e-6)
-    np.testing.assert_allclose(grid.record[1, 4:], [0.0, 0.0, 1.0, 0.003], atol=1e-12)
+def test_face_tree_boxes_hold_their_faces_and_its_query_finds_the_brute_force_nearest_face():
+    """A sphere of two body parts (upper and lower half), the tree built on it and refitted
+    after the upper half moved: every face lies in the box of every node above it, the two
+    parts never share a box below the root, and for random points the query returns the
+    nearest face that a brute-force search finds (front = inf: no face filtered)."""
+    from cloth.geometry import closest_point_triangle
+    verts, tris = uv_sphere(0.1, 12, 24)
+    regions = np.where(verts[:, 1] > 0.0, 1, 2).astype(np.uint8)
+    tree = FaceTree(tris, np.arange(len(tris)), regions)
+    tree.update(verts)
+    moved = verts + np.where(verts[:, 1:2] > 0.0, [0.03, 0.01, 0.0], 0.0)
+    tree.update(moved)
+    box, child, first, count, order = tree.arrays()
+    face_region = regions[tris[:, 0]]
+    below = [[] for _ in range(len(child))]  # faces under each node
+    for node in range(len(child) - 1, -1, -1):
+        below[node] = list(order[first[node]:first[node] + count[node]]) if child[node, 0] < 0 else \
+            below[child[node, 0]] + below[child[node, 1]]
+        corners = moved[tris[below[node]]].reshape(-1, 3)
+        np.testing.assert_array_equal(box[node, :3], corners.min(axis=0))
+        np.testing.assert_array_equal(box[node, 3:], corners.max(axis=0))
+        if node > 0:
+            assert len(set(face_region[below[node]])) == 1
+    assert sorted(below[0]) == list(range(len(tris)))
+    face_n = face_normals(moved, tris)
+    rng = np.random.default_rng(3)
+    q, stack = np.zeros(3), np.zeros(FACE_TREE_STACK, np.int32)
+
+    def squared_distance(p, a, b, c):
+        closest_point_triangle(p[0], p[1], p[2], moved, a, b, c, q)
+        return float(((p - q) ** 2).sum())
+
+    for p in rng.uniform(-0.15, 0.15, (200, 3)):
+        d2 = [squared_distance(p, a, b, c) for a, b, c in tris]
+        t, b2, _, _ = tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order, stack,
+                                        np.inf, np.inf, q)
+        assert b2 == pytest.approx(min(d2), abs=1e-15) and d2[t] == pytest.approx(min(d2), abs=1e-15)
+        # nothing nearer than a bound that the nearest face does not beat
+        assert tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order, stack,
+                                 min(d2) * 0.999, np.inf, q)[0] == -1
 
 
 def test_resolve_contacts_takes_no_push_from_deep_behind_another_part():
