@@ -602,7 +602,7 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
 
 class BodyPose:
     """What every garment reads from one body pose, computed once per pose and shared: the
-    vertices (float64, contiguous), the face normals, the vertex grid and the face grid (of
+    vertices (float64, contiguous), the face normals, the vertex grid and the face tree (of
     the faces clothes can touch, `BodyMesh.clothed_faces`)."""
 
     def __init__(self, body: BodyMesh):

@@ -308,11 +308,11 @@ def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices(
 
 
 @pytest.mark.parametrize("refine", [0.0, REFINE_RADIUS])
-def test_resolve_contacts_finds_a_nearer_face_of_the_same_part_by_the_face_grid(refine):
+def test_resolve_contacts_finds_a_nearer_face_of_the_same_part_by_the_face_tree(refine):
     """The boxes of the test above as one body part, two sheets of a fold: no other part to
     look at, and the rings of the fine box's vertices say "outside". Without the nearest-face
     query (refine = 0) the particle 1 mm inside the coarse box stays where it is; with it, the
-    face grid finds the coarse box's bottom face 1 mm away (nearer than the 7 mm to the fine
+    face tree finds the coarse box's bottom face 1 mm away (nearer than the 7 mm to the fine
     box), and the particle ends thickness below it (z = 0.003)."""
     coarse_v, coarse_t = box(1.0, n=1)
     coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.016]
