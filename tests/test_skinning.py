@@ -56,3 +56,23 @@ def test_normals_of_a_flat_grid_are_exact():
             tris += [(a, a + 4, a + 1), (a + 1, a + 4, a + 5)]
     n = MeshNormals(np.array(tris), len(v))(v, np.empty_like(v))
     np.testing.assert_allclose(n, np.tile([0.0, 1.0, 0.0], (len(v), 1)), atol=1e-15)
+
+
+def test_body_regions_and_clothed_faces_follow_the_dominant_bones(body):
+    """A face is left out of the clothed faces exactly when all three corners are dominated by
+    a bone of the head, the hands or the toes; a vertex's region is its dominant bone's limb."""
+    from skinning.body import BODY_REGIONS, body_clothed_faces, body_regions
+
+    names = body.skeleton.names
+    vis = np.arange(body.n_visible)
+    dominant = np.array(names)[body.weight_bones[vis, np.argmax(body.weight_values[vis], axis=1)]]
+    bare = np.isin(dominant, ["Head", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb", "RightHand",
+                              "RightFingerBase", "RightHandFinger1", "RThumb", "LeftToeBase", "RightToeBase"])
+    clothed = body_clothed_faces(body)
+    np.testing.assert_array_equal(clothed, ~bare[body.triangles].all(axis=1))
+    assert 0.2 < clothed.mean() < 0.5  # the head, hands and toes are most of MakeHuman's triangles
+    spine = (dominant[body.triangles] == "Spine").all(axis=1)
+    assert spine.any() and clothed[spine].all()
+    regions = body_regions(body)
+    assert (regions[dominant == "LeftUpLeg"] == BODY_REGIONS["left_leg"]).all()
+    assert (regions[dominant == "Spine"] == BODY_REGIONS["torso"]).all()
