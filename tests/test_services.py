@@ -214,12 +214,22 @@ def test_replay_reproduces_garment_meshes_exactly(hub, body, data, tmp_path):
     bus = peer(port)
     try:
         recorder = Recorder(bus, "orig", tmp_path / "orig.mcap")
+        recorded_garments = []  # the recorder is a subscriber of its own: it may lag the collector
+        write = recorder.write
+
+        def counting_write(key_expr, payload):
+            write(key_expr, payload)
+            if "/garment/" in key_expr:
+                recorded_garments.append(key_expr)
+
+        recorder.write = counting_write
         garments = Collector(bus, key("orig", "garment", "*"))
         t, svc = run_ingest(bus, "orig", body, data, max_frames=10)
         t.join(120)
         # every garment: they run on threads of their own, and either may finish its last frame first
         wait_until(lambda: all(len(garments.frames(f"garment/{g}")) == svc.frames for g in GARMENTS), 60,
                    "the original garments")
+        wait_until(lambda: len(recorded_garments) >= 2 * svc.frames, 30, "the recorder to have every garment frame")
         path = recorder.close()
     finally:
         bus.close()
