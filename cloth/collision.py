@@ -503,8 +503,9 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
 # two body parts converge slowly)
 CONTACT_ITERATIONS = 8
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
+NO_FACE_TREE = (np.zeros((1, 6)), np.full((1, 2), -1, np.int32), np.zeros(1, np.int32), np.zeros(1, np.int32),
+                np.zeros(0, np.int32))  # FaceTree.arrays() of a tree of no faces
 FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most this deep, less two)
-REFINE_RADIUS = 0.02  # m: a contact result nearer than this is checked against every clothed face (FaceTree)
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 
 
@@ -605,19 +606,27 @@ class BodyPose:
     vertices (float64, contiguous), the face normals, the vertex grid and the face tree (of
     the faces clothes can touch, `BodyMesh.clothed_faces`)."""
 
-    def __init__(self, body: BodyMesh):
+    def __init__(self, body: BodyMesh, face_tree: bool = True):
+        """face_tree: keep the face tree (the contact pass's nearest-face query; False when every
+        garment on the body has it off, `SimSettings.nearest_face_radius`)."""
         self.body = body
         self.x = np.zeros((body.n_vertices, 3))  # m
         self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
         self.grid = VertexGrid(body.n_vertices)
-        self.faces = FaceTree(body.triangles, np.flatnonzero(body.clothed_faces), body.regions)
+        self.faces = FaceTree(body.triangles, np.flatnonzero(body.clothed_faces), body.regions) if face_tree else None
 
     def update(self, body_vertices: np.ndarray) -> None:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
         self.x[:] = body_vertices[: self.body.n_vertices]
         body_face_normals(self.x, self.body.triangles, self.face_n)
         self.grid.update(self.x, self.body.regions)
-        self.faces.update(self.x)
+        if self.faces is not None:
+            self.faces.update(self.x)
+
+    def face_tree_arrays(self) -> tuple:
+        """What `resolve_contacts` takes of the face tree (`FaceTree.arrays()`), or an empty
+        tree of the same types when there is none (the query is then off)."""
+        return self.faces.arrays() if self.faces is not None else NO_FACE_TREE
 
 
 class VertexGrid:

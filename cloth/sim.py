@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .coarsen import coarsen
-from .collision import (FACE_TREE_STACK, REFINE_RADIUS, BodyMesh, BodyPose, attach_to_body, collide_particles,
+from .collision import (FACE_TREE_STACK, BodyMesh, BodyPose, attach_to_body, collide_particles,
                         face_normals, follow_body, resolve_contacts)
 from .dynamics import limit_stretch, rk4_substep
 from .fabric import Fabric
@@ -181,7 +181,7 @@ class ClothSim:
         self.state = ClothState(model.n_particles)
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
-        self.own_pose = BodyPose(body)  # used when no shared pose is given
+        self.own_pose = BodyPose(body, model.settings.nearest_face_radius > 0)  # used when no shared pose is given
         self.pose = self.own_pose  # the body pose of the last step, for the detailed surface stage
         self.reset(body_vertices)
 
@@ -306,9 +306,10 @@ class ClothSim:
         s, m, b = self.state, self.model, self.body
         grid = pose.grid
         active = s.all_particles if active is None else active
+        radius = m.settings.nearest_face_radius if refine and pose.faces is not None else 0.0
         resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q,
-                         *grid.arrays(), *pose.faces.arrays(), REFINE_RADIUS if refine else 0.0, s.stack, s.part,
+                         *grid.arrays(), *pose.face_tree_arrays(), radius, s.stack, s.part,
                          s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active)
 
 

@@ -121,7 +121,8 @@ class OutfitSession:
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="garment") if threads > 1 else None
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
-        self.pose = BodyPose(body_mesh)  # the frame's body: face normals, vertex grid; shared by the garments
+        # the frame's body: face normals, vertex grid, face tree; shared by the garments
+        self.pose = BodyPose(body_mesh, any(m.settings.nearest_face_radius > 0 for m in outfit.models))
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))

@@ -6,11 +6,14 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import (FACE_TREE_STACK, REFINE_RADIUS, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
+from cloth.collision import (FACE_TREE_STACK, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
                              collide_particles, face_normals, follow_body, resolve_contacts, tree_nearest_face)
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
+from cloth.model import SimSettings
 from cloth.sim import mark_moved
+
+REFINE_RADIUS = SimSettings().nearest_face_radius
 
 G = 9.81
 
@@ -560,35 +563,52 @@ def test_resolve_contacts_tests_only_the_active_particles():
     assert placed[0] == 0.0 and np.isnan(placed[1])
 
 
-@pytest.mark.parametrize("slide_passes", [0, 1])
-def test_slide_pass_lets_placed_particles_slide_back_to_the_strain_limit(slide_passes):
-    """One 4 cm cotton quad (max strain 5 %, thickness 3 mm), stretched 30 % along x, lies 2 mm
-    inside the top face (y = 0.3) of a box. The contact pass places all four on the face plus
-    thickness (y = 0.303). Held there (slide_passes = 0), the stretched edges stay 5.2 cm long.
-    The slide pass frees them for one strain-limiting pass: each x edge, its two ends of equal
-    mass, shortens about its midpoint to exactly 1.05 × 4 cm along the face, the z edges (at
-    rest) are untouched, and the second contact pass finds them all outside."""
+def quad_on_box(settings):
+    """One 4 cm cotton quad (max strain 5 %, thickness 3 mm), stretched 30 % along x, 2 mm
+    inside the top face (y = 0.3) of a box, at rest: (sim, positions)."""
     from cloth.coarsen import CoarseMesh
     from cloth.garment import Garment
-    from cloth.model import SimSettings, build_cloth_model
+    from cloth.model import build_cloth_model
     from cloth.sim import ClothSim
 
     rest = np.array([[0.0, 0.3, 0.0], [0.0, 0.3, 0.04], [0.04, 0.3, 0.04], [0.04, 0.3, 0.0]])
     quad = np.array([[0, 1, 2, 3]], np.int32)
-    settings = SimSettings(slide_passes=slide_passes)
     garment = Garment("quad", rest, quad, np.arange(4))
     model = build_cloth_model(garment, fabric("cotton"), settings, rest,
                               CoarseMesh(rest, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
     verts, tris = box(0.3)
     sim = ClothSim(model, BodyMesh.build(tris, len(verts)), verts)
-    f = model.fabric
-    assert (f.max_strain, f.thickness) == (0.05, 0.003)
+    assert (model.fabric.max_strain, model.fabric.thickness) == (0.05, 0.003)
     x = sim.state.x
     x[:] = [[-0.026, 0.298, 0.0], [-0.026, 0.298, 0.04], [0.026, 0.298, 0.04], [0.026, 0.298, 0.0]]
     sim.state.v[:] = 0.0
+    return sim, x
+
+
+@pytest.mark.parametrize("slide_passes", [0, 1])
+def test_slide_pass_lets_placed_particles_slide_back_to_the_strain_limit(slide_passes):
+    """The quad of `quad_on_box`: the contact pass places all four on the face plus thickness
+    (y = 0.303). Held there (slide_passes = 0), the stretched edges stay 5.2 cm long. The slide
+    pass frees them for one strain-limiting pass: each x edge, its two ends of equal mass,
+    shortens about its midpoint to exactly 1.05 × 4 cm along the face, the z edges (at rest)
+    are untouched, and the second contact pass finds them all outside."""
+    sim, x = quad_on_box(SimSettings(slide_passes=slide_passes))
     sim.settle_contacts(sim.pose)
     np.testing.assert_allclose(x[:, 1], 0.303, atol=1e-12)
     half = 0.026 if slide_passes == 0 else 0.021
     np.testing.assert_allclose(x[:, [0, 2]], [[-half, 0.0], [-half, 0.04], [half, 0.04], [half, 0.0]], atol=1e-12)
     placed = sim.state.placed_inv_mass == 0.0
     assert placed.all() if slide_passes == 0 else not placed.any()
+
+
+def test_nearest_face_query_off_keeps_no_face_tree():
+    """nearest_face_radius = 0: the simulation's body pose keeps no face tree (no refit per
+    pose), and the contact passes still place the quad on the box (the same answer as with it)."""
+    results = []
+    for radius in (0.0, SimSettings().nearest_face_radius):
+        sim, x = quad_on_box(SimSettings(nearest_face_radius=radius))
+        assert (sim.pose.faces is None) == (radius == 0.0)
+        sim.settle_contacts(sim.pose)
+        results.append(x.copy())
+    np.testing.assert_allclose(results[0][:, 1], 0.303, atol=1e-12)
+    np.testing.assert_array_equal(results[0], results[1])
