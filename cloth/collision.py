@@ -503,6 +503,8 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
 # two body parts converge slowly)
 CONTACT_ITERATIONS = 8
 MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a limb's far side: left as it is
+CREASE_COS = 0.98  # two push planes nearer parallel (or opposite) than this are not solved together
+MAX_CREASE_MOVE = 0.03  # m: a crease solution farther than this from the particle is not taken
 NO_FACE_TREE = (np.zeros((1, 6)), np.full((1, 2), -1, np.int32), np.zeros(1, np.int32), np.zeros(1, np.int32),
                 np.zeros(0, np.int32))  # FaceTree.arrays() of a tree of no faces
 FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most this deep, less two)
@@ -524,7 +526,12 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     put at that point plus thickness along the surface normal there (its pseudo-normal, see
     `ring_signed_distance`), its inward velocity relative to the body removed. In a crease
     between two body parts a push can land it behind the other part's faces: the test is
-    repeated from the new position (CONTACT_ITERATIONS), which settles it outside both.
+    repeated from the new position (CONTACT_ITERATIONS), and when a push would land the
+    particle behind the plane of the push before it, it goes instead to the nearest point
+    thickness in front of both planes (a narrow crease: alternate pushes close in by only the
+    squared cosine of the planes' angle a round). Planes within CREASE_COS of parallel or
+    opposite are not solved together, nor is a solution farther than MAX_CREASE_MOVE taken,
+    nor a gripped particle moved off the surface by one.
     Gripped particles (fixed) are placed too, their velocity untouched. One found deeper than
     MAX_CONTACT_DEPTH is left where it is. Where two body parts meet (an arm against the torso,
     the thighs), a face of the other part can be nearer than every vertex of it, and the ring
@@ -552,6 +559,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             continue
         px, py, pz = x[i, 0], x[i, 1], x[i, 2]
         placed_inv_mass[i] = inv_mass[i]
+        pushed = False
+        pnx = pny = pnz = pd = 0.0  # the plane of the last push: pn·x >= pd
         for _ in range(CONTACT_ITERATIONS):
             # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
             vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
@@ -584,9 +593,27 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
                         side, nx, ny, nz, qx, qy, qz = s2, mx, my, mz, ax, ay, az
             if side >= thickness * 0.999 or side < -MAX_CONTACT_DEPTH or (nx == 0.0 and ny == 0.0 and nz == 0.0):
                 break
-            px = qx + thickness * nx
-            py = qy + thickness * ny
-            pz = qz + thickness * nz
+            tx = qx + thickness * nx
+            ty = qy + thickness * ny
+            tz = qz + thickness * nz
+            d_new = nx * qx + ny * qy + nz * qz + thickness
+            if pushed and not fixed[i]:  # a gripped particle keeps to the surface: no crease solve
+                c = pnx * nx + pny * ny + pnz * nz
+                if abs(c) < CREASE_COS and pnx * tx + pny * ty + pnz * tz < pd:
+                    # a crease: this push would undo the last one. The nearest point in front of
+                    # both planes (on both: x = p + a pn + b n with pn·x = pd, n·x = d_new)
+                    ra = pd - (pnx * px + pny * py + pnz * pz)
+                    rb = d_new - (nx * px + ny * py + nz * pz)
+                    det = 1.0 - c * c
+                    a = (ra - c * rb) / det
+                    b = (rb - c * ra) / det
+                    if a * a + b * b + 2.0 * a * b * c < MAX_CREASE_MOVE * MAX_CREASE_MOVE:
+                        tx = px + a * pnx + b * nx
+                        ty = py + a * pny + b * ny
+                        tz = pz + a * pnz + b * nz
+            pushed = True
+            pnx, pny, pnz, pd = nx, ny, nz, d_new
+            px, py, pz = tx, ty, tz
             x[i, 0], x[i, 1], x[i, 2] = px, py, pz
             placed_inv_mass[i] = 0.0
             if fixed[i]:

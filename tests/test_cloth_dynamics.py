@@ -524,6 +524,39 @@ def test_resolve_contacts_settles_a_particle_in_a_concave_corner_away_from_both_
     assert x[0, 0] < 1.0031 and x[0, 1] < 1.0031 and x[0, 2] == 0.5, x
 
 
+def notch_prism(depth=1.0):
+    """A closed prism (outward triangles) whose section is a square with a V notch cut into its
+    top: (0,0)-(2,0)-(2,2)-(1.4,2)-(1,0.5)-(0.6,2)-(0,2), extruded from z = 0 to depth. The
+    notch's walls are 30° apart, their normals (-1.5, 0.4) and (1.5, 0.4) over 1.552."""
+    ring = np.array([[0, 0], [2, 0], [2, 2], [1.4, 2], [1, 0.5], [0.6, 2], [0, 2]], float)
+    n = len(ring)
+    verts = np.concatenate([np.c_[ring, np.zeros(n)], np.c_[ring, np.full(n, depth)]])
+    cap = np.array([[0, 1, 4], [1, 2, 3], [1, 3, 4], [0, 4, 5], [0, 5, 6]])  # counter-clockwise seen from +z
+    tris = [c[::-1] for c in cap] + [c + n for c in cap]
+    for k in range(n):
+        a, b = k, (k + 1) % n
+        tris += [[a, b, b + n], [a, b + n, a + n]]
+    return verts, np.array(tris, dtype=np.int32)
+
+
+def test_resolve_contacts_solves_a_narrow_crease_for_both_walls_at_once():
+    """A particle 1 cm inside the bottom of a 30° notch. The first push (along the bottom edge's
+    pseudo-normal, +y) lands it nearer than thickness to both walls; pushing out of one wall
+    then lands it behind the other, and alternating pushes close in on the answer by only
+    cos² 150° = 0.75 a round. The pass solves for a point in front of both planes at once:
+    the notch's bisector x = 1 at thickness from each wall, y = 0.5 + 0.003 · 1.552 / 0.4."""
+    verts, tris = notch_prism()
+    mesh = BodyMesh.build(tris, len(verts))
+    face_n = face_normals(verts, tris)
+    assert (face_n[:, 3] > 0).all()
+    x = np.array([[1.0, 0.49, 0.5]])
+    v = np.zeros_like(x)
+    resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                     mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.zeros(1, np.uint8),
+                     face_n, np.zeros(3), *contact_grids(verts, mesh), *contact_scratch(len(x)))
+    np.testing.assert_allclose(x[0], [1.0, 0.5 + 0.003 * np.hypot(1.5, 0.4) / 0.4, 0.5], atol=1e-9)
+
+
 def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_velocity():
     """A waistband particle (gripped: kinematic, it follows the body) that the skin bulged over
     is placed outside like any other; its velocity, which only a free particle has, is kept."""
