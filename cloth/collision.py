@@ -515,7 +515,7 @@ MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts i
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
                      nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, grid_x, grid_regions,
                      grid_parts, fbox, fchild, ffirst, fcount, forder, refine, stack, part, part_vertex, part_d2,
-                     inv_mass, placed_inv_mass, active):
+                     inv_mass, placed_inv_mass, active, unsettled):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
     The vertex test of S101 looks only at the faces around a particle's nearest vertex, in the
@@ -553,15 +553,17 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
     strain-limiting pass after it pulls the cloth towards them and never them back inside.
     active (n,) uint8: the particles to test; the others (and their placed_inv_mass) are left
-    as they are."""
+    as they are. unsettled (n,) uint8: written for the active particles, 1 where the last
+    push (the CONTACT_ITERATIONS-th) was not tested again, else 0."""
     for i in range(x.shape[0]):
         if not active[i]:
             continue
         px, py, pz = x[i, 0], x[i, 1], x[i, 2]
         placed_inv_mass[i] = inv_mass[i]
+        unsettled[i] = 0
         pushed = False
         pnx = pny = pnz = pd = 0.0  # the plane of the last push: pn·x >= pd
-        for _ in range(CONTACT_ITERATIONS):
+        for it in range(CONTACT_ITERATIONS):
             # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
             vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
             d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
@@ -616,6 +618,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             px, py, pz = tx, ty, tz
             x[i, 0], x[i, 1], x[i, 2] = px, py, pz
             placed_inv_mass[i] = 0.0
+            if it == CONTACT_ITERATIONS - 1:
+                unsettled[i] = 1
             if fixed[i]:
                 continue  # a gripped particle is placed, not moved: it has no velocity of its own
             rx = v[i, 0] - body_vel[i, 0]

@@ -31,10 +31,11 @@ class SimSettings:
     max_speed: float = 30.0  # m/s: a faster particle is treated as exploded
     max_stretch: float = 3.0  # a structural spring longer than this times rest marks an explosion
     limit_passes: int = 4  # strain-limiting passes after the last substep (one after each other substep)
-    slide_passes: int = 1  # free strain-limiting passes after the contact pass, then a second one (0: neither)
+    # free strain-limiting passes after the contact pass, then a second one for what slid (0: neither)
+    slide_passes: int = 1
     contact_limit_passes: int = 2  # strain-limiting passes after the contact pass, its placed particles held
     final_contact: bool = True  # after those, the contact pass again for the particles they moved
-    # m: from the second contact pass on, a result nearer than this is checked against every
+    # m: a contact-pass result nearer than this is checked against every
     # clothed body face (collision.FaceTree: the other sheet of a fold); 0: off, for speed
     nearest_face_radius: float = 0.02
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)

@@ -85,6 +85,7 @@ def mark_moved(x, before, distance, out):
                        + (x[i, 2] - before[i, 2]) ** 2) > d2 else 0
 
 
+SLIDE_RECHECK = 0.1  # x thickness: a particle that slid less is not tested again (ClothSim.settle_contacts)
 REGION_RADIUS = 0.06  # m: a particle may attach to the body parts within this distance at rest
 
 
@@ -158,7 +159,8 @@ class ClothState:
         self.placed_inv_mass = np.zeros(n)  # inverse masses with 0 for the particles the contact pass placed
         self.held_from = np.zeros((n, 3))  # positions before the strain-limiting passes with those held
         self.all_particles = np.ones(n, dtype=np.uint8)  # contact pass masks: every particle,
-        self.recheck = np.zeros(n, dtype=np.uint8)  # those the held passes moved far enough to test again
+        self.recheck = np.zeros(n, dtype=np.uint8)  # those a strain-limiting pass moved far enough to test again
+        self.unsettled = np.zeros(n, dtype=np.uint8)  # those the contact pass left with an untested push
         self.face = np.zeros(n, dtype=np.int32)  # body face of the relative coordinates
         self.bary = np.zeros((n, 3))  # barycentric coordinates on that face
         self.height = np.zeros(n)  # offset along the face normal, m
@@ -279,16 +281,22 @@ class ClothSim:
         (see `SimSettings`)."""
         s, m, st = self.state, self.model, self.model.settings
         f = m.fabric
-        # with a second full pass to come, the first one leaves the nearest-face query to it
-        self._contact_pass(pose, refine=not st.slide_passes)
+        self._contact_pass(pose)
         if st.slide_passes:
             # the pass puts a particle where the skin under it went, and skin stretches more than
             # the cloth may (hips and thighs in a stride): free strain-limiting passes let the
             # placed particles slide back towards their neighbours, and a second contact pass puts
-            # out again what slid inside (it also catches what the first pass's pushes left behind)
+            # out again what slid inside, and what the first pass's pushes left untested. A
+            # particle that slid less than SLIDE_RECHECK x thickness from where the first pass
+            # left it outside is still outside (the body has not moved); it is not tested again,
+            # and, as that test would leave it, not held by the strain limiting below.
+            s.held_from[:] = s.x
             for _ in range(st.slide_passes):
                 limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural, f.max_strain)
-            self._contact_pass(pose)
+            mark_moved(s.x, s.held_from, SLIDE_RECHECK * f.thickness, s.recheck)
+            np.bitwise_or(s.recheck, s.unsettled, out=s.recheck)
+            s.placed_inv_mass[:] = m.inv_mass
+            self._contact_pass(pose, s.recheck)
         # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
         s.held_from[:] = s.x
         for _ in range(st.contact_limit_passes):
@@ -300,17 +308,17 @@ class ClothSim:
             mark_moved(s.x, s.held_from, 0.5 * f.thickness, s.recheck)
             self._contact_pass(pose, s.recheck)
 
-    def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None, refine: bool = True) -> None:
+    def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
         """`resolve_contacts` against the whole body in this pose for the active particles (all
-        unless given); marks the placed particles. refine: with the nearest-face query."""
+        unless given); marks the placed particles."""
         s, m, b = self.state, self.model, self.body
         grid = pose.grid
         active = s.all_particles if active is None else active
-        radius = m.settings.nearest_face_radius if refine and pose.faces is not None else 0.0
+        radius = m.settings.nearest_face_radius if pose.faces is not None else 0.0
         resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
                          b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q,
                          *grid.arrays(), *pose.face_tree_arrays(), radius, s.stack, s.part,
-                         s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active)
+                         s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active, s.unsettled)
 
 
 __all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",

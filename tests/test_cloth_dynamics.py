@@ -242,10 +242,14 @@ def contact_grids(verts, mesh):
 
 def contact_scratch(n, inv_mass=None):
     """resolve_contacts' scratch for the body parts near a particle, the particles' inverse
-    masses (1 unless given), the placed-particle inverse masses it writes and the active mask
-    (every particle)."""
+    masses (1 unless given), the placed-particle inverse masses it writes (index PLACED), the
+    active mask (every particle, index ACTIVE) and the unsettled flags it writes."""
     inv_mass = np.ones(n) if inv_mass is None else inv_mass
-    return np.zeros(8, np.uint8), np.zeros(8, np.int32), np.zeros(8), inv_mass, np.full(n, np.nan), np.ones(n, np.uint8)
+    return (np.zeros(8, np.uint8), np.zeros(8, np.int32), np.zeros(8), inv_mass, np.full(n, np.nan),
+            np.ones(n, np.uint8), np.full(n, 7, np.uint8))
+
+
+PLACED, ACTIVE, UNSETTLED = 4, 5, 6
 
 
 def resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=False, refine=REFINE_RADIUS):
@@ -267,7 +271,7 @@ def resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=False, refine=
                      face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh)[:-2], refine,
                      np.zeros(FACE_TREE_STACK, np.int32), *scratch)
     assert nearest[0] < len(fine_v)  # the nearest vertex is the fine box's
-    return scratch[-2]
+    return scratch[PLACED]
 
 
 def test_body_face_normals_are_unit_normals_and_twice_the_areas():
@@ -409,7 +413,7 @@ def test_resolve_contacts_pushes_out_of_any_body_part():
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.5], atol=1e-12)  # tangential velocity kept
     np.testing.assert_array_equal(x[1], [2.0, 0.45, 0.0])  # outside: untouched
     np.testing.assert_array_equal(v[1], [0.0, -1.0, 0.0])
-    np.testing.assert_array_equal(scratch[-2], [0.0, 3.0])  # the placed one is held by later strain limiting
+    np.testing.assert_array_equal(scratch[PLACED], [0.0, 3.0])  # the placed one is held by later strain limiting
 
 
 def test_strain_limit_caps_an_edge_by_inverse_mass_and_keeps_momentum():
@@ -557,6 +561,25 @@ def test_resolve_contacts_solves_a_narrow_crease_for_both_walls_at_once():
     np.testing.assert_allclose(x[0], [1.0, 0.5 + 0.003 * np.hypot(1.5, 0.4) / 0.4, 0.5], atol=1e-9)
 
 
+def test_resolve_contacts_flags_a_particle_its_last_push_left_untested():
+    """The same notch, with a free and a gripped particle at that point. The free one settles
+    on the bisector after the crease solve and is tested there: settled. The gripped one gets
+    no crease solve (it keeps to the surface), alternates between the walls for all
+    CONTACT_ITERATIONS pushes and is flagged unsettled: the second contact pass of a frame
+    tests it again even if nothing moves it in between."""
+    verts, tris = notch_prism()
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[1.0, 0.49, 0.5], [1.0, 0.49, 0.5]])
+    scratch = contact_scratch(len(x))
+    resolve_contacts(x, np.zeros_like(x), verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles,
+                     mesh.tri_start, mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(2, np.int32), 0.003,
+                     np.array([0, 1], np.uint8), face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh),
+                     *scratch)
+    np.testing.assert_array_equal(scratch[UNSETTLED], [0, 1])
+    np.testing.assert_allclose(x[0], [1.0, 0.5 + 0.003 * np.hypot(1.5, 0.4) / 0.4, 0.5], atol=1e-9)
+    assert abs(x[1, 0] - 1.0) > 1e-4  # on one wall, not solved
+
+
 def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_velocity():
     """A waistband particle (gripped: kinematic, it follows the body) that the skin bulged over
     is placed outside like any other; its velocity, which only a free particle has, is kept."""
@@ -585,14 +608,15 @@ def test_resolve_contacts_tests_only_the_active_particles():
     mark_moved(x, before, 0.0015, active)
     np.testing.assert_array_equal(active, [1, 0])
     v = np.zeros_like(x)
-    scratch = contact_scratch(2)[:-1] + (active,)
+    scratch = list(contact_scratch(2))
+    scratch[ACTIVE] = active
     inside = x[1].copy()
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(2, np.int32), 0.003, np.zeros(2, np.uint8),
                      face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh), *scratch)
     np.testing.assert_allclose(x[0], [0.1016, 0.303, -0.05], atol=1e-9)
     np.testing.assert_array_equal(x[1], inside)
-    placed = scratch[-2]
+    placed = scratch[PLACED]
     assert placed[0] == 0.0 and np.isnan(placed[1])
 
 
