@@ -201,10 +201,13 @@ def cmd_cloth_service(args) -> int:
     from .cloth_service import ClothService
 
     _logging(args)
+    if not args.spin_ms >= 0.0:
+        raise SystemExit(f"tryon cloth-service: --spin-ms must be 0 or more, got {args.spin_ms}")
     data = data_dir(args.data)
     body = load_body(data)
     with bus_config_from_args(args).open() as bus:
-        svc = ClothService(bus, body, data, _spec(args), idle_seconds=args.idle, catch_up=args.catch_up).start()
+        svc = ClothService(bus, body, data, _spec(args), idle_seconds=args.idle, catch_up=args.catch_up,
+                           spin=args.spin_ms / 1000.0).start()
         print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)
         _wait()
         svc.stop()
@@ -383,6 +386,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--catch-up", action="store_true",
                    help="when behind, simulate every body frame but build and publish the detailed surface only "
                         "for the newest (live displays stay current; output no longer bit-reproducible)")
+    p.add_argument("--spin-ms", type=float, default=20.0,
+                   help="after each frame, poll this long for the next before sleeping (default 20: a 60 Hz "
+                        "session keeps the cores awake; an idle core can wake a millisecond late; 0: never poll)")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_cloth_service)
 

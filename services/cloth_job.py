@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +25,8 @@ from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
 from skinning.body import Body, body_clothed_faces, body_regions
 from skinning.source import BVHSource
+
+from .spin import SpinPool
 
 OUTFITS = ("female_casualsuit01", "female_elegantsuit01", "female_sportsuit01")
 # Default fabric per garment (blouse: silk, skirt: cotton, T-shirt: cotton, jeans: denim, sportswear: jersey).
@@ -106,10 +107,13 @@ class OutfitSession:
 
     def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit,
                  surface: SurfaceSettings | None = None, surface_models: list | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, pool: SpinPool | None = None):
         """surface: also build each garment's detailed surface (S102-S106) at these settings;
         surface_models: the garments' surface models, already built (shared between sessions);
-        threads: garments stepped in parallel (default: one per garment, at most one per core)."""
+        threads: garments stepped in parallel (default: one per garment, at most one per core):
+        the calling thread steps its share and helper threads the rest;
+        pool: the helper threads, shared with other sessions (`services.spin.SpinPool`; a frame
+        that finds them busy is stepped on the calling thread alone); default: its own."""
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
         if surface_models is None and surface is not None:
@@ -118,7 +122,10 @@ class OutfitSession:
         self._detailed: list = [None] * len(self.sims)
         self._frame = None
         threads = min(len(self.sims), os.cpu_count() or 1) if threads is None else threads
-        self._pool = ThreadPoolExecutor(threads, thread_name_prefix="garment") if threads > 1 else None
+        threads = max(1, min(threads, len(self.sims)))
+        self._own_pool = pool is None and threads > 1
+        self._pool = SpinPool(threads - 1, 0.0) if self._own_pool else pool
+        self._threads = threads
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
         # the frame's body: face normals, vertex grid, face tree; shared by the garments
@@ -136,13 +143,27 @@ class OutfitSession:
         `threads` > 1 they run on separate cores (the result is the same bit for bit)."""
         self.pose.update(body_vertices)
         self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt)
-        if self._pool is not None:
-            out = list(self._pool.map(self._step_garment, range(len(self.sims))))
-        else:
-            out = [self._step_garment(k) for k in range(len(self.sims))]
+        helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
+        try:
+            n = min(self._threads, 1 + len(helpers)) if helpers else 1
+            shares = [list(range(r, len(self.sims), n)) for r in range(n)]  # share 0: this thread's
+            for helper, share in zip(helpers or [], shares[1:]):
+                helper.submit(self._step_share, share)
+            out = [None] * len(self.sims)
+            for k in shares[0]:
+                out[k] = self._step_garment(k)
+            for helper, share in zip(helpers or [], shares[1:]):
+                for k, x in zip(share, helper.result()):
+                    out[k] = x
+        finally:
+            if helpers is not None:
+                self._pool.release()
         if self._frame[2]:
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
         return out
+
+    def _step_share(self, share: list[int]) -> list[np.ndarray]:
+        return [self._step_garment(k) for k in share]
 
     def _step_garment(self, k: int) -> np.ndarray:
         body_vertices, dt, surface, surface_dt = self._frame
@@ -159,9 +180,9 @@ class OutfitSession:
         return x
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        if self._own_pool:
+            self._pool.close()
+        self._pool = None
 
     def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5):
         """Blend the body from rest to the first frame's pose, then hold it while the cloth settles."""

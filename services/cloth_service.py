@@ -18,6 +18,7 @@ body frame comes first) reads the latched description and settles into that fram
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import threading
 import time
@@ -38,6 +39,7 @@ from skinning.body import Body, body_clothed_faces, body_regions
 from .bus import Latched, Stats, fetch_latched, key, parse_key
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, load_outfit_models
 from .protocol import Message, MessageError, decode, encode
+from .spin import SpinPool, spin_get
 
 log = logging.getLogger("tryon.cloth")
 
@@ -69,7 +71,7 @@ class GarmentSession:
         self.service, self.session, self.spec, self.dt = service, session, spec, frame_time
         outfit, surface_models = service.outfit_models(spec)
         self.sim = OutfitSession(service.body, service.animator, service.body_mesh, outfit,
-                                 surface_models=surface_models)
+                                 surface_models=surface_models, pool=service.garment_pool)
         self.names = [m.name for m in outfit.models]
         self.stats = Stats(ClothService.SERVICE, session)
         self.stats.values["garments"] = len(self.names)
@@ -188,13 +190,20 @@ class ClothService:
 
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
                  queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
-                 catch_up: bool = False):
+                 catch_up: bool = False, spin: float = 0.0):
         """catch_up: when a session's body frames queue up, step the coarse cloth through every one
         of them but build and publish the detailed surface only for the newest (live displays stay
         current; the output then depends on timing). Off: every frame is published, in order, and
-        the output is deterministic (replays reproduce it bit for bit)."""
+        the output is deterministic (replays reproduce it bit for bit).
+        spin: seconds after a frame that this service's threads poll for the next one before they
+        block (`services.spin`: on a virtual machine an idle core wakes about 1 ms late; the
+        cores stay busy while sessions stream)."""
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
         self.catch_up = catch_up
+        self.spin = spin
+        # helper threads for the garments, one per core beyond this one, shared by the sessions
+        self.garment_pool = SpinPool(max(0, (os.cpu_count() or 1) - 1), spin)
+        self._last_work = 0.0  # monotonic time the serving thread last handled a message
         self.idle_seconds = idle_seconds
         self.animator = BodyAnimator(body)
         self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
@@ -260,13 +269,15 @@ class ClothService:
         for gs in self.sessions.values():
             gs.close()
         self.sessions.clear()
+        self.garment_pool.close()
 
     def serve(self) -> None:
         """Consume body frames until stop(); every error is logged and counted, never fatal."""
         while not self._stop.is_set():
             self._finish_setups()
             try:
-                batch = [self._queue.get(timeout=0.01 if self._preparing else 0.2)]
+                spin = max(0.0, self.spin - (time.monotonic() - self._last_work))
+                batch = [spin_get(self._queue, spin, 0.01 if self._preparing else 0.2)]
             except queue.Empty:
                 self._drop_idle()
                 continue
@@ -284,6 +295,7 @@ class ClothService:
             for i, sample in enumerate(batch):
                 k = str(sample.key_expr)
                 self._handle_counted(k, sample.payload.to_bytes(), newest.get(k, i) == i)
+            self._last_work = time.monotonic()
 
     def _handle_counted(self, key_expr: str, payload: bytes, publish: bool) -> None:
         """handle() one message and count it done, unless it waits for its session's setup."""

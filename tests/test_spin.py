@@ -1,0 +1,97 @@
+"""The polling helpers of services/spin.py and the garments stepped on them (services.cloth_job)."""
+
+import queue
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from cloth.collision import BodyMesh
+from cloth.surface import SurfaceSettings
+from services.cloth_job import OUTFITS, OutfitSession, load_outfit_models
+from services.spin import SpinPool, SpinWorker, spin_get
+from skinning.animate import BodyAnimator
+from skinning.body import body_clothed_faces, body_regions
+from skinning.source import BVHSource
+
+
+def test_spin_get_returns_what_arrives_while_it_polls_and_times_out_when_nothing_does():
+    q = queue.Queue()
+    threading.Timer(0.02, q.put, args=("frame",)).start()
+    t0 = time.monotonic()
+    assert spin_get(q, 0.2, 1.0) == "frame"  # arrives within the polling window
+    assert time.monotonic() - t0 < 0.5
+    threading.Timer(0.05, q.put, args=("late",)).start()
+    assert spin_get(q, 0.01, 1.0) == "late"  # after the window: the blocking get takes it
+    t0 = time.monotonic()
+    with pytest.raises(queue.Empty):
+        spin_get(q, 0.02, 0.05)
+    assert 0.04 < time.monotonic() - t0 < 0.5
+
+
+@pytest.mark.parametrize("spin", [0.0, 0.05])
+def test_spin_worker_runs_each_call_and_hands_back_its_result_or_error(spin):
+    w = SpinWorker(spin)
+    try:
+        for k in range(20):
+            w.submit(lambda x: x * x, k)
+            assert w.result() == k * k
+            if k % 5 == 0:
+                time.sleep(0.08)  # past the polling window: the worker has blocked, and wakes
+        w.submit(lambda x: 1 // x, 0)
+        with pytest.raises(ZeroDivisionError):
+            w.result()
+        w.submit(lambda x: x + 1, 1)  # still serving after an error
+        assert w.result() == 2
+        w.submit(lambda x: x, 1)
+        with pytest.raises(RuntimeError):
+            w.submit(lambda x: x, 2)  # one call at a time
+        assert w.result() == 1
+    finally:
+        w.close()
+    assert not w._thread.is_alive()
+
+
+def test_spin_pool_is_held_by_one_caller_at_a_time():
+    pool = SpinPool(1, 0.0)
+    try:
+        workers = pool.acquire()
+        assert workers is not None and len(workers) == 1
+        assert pool.acquire() is None  # busy: the other caller steps alone
+        pool.release()
+        assert pool.acquire() is workers
+        pool.release()
+    finally:
+        pool.close()
+
+
+def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, data):
+    """The casual outfit (two garments, coarse and detailed) over 12 run-clip frames: on one
+    thread; on a helper thread beside the caller (own pool, and a shared polling pool); and
+    with the shared pool held by someone else (the frame falls back to one thread)."""
+    with BVHSource(data / "mocap" / "cmu_npybvh_example_75f.bvh", every=2, max_frames=14) as source:
+        animator = BodyAnimator(body, source.skeleton)
+        frames = [animator(f.local_rot, f.root_position).vertices.copy() for f in source][2:]
+    mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
+    outfit = load_outfit_models(body, animator, mesh, data / "garments" / OUTFITS[0])
+    shared = SpinPool(1, 0.01)
+    runs = []
+    try:
+        for threads, pool, hold in ((1, None, False), (2, None, False), (2, shared, False), (2, shared, True)):
+            session = OutfitSession(body, animator, mesh, outfit, SurfaceSettings(level=3), threads=threads, pool=pool)
+            if hold:
+                assert shared.acquire() is not None
+            try:
+                for v in frames:
+                    session.step_cloth(v, 1 / 60)
+            finally:
+                if hold:
+                    shared.release()
+                session.close()
+            runs.append([p.copy() for p, _ in session.detailed] + [s.state.x.copy() for s in session.sims])
+    finally:
+        shared.close()
+    for other in runs[1:]:
+        for a, b in zip(runs[0], other):
+            np.testing.assert_array_equal(a, b)
