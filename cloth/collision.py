@@ -506,7 +506,7 @@ MAX_CONTACT_DEPTH = 0.06  # m: deeper inside, the nearest surface is as likely a
 CREASE_COS = 0.98  # two push planes nearer parallel (or opposite) than this are not solved together
 MAX_CREASE_MOVE = 0.03  # m: a crease solution farther than this from the particle is not taken
 NO_FACE_TREE = (np.zeros((1, 6)), np.full((1, 2), -1, np.int32), np.zeros(1, np.int32), np.zeros(1, np.int32),
-                np.zeros(0, np.int32))  # FaceTree.arrays() of a tree of no faces
+                np.zeros(0, np.int32), np.full(1, -1, np.int32), np.full(0, -1, np.int32))  # FaceTree.arrays(), no faces
 FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most this deep, less two)
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 
@@ -514,7 +514,8 @@ MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts i
 @kernel
 def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
                      nearest_any, thickness, fixed, face_n, q, cell, grid_start, grid_ids, grid_x, grid_regions,
-                     grid_parts, fbox, fchild, ffirst, fcount, forder, refine, stack, part, part_vertex, part_d2,
+                     grid_parts, fbox, fchild, ffirst, fcount, forder, fparent, fleaf, refine, stack, part, part_vertex,
+                     part_d2,
                      inv_mass, placed_inv_mass, active, unsettled):
     """End-of-step contact pass against every body part (after the substeps' S101 collisions).
 
@@ -546,8 +547,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     `tree_nearest_face`), and the nearest face the particle is behind (or less than thickness
     in front of) takes over. refine = 0 turns that off.
     q: (3,) scratch; cell, grid_start, grid_ids, grid_x, grid_regions, grid_parts: a
-    `VertexGrid` built for this pose (`VertexGrid.arrays()`); fbox, fchild, ffirst, fcount, forder:
-    a `FaceTree` refitted to this pose (`FaceTree.arrays()`); stack: its traversal scratch
+    `VertexGrid` built for this pose (`VertexGrid.arrays()`); fbox, fchild, ffirst, fcount, forder,
+    fparent, fleaf: a `FaceTree` refitted to this pose (`FaceTree.arrays()`); stack: its traversal scratch
     (int32, at least `FaceTree.stack_depth`);
     part (8,) uint8, part_vertex (8,) int32, part_d2 (8,) float64: scratch for the parts.
     placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
@@ -571,11 +572,11 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             if found != vtx:
                 vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, found, regions, 255)
             nearest_any[i] = vtx
-            side, nx, ny, nz, qx, qy, qz, _ = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
-                                                                   tri_ids, vtx, face_n, q)
+            side, nx, ny, nz, qx, qy, qz, ring_face = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs,
+                                                                           tri_start, tri_ids, vtx, face_n, q)
             if abs(side) < refine:
                 t, b2, fv, fw = tree_nearest_face(px, py, pz, body_x, tris, face_n, fbox, fchild, ffirst, fcount,
-                                                  forder, stack, side * side, thickness, q)
+                                                  forder, fparent, fleaf, ring_face, stack, side * side, thickness, q)
                 if t >= 0:
                     mx, my, mz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t,
                                                 closest_feature(fv, fw))
@@ -853,6 +854,13 @@ class FaceTree:
         self.first = np.array(first, dtype=np.int32)
         self.count = np.array(count, dtype=np.int32)
         self.order = np.array(order, dtype=np.int32)
+        self.parent = np.full(len(child), -1, dtype=np.int32)
+        for node, (a, b) in enumerate(self.child):
+            if a >= 0:
+                self.parent[a] = self.parent[b] = node
+        self.leaf = np.full(len(self.triangles), -1, dtype=np.int32)  # each tree face's leaf, -1: not in the tree
+        for node in np.flatnonzero(self.child[:, 0] < 0):
+            self.leaf[self.order[self.first[node]:self.first[node] + self.count[node]]] = node
         self.box = np.zeros((len(child), 6))  # lo xyz, hi xyz
         self.stack_depth = self._depth() + 2
         if self.stack_depth > FACE_TREE_STACK:
@@ -869,8 +877,8 @@ class FaceTree:
         return int(depth.max())
 
     def arrays(self) -> tuple:
-        """What `resolve_contacts` takes of the tree: (box, child, first, count, order)."""
-        return self.box, self.child, self.first, self.count, self.order
+        """What `resolve_contacts` takes of the tree: (box, child, first, count, order, parent, leaf)."""
+        return self.box, self.child, self.first, self.count, self.order, self.parent, self.leaf
 
 
 @kernel
@@ -906,43 +914,58 @@ def _box_d2(px, py, pz, box, node):
 
 
 @njit(cache=True, inline="always")
-def tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count, order, stack, best_d2, front, q):
+def tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count, order, parent, leaf, start,
+                      stack, best_d2, front, q):
     """The body face nearest to p among those p is less than `front` in front of (by its plane),
     if one is nearer than sqrt(best_d2): returns (face, squared distance, v, w) with the closest
     point in q and its barycentric weights of the face's second and third corners; face -1 when
     none is. A subtree whose box is no nearer than the best so far is not entered, and a face
     p is farther in front of than `front`, or farther behind than the best distance, costs a
-    plane test: a face p is well in front of cannot put p inside. stack: (depth,) int32 scratch."""
+    plane test: a face p is well in front of cannot put p inside.
+    start: a body face near p (the ring's closest), or -1. The search begins at its leaf and
+    climbs to the root, searching each sibling on the way (the same answer as from the root).
+    stack: (depth,) int32 scratch."""
     best_t = -1
     bv = bw = 0.0
     qx = qy = qz = 0.0
+    climb = leaf[start] if 0 <= start < leaf.shape[0] else -1
+    if climb < 0:  # not a face of the tree: from the root
+        climb = 0
     top = 0
-    stack[0] = 0
-    while top >= 0:
-        node = stack[top]
-        top -= 1
-        if _box_d2(px, py, pz, box, node) >= best_d2:
-            continue
-        if child[node, 0] >= 0:
-            # not ordered by distance: nearly every query finds nothing nearer than its bound,
-            # and ordering would test each child's box twice
-            stack[top + 1] = child[node, 1]
-            stack[top + 2] = child[node, 0]
-            top += 2
-            continue
-        r = math.sqrt(best_d2)
-        for e in range(first[node], first[node] + count[node]):
-            t = order[e]
-            a0 = tris[t, 0]
-            plane = ((px - body_x[a0, 0]) * face_n[t, 0] + (py - body_x[a0, 1]) * face_n[t, 1]
-                     + (pz - body_x[a0, 2]) * face_n[t, 2])
-            if plane >= front or plane <= -r:
+    stack[0] = climb
+    while True:
+        while top >= 0:
+            node = stack[top]
+            top -= 1
+            if _box_d2(px, py, pz, box, node) >= best_d2:
                 continue
-            v, w = closest_point_triangle(px, py, pz, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
-            d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
-            if d2 < best_d2:
-                best_d2, best_t, bv, bw = d2, t, v, w
-                qx, qy, qz = q[0], q[1], q[2]
-                r = math.sqrt(best_d2)
+            if child[node, 0] >= 0:
+                # not ordered by distance: nearly every query finds nothing nearer than its bound,
+                # and ordering would test each child's box twice
+                stack[top + 1] = child[node, 1]
+                stack[top + 2] = child[node, 0]
+                top += 2
+                continue
+            r = math.sqrt(best_d2)
+            for e in range(first[node], first[node] + count[node]):
+                t = order[e]
+                a0 = tris[t, 0]
+                plane = ((px - body_x[a0, 0]) * face_n[t, 0] + (py - body_x[a0, 1]) * face_n[t, 1]
+                         + (pz - body_x[a0, 2]) * face_n[t, 2])
+                if plane >= front or plane <= -r:
+                    continue
+                v, w = closest_point_triangle(px, py, pz, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
+                d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
+                if d2 < best_d2:
+                    best_d2, best_t, bv, bw = d2, t, v, w
+                    qx, qy, qz = q[0], q[1], q[2]
+                    r = math.sqrt(best_d2)
+        up = parent[climb]
+        if up < 0:
+            break
+        # the subtree below climb is done: its sibling next, then one level up
+        top = 0
+        stack[0] = child[up, 0] if child[up, 1] == climb else child[up, 1]
+        climb = up
     q[0], q[1], q[2] = qx, qy, qz
     return best_t, best_d2, bv, bw

@@ -370,7 +370,9 @@ def test_face_tree_boxes_hold_their_faces_and_its_query_finds_the_brute_force_ne
     tree.update(verts)
     moved = verts + np.where(verts[:, 1:2] > 0.0, [0.03, 0.01, 0.0], 0.0)
     tree.update(moved)
-    box, child, first, count, order = tree.arrays()
+    box, child, first, count, order, parent, leaf = tree.arrays()
+    assert parent[0] == -1 and all(node in child[parent[node]] for node in range(1, len(child)))
+    assert all(t in order[first[leaf[t]]:first[leaf[t]] + count[leaf[t]]] for t in range(len(tris)))
     face_region = regions[tris[:, 0]]
     below = [[] for _ in range(len(child))]  # faces under each node
     for node in range(len(child) - 1, -1, -1):
@@ -392,12 +394,14 @@ def test_face_tree_boxes_hold_their_faces_and_its_query_finds_the_brute_force_ne
 
     for p in rng.uniform(-0.15, 0.15, (200, 3)):
         d2 = [squared_distance(p, a, b, c) for a, b, c in tris]
-        t, b2, _, _ = tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order, stack,
-                                        np.inf, np.inf, q)
-        assert b2 == pytest.approx(min(d2), abs=1e-15) and d2[t] == pytest.approx(min(d2), abs=1e-15)
-        # nothing nearer than a bound that the nearest face does not beat
-        assert tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order, stack,
-                                 min(d2) * 0.999, np.inf, q)[0] == -1
+        # from the root (no start face), from a random face's leaf, from the nearest face's leaf
+        for start in (-1, int(rng.integers(len(tris))), int(np.argmin(d2))):
+            t, b2, _, _ = tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order,
+                                            parent, leaf, start, stack, np.inf, np.inf, q)
+            assert b2 == pytest.approx(min(d2), abs=1e-15) and d2[t] == pytest.approx(min(d2), abs=1e-15)
+            # nothing nearer than a bound that the nearest face does not beat
+            assert tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order, parent,
+                                     leaf, start, stack, min(d2) * 0.999, np.inf, q)[0] == -1
 
 
 def test_resolve_contacts_takes_no_push_from_deep_behind_another_part():
