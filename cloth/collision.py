@@ -576,7 +576,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
                                                                            tri_start, tri_ids, vtx, face_n, q)
             if abs(side) < refine:
                 t, b2, fv, fw = tree_nearest_face(px, py, pz, body_x, tris, face_n, fbox, fchild, ffirst, fcount,
-                                                  forder, fparent, fleaf, ring_face, stack, side * side, thickness, q)
+                                                  forder, fparent, fleaf, ring_face, vtx, stack, side * side,
+                                                  thickness, q)
                 if t >= 0:
                     mx, my, mz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t,
                                                 closest_feature(fv, fw))
@@ -915,7 +916,7 @@ def _box_d2(px, py, pz, box, node):
 
 @njit(cache=True, inline="always")
 def tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count, order, parent, leaf, start,
-                      stack, best_d2, front, q):
+                      skip, stack, best_d2, front, q):
     """The body face nearest to p among those p is less than `front` in front of (by its plane),
     if one is nearer than sqrt(best_d2): returns (face, squared distance, v, w) with the closest
     point in q and its barycentric weights of the face's second and third corners; face -1 when
@@ -924,6 +925,7 @@ def tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count
     plane test: a face p is well in front of cannot put p inside.
     start: a body face near p (the ring's closest), or -1. The search begins at its leaf and
     climbs to the root, searching each sibling on the way (the same answer as from the root).
+    skip: a body vertex whose faces are not tested (the ring's, already measured; -1: none).
     stack: (depth,) int32 scratch."""
     best_t = -1
     bv = bw = 0.0
@@ -950,6 +952,8 @@ def tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count
             for e in range(first[node], first[node] + count[node]):
                 t = order[e]
                 a0 = tris[t, 0]
+                if a0 == skip or tris[t, 1] == skip or tris[t, 2] == skip:
+                    continue
                 plane = ((px - body_x[a0, 0]) * face_n[t, 0] + (py - body_x[a0, 1]) * face_n[t, 1]
                          + (pz - body_x[a0, 2]) * face_n[t, 2])
                 if plane >= front or plane <= -r:

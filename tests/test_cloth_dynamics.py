@@ -397,11 +397,17 @@ def test_face_tree_boxes_hold_their_faces_and_its_query_finds_the_brute_force_ne
         # from the root (no start face), from a random face's leaf, from the nearest face's leaf
         for start in (-1, int(rng.integers(len(tris))), int(np.argmin(d2))):
             t, b2, _, _ = tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order,
-                                            parent, leaf, start, stack, np.inf, np.inf, q)
+                                            parent, leaf, start, -1, stack, np.inf, np.inf, q)
             assert b2 == pytest.approx(min(d2), abs=1e-15) and d2[t] == pytest.approx(min(d2), abs=1e-15)
             # nothing nearer than a bound that the nearest face does not beat
             assert tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order, parent,
-                                     leaf, start, stack, min(d2) * 0.999, np.inf, q)[0] == -1
+                                     leaf, start, -1, stack, min(d2) * 0.999, np.inf, q)[0] == -1
+            # the faces of a skipped vertex (the ring's) are not tested: the nearest of the others
+            skip = int(tris[t, 0])
+            others = [d for k, d in enumerate(d2) if skip not in tris[k]]
+            t2, b2, _, _ = tree_nearest_face(p[0], p[1], p[2], moved, tris, face_n, box, child, first, count, order,
+                                             parent, leaf, start, skip, stack, np.inf, np.inf, q)
+            assert skip not in tris[t2] and b2 == pytest.approx(min(others), abs=1e-15)
 
 
 def test_resolve_contacts_takes_no_push_from_deep_behind_another_part():
