@@ -38,7 +38,9 @@ class SpinWorker:
 
     def __init__(self, spin: float, name: str = "spin-worker"):
         self.spin = spin
-        self._job: tuple[Callable, Any] | None = None
+        self._job: tuple[int, Callable, Any] | None = None  # (sequence number, fn, arg): read in one go
+        self._seq = 0
+        self._pending = False
         self._result: Any = None
         self._error: BaseException | None = None
         self._done = threading.Event()
@@ -49,10 +51,12 @@ class SpinWorker:
         self._thread.start()
 
     def submit(self, fn: Callable, arg: Any) -> None:
-        if self._job is not None:
+        if self._pending:
             raise RuntimeError("SpinWorker: submit() before the last result() was taken")
+        self._pending = True
         self._done.clear()
-        self._job = (fn, arg)
+        self._seq += 1
+        self._job = (self._seq, fn, arg)
         self._wake.set()
 
     def result(self) -> Any:
@@ -61,7 +65,7 @@ class SpinWorker:
         while not self._done.is_set() and time.monotonic() < end:
             time.sleep(0)
         self._done.wait()
-        self._job = None
+        self._pending = False
         if self._error is not None:
             err, self._error = self._error, None
             raise err
@@ -73,16 +77,17 @@ class SpinWorker:
         self._thread.join(5.0)
 
     def _run(self) -> None:
+        ran = 0  # the sequence number of the last call run: each runs once
         while not self._stop:
             job = self._job
-            if job is None or self._done.is_set():
+            if job is None or job[0] == ran:
                 if time.monotonic() - self._last < self.spin:
                     time.sleep(0)
                 else:
                     self._wake.wait()
                     self._wake.clear()
                 continue
-            fn, arg = job
+            ran, fn, arg = job
             try:
                 self._result = fn(arg)
             except BaseException as err:  # noqa: BLE001 - handed to the caller of result()

@@ -39,6 +39,9 @@ def test_spin_worker_runs_each_call_and_hands_back_its_result_or_error(spin):
             assert w.result() == k * k
             if k % 5 == 0:
                 time.sleep(0.08)  # past the polling window: the worker has blocked, and wakes
+        for k in range(2000):  # back to back: each call runs once and its own result comes back
+            w.submit(lambda x: x + 1, k)
+            assert w.result() == k + 1
         w.submit(lambda x: 1 // x, 0)
         with pytest.raises(ZeroDivisionError):
             w.result()
