@@ -126,6 +126,8 @@ class OutfitSession:
         self._own_pool = pool is None and threads > 1
         self._pool = SpinPool(threads - 1, 0.0) if self._own_pool else pool
         self._threads = threads
+        # garment k goes to thread k % n (thread 0: the caller), for n = 1 (helpers busy) .. threads
+        self._shares = {n: [list(range(r, len(self.sims), n)) for r in range(n)] for n in range(1, threads + 1)}
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
         # the frame's body: face normals, vertex grid, face tree; shared by the garments
@@ -144,20 +146,27 @@ class OutfitSession:
         self.pose.update(body_vertices)
         self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
+        shares = self._shares[min(self._threads, 1 + len(helpers)) if helpers else 1]
+        out: list = [None] * len(self.sims)
+        submitted, failed = [], []
         try:
-            n = min(self._threads, 1 + len(helpers)) if helpers else 1
-            shares = [list(range(r, len(self.sims), n)) for r in range(n)]  # share 0: this thread's
             for helper, share in zip(helpers or [], shares[1:]):
                 helper.submit(self._step_share, share)
-            out = [None] * len(self.sims)
+                submitted.append((helper, share))
             for k in shares[0]:
                 out[k] = self._step_garment(k)
-            for helper, share in zip(helpers or [], shares[1:]):
-                for k, x in zip(share, helper.result()):
-                    out[k] = x
         finally:
+            # every call handed out is taken back, even after a failure, so the pool goes back idle
+            for helper, share in submitted:
+                try:
+                    for k, x in zip(share, helper.result()):
+                        out[k] = x
+                except Exception as err:  # noqa: BLE001 - raised below, after the others are in
+                    failed.append(err)
             if helpers is not None:
                 self._pool.release()
+        if failed:
+            raise failed[0]
         if self._frame[2]:
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
         return out

@@ -3,6 +3,7 @@
 import queue
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -64,6 +65,35 @@ def test_spin_pool_is_held_by_one_caller_at_a_time():
         assert pool.acquire() is None  # busy: the other caller steps alone
         pool.release()
         assert pool.acquire() is workers
+        pool.release()
+    finally:
+        pool.close()
+
+
+def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
+    """An error in a helper's garment reaches the caller of step_cloth after the other
+    garments are done, and the pool can be acquired and used again."""
+    session = OutfitSession.__new__(OutfitSession)  # the stepping logic alone, on stand-in garments
+    pool = SpinPool(1, 0.0)
+    session._pool, session._threads, session.sims = pool, 2, [None, None]
+    session._shares = {1: [[0, 1]], 2: [[0], [1]]}
+    session.surfaces = []
+    session.pose = SimpleNamespace(update=lambda v: None)
+    calls = []
+
+    def step(k):
+        calls.append(k)
+        if k == 1 and len(calls) < 3:
+            raise ValueError("garment 1 failed")
+        return k
+
+    session._step_garment = step
+    try:
+        with pytest.raises(ValueError, match="garment 1"):
+            session.step_cloth(None, 1 / 60)
+        assert sorted(calls) == [0, 1]
+        assert session.step_cloth(None, 1 / 60) == [0, 1]  # the pool is usable again
+        assert pool.acquire() is not None
         pool.release()
     finally:
         pool.close()
