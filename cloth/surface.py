@@ -113,6 +113,7 @@ class SurfaceState:
         self.edge_force = np.zeros((E, 2, 3))
         self.ctrl = np.zeros((T, 10, 3))
         self.nctrl = np.zeros((T, 6, 3))
+        self.pn_scratch = np.zeros((7, m.tess.cubic.shape[1]))
         self.n_deform = np.zeros((N, 3))
         self.rates = np.zeros(L1)
         self.f1 = np.zeros(3)
@@ -139,7 +140,7 @@ class DetailedSurface:
         c = m.cloth
         t0 = time.perf_counter()
         # S102: reference surface, then the last frame's heights
-        pn_surface(t, x, s.coarse_normals, s.ctrl, s.nctrl, s.p_smoothed, s.n_pn)
+        pn_surface(t, x, s.coarse_normals, s.ctrl, s.nctrl, s.p_smoothed, s.n_pn, s.pn_scratch)
         offset_along_normals(s.p_smoothed, s.n_pn, s.dh, s.p)
         t1 = time.perf_counter()
         # S103: penetration avoidance (body None: no body, nothing to avoid)

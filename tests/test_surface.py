@@ -10,7 +10,7 @@ from cloth.fabric import fabric
 from cloth.garment import Garment
 from cloth.model import SimSettings, build_cloth_model
 from cloth.geometry import vertex_normals
-from cloth.pn import build_tessellation, pn_control_points, pn_evaluate
+from cloth.pn import build_tessellation, pn_control_points, pn_evaluate, pn_surface
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from tests.test_cloth_dynamics import box, uv_sphere
 
@@ -108,6 +108,22 @@ def test_pn_triangles_are_watertight_across_shared_edges():
             pn_evaluate(ctrl, nctrl, np.array([f], np.int32), np.array([[(L - b - c) / L, b / L, c / L]]), *one)
             np.testing.assert_allclose(one[0][0], p[vid], atol=1e-15)
             np.testing.assert_allclose(one[1][0], n[vid], atol=1e-14)
+
+
+def test_pn_surface_face_by_face_gives_the_per_vertex_bits():
+    """pn_surface evaluates face by face from one weight table; pn_evaluate vertex by vertex."""
+    x, tris, normals = curved_patch()
+    for level in (1, 4, 6, 9):
+        tess = build_tessellation(tris, len(x), level)
+        T = len(tris)
+        q, m = np.zeros((tess.n_vertices, 3)), np.zeros((tess.n_vertices, 3))
+        pn_surface(tess, x, np.zeros_like(x), np.zeros((T, 10, 3)), np.zeros((T, 6, 3)), q, m)
+        # pn_surface takes the coarse normals from the mesh: the reference gets the same ones
+        cn = np.zeros_like(x)
+        vertex_normals(x, tess.coarse_triangles, cn)
+        p, n, _, _ = evaluate(tess, x, cn)
+        assert np.array_equal(p, q) and np.array_equal(n, m)
+        assert tess.owned.sum() == tess.n_vertices  # every vertex written once
 
 
 def run_frames(surf, x, frames):
