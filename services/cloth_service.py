@@ -38,6 +38,7 @@ from skinning.body import Body, body_clothed_faces, body_regions
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, load_outfit_models
+from .heap import freeze_heap, reclaim_heap
 from .protocol import Message, MessageError, decode, encode
 from .spin import SpinPool, spin_get
 
@@ -247,6 +248,7 @@ class ClothService:
         return self._queue.qsize()
 
     def start(self) -> "ClothService":
+        freeze_heap()  # the body, the libraries: alive as long as the service
         self._thread = threading.Thread(target=self.serve, name="cloth-service", daemon=True)
         self._thread.start()
         return self
@@ -322,6 +324,7 @@ class ClothService:
             err = fut.exception()
             if err is None:
                 self.sessions[session] = fut.result()
+                freeze_heap()  # the session's models and state: alive until it ends
             else:
                 if not isinstance(err, (MessageError, FileNotFoundError, ValueError)):
                     log.error("cloth: setting up session %s failed", session, exc_info=err)
@@ -415,6 +418,7 @@ class ClothService:
             log.info("cloth: session %s ended after frame %d", session, gs.last_frame)
             self.closed_stats[session] = gs.stats.snapshot()
             self.sessions.pop(session).close()
+            self._reclaim_if_idle()
 
     def _open(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
         gs = self._new_session(session, key_expr, desc)
@@ -441,6 +445,13 @@ class ClothService:
         for s in [s for s, gs in self.sessions.items() if now - gs.last_seen > self.idle_seconds]:
             log.info("cloth: session %s idle for %.0f s, dropped", s, self.idle_seconds)
             self.sessions.pop(s).close()
+            self._reclaim_if_idle()
+
+    def _reclaim_if_idle(self) -> None:
+        """With no session left to serve (none being set up either), collect what the ended
+        ones left in reference cycles (see services.heap)."""
+        if not self.sessions and not self._preparing:
+            reclaim_heap()
 
     def wait_processed(self, n: int, timeout: float | None = None) -> bool:
         """Block until n messages have been handled (flow control for offline runs)."""

@@ -28,6 +28,7 @@ from skinning.skeleton import Skeleton
 from skinning.source import PoseFrame
 
 from .bus import Latched, Stats, fetch_latched, key, wait_matching
+from .heap import freeze_heap
 from .protocol import Message, MessageError, decode, encode
 
 log = logging.getLogger("tryon.ingest")
@@ -293,6 +294,7 @@ class IngestService:
                     waited = time.monotonic() - t0
                     if waited > 0.1 and hasattr(self.source, "hold"):
                         self.source.hold(waited)
+                    freeze_heap()  # set up: what is alive now lives as long as the stream
                 self.publish(frame, getattr(self.source, "origin_ns", 0), out)
         finally:
             self.end()
