@@ -66,10 +66,13 @@ class SpinWorker:
             time.sleep(0)
         self._done.wait()
         self._pending = False
+        # nothing of the call stays referenced here: an ended session's models and state are freed
+        self._job = None
+        result, self._result = self._result, None
         if self._error is not None:
             err, self._error = self._error, None
             raise err
-        return self._result
+        return result
 
     def close(self) -> None:
         self._stop = True
@@ -81,6 +84,7 @@ class SpinWorker:
         while not self._stop:
             job = self._job
             if job is None or job[0] == ran:
+                job = None  # not held while idle
                 if time.monotonic() - self._last < self.spin:
                     time.sleep(0)
                 else:
@@ -88,10 +92,12 @@ class SpinWorker:
                     self._wake.clear()
                 continue
             ran, fn, arg = job
+            job = None
             try:
                 self._result = fn(arg)
             except BaseException as err:  # noqa: BLE001 - handed to the caller of result()
                 self._error = err
+            fn = arg = None
             self._last = time.monotonic()
             self._done.set()
 

@@ -3,6 +3,7 @@
 import queue
 import threading
 import time
+import weakref
 from types import SimpleNamespace
 
 import numpy as np
@@ -55,6 +56,31 @@ def test_spin_worker_runs_each_call_and_hands_back_its_result_or_error(spin):
     finally:
         w.close()
     assert not w._thread.is_alive()
+
+
+@pytest.mark.parametrize("spin", [0.0, 0.05])
+def test_spin_worker_keeps_nothing_of_a_call_once_its_result_is_taken(spin):
+    """An ended session's state must not stay alive in the shared helper threads."""
+
+    class State:
+        def step(self, arg):
+            return Result()
+
+    class Result:
+        pass
+
+    w = SpinWorker(spin)
+    try:
+        state = State()
+        arg = State()
+        w.submit(state.step, arg)
+        result = w.result()
+        refs = [weakref.ref(state), weakref.ref(arg), weakref.ref(result)]
+        del state, arg, result
+        time.sleep(0.1)  # the worker has gone idle (blocked, or polling)
+        assert [r() for r in refs] == [None, None, None]
+    finally:
+        w.close()
 
 
 def test_spin_pool_is_held_by_one_caller_at_a_time():
