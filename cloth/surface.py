@@ -5,7 +5,8 @@
     p, n = surface.step(x, nearest_any, body_x, body_mesh, face_n, dt)
 
 One frame: S102 PN triangles → S103 penetration avoidance → S104 normal force → S105 length
-displacement → S106 deformation, constraints and shading normals. Δh carries to the next frame.
+displacement → S106 deformation (its steps scaled to each compressed edge's deficit), constraints
+and shading normals. Δh carries to the next frame.
 """
 
 from __future__ import annotations
@@ -21,8 +22,8 @@ from .model import ClothModel
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
 from .wrinkles import (apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights, elastic_forces,
-                       length_displacement, normal_force, offset_along_normals, penetration_floor,
-                       shading_normals)
+                       length_displacement, match_required_length, normal_force, offset_along_normals,
+                       penetration_floor, shading_normals)
 
 
 @dataclass(frozen=True)
@@ -35,6 +36,10 @@ class SurfaceSettings:
     max_height: float = 0.03  # m: Δh is clamped to this (wrinkles and lifts together) before the
     # S106 neighbour-distance rounds, which may raise a particle beyond it to keep an edge within d_max
     constraint_passes: int = 3  # S106 maximum-neighbour-distance rounds
+    # S106 step 2: the steps on a compressed coarse edge are scaled to give back its deficit
+    max_step_scale: float = 8.0  # the largest factor (beyond it the force clamp binds anyway)
+    length_tolerance: float = 1e-3  # of the rest length: the arc length matched this closely
+    length_iterations: int = 4  # arc-length evaluations per compressed coarse edge, at most
 
 
 @dataclass
@@ -100,6 +105,7 @@ class SurfaceState:
         self.required = np.zeros(N)  # S105 ΔL_required,i, m
         self.edge_required = np.zeros(E)  # S105 ΔLE_required,e, m
         self.edge_deficit = np.zeros(E)  # S105: L_rest,e minus the reference surface's arc length, m
+        self.edge_scale = np.zeros(E)  # S106 step 2: each compressed coarse edge's step factor
         self.flat_edge = np.zeros(E, dtype=np.uint8)  # S106 scratch: coarse edges inside a stretched region
         self.vertex_required = np.zeros(n)
         self.vertex_compressed = np.zeros(n)  # S105 scratch: compressed coarse edges per coarse vertex
@@ -171,6 +177,9 @@ class DetailedSurface:
                             s.required)
         # S106: deformation, constraints, positions, shading normals
         deformation_heights(s.vf, s.dh, s.required, m.d_edges, t.n_coarse, m.k_out_plane, dt, s.expected, s.dh_def)
+        match_required_length(s.p_smoothed, s.n_pn, s.dh, s.dh_def, s.floor, s.vf, m.k_out_plane, dt, st.max_height,
+                              t.edge_ids, s.edge_required, m.edge_rest, t.face_ids, t.face_edges, t.interior_local,
+                              st.max_step_scale, st.length_tolerance, st.length_iterations, s.edge_scale)
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
                           s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.d_edge_start,

@@ -408,6 +408,87 @@ def deformation_heights(vf, dh, required, edges, n_coarse, k_out, dt, expected, 
         out[i] = h_length if abs(h_length) < abs(h_force) else h_force
 
 
+@njit(cache=True, inline="always")
+def _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, i, s):
+    """Particle i's height with its S106 step scaled by s, through the force clamp (step 4)
+    and the floor and ceiling of step 5, as they will apply."""
+    limit = abs(k_out * vf[i] * dt)
+    step = min(limit, max(-limit, s * dh_def[i]))
+    return max(floor[i], min(dh[i] + step, max_height))
+
+
+@njit(cache=True, inline="always")
+def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, e, s):
+    """Detailed arc length along coarse edge e with its interior particles' steps scaled by s."""
+    L1 = edge_ids.shape[1]
+    length = 0.0
+    a = edge_ids[e, 0]
+    ha = dh[a]
+    for m in range(1, L1):
+        b = edge_ids[e, m]
+        hb = dh[b] if m == L1 - 1 else _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, b, s)
+        dx = p_smoothed[b, 0] + hb * n_pn[b, 0] - p_smoothed[a, 0] - ha * n_pn[a, 0]
+        dy = p_smoothed[b, 1] + hb * n_pn[b, 1] - p_smoothed[a, 1] - ha * n_pn[a, 1]
+        dz = p_smoothed[b, 2] + hb * n_pn[b, 2] - p_smoothed[a, 2] - ha * n_pn[a, 2]
+        length += math.sqrt(dx * dx + dy * dy + dz * dz)
+        a, ha = b, hb
+    return length
+
+
+@kernel
+def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, edge_required,
+                          edge_rest, face_ids, face_edges, interior_local, max_scale, tolerance, iterations,
+                          edge_scale):
+    """S106 step 2, how far (Decision): on each compressed coarse edge (ΔLE_required > 0) the
+    steps of steps 1-4 are scaled by one factor s so that the detailed arc length along the
+    edge after them is its rest length.
+
+    Step 1's ΔL_expected counts all of two neighbours' relative motion as length, as if the
+    edge between them stood upright; on a gentle wrinkle the surface lengthens by about the
+    sine of its slope times that, so the step was short of the deficit. The arc length of the
+    stepped surface is measured instead: secant steps on s from s = 0 (S105's L_e) and s = 1
+    (the patent's step) until it is within `tolerance` (a fraction of the rest length) or
+    after `iterations` arc evaluations, each particle's step through the force clamp, the
+    floor and the ceiling as they will apply, s kept in [0, max_scale]. Face interiors take
+    the mean factor of their face's compressed edges; elsewhere the steps are unchanged.
+    edge_scale (E,): written, s per coarse edge (-1: not compressed)."""
+    L1 = edge_ids.shape[1]
+    for e in range(edge_ids.shape[0]):
+        edge_scale[e] = -1.0
+        if edge_required[e] <= 0.0:
+            continue
+        target = edge_rest[e]
+        s0, a0 = 0.0, edge_rest[e] - edge_required[e]
+        s1 = 1.0
+        a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, e, s1)
+        for _ in range(iterations - 1):
+            if abs(a1 - target) <= tolerance * target or a1 == a0:
+                break
+            s2 = min(max_scale, max(0.0, s1 + (target - a1) * (s1 - s0) / (a1 - a0)))
+            if s2 == s1:
+                break
+            s0, a0 = s1, a1
+            s1 = s2
+            a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, e, s1)
+        edge_scale[e] = s1
+        for m in range(1, L1 - 1):
+            i = edge_ids[e, m]
+            dh_def[i] = _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, i, s1) - dh[i]
+    for f in range(face_ids.shape[0]):
+        total = 0.0
+        count = 0
+        for k in range(3):
+            s = edge_scale[face_edges[f, k]]
+            if s >= 0.0:
+                total += s
+                count += 1
+        if count > 0:
+            s = total / count
+            for k in range(interior_local.shape[0]):
+                i = face_ids[f, interior_local[k]]
+                dh_def[i] = _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, i, s) - dh[i]
+
+
 @kernel
 def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, edge_deficit, coarse_edge_ids,
                       interior_local, d_edges, d_max, edge_start, edge_ids, passes, max_height, flat_edge, moved, stamp,
@@ -571,3 +652,4 @@ def penetration_floor(dh, sd, clearance, floor):
             floor[i] = 0.0
         else:
             floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - clearance))
+

@@ -159,8 +159,8 @@ def test_compressed_strip_grows_wrinkles_that_restore_its_length():
     requirement per coarse vertex over its edges, so single edges end between 0.8 and 1.3)."""
     m, x = compressed_strip(0.8)
     surf = DetailedSurface(m)
-    p, _ = run_frames(surf, x, 1)
-    start = arc_lengths(surf, p) / m.edge_rest
+    run_frames(surf, x, 1)
+    start = arc_lengths(surf, surf.state.p_smoothed) / m.edge_rest  # the reference surface, no wrinkles
     assert np.all(start < 0.81)
     p, _ = run_frames(surf, x, 240)
     assert surf.state.dh.max() > 0.003  # wrinkles, millimetres high
@@ -258,6 +258,48 @@ def test_length_requirement_per_vertex_counts_only_compressed_edges():
             np.testing.assert_allclose(s.required[inner], (1 - w) * s.vertex_required[a] + w * s.vertex_required[b],
                                        atol=1e-15)
 
+
+def test_step_scale_gives_a_compressed_edge_back_its_rest_length():
+    """S106 step 2's amount (Decision): a straight coarse edge 20 % short, its six detailed
+    segments flat, the patent's step raising every other particle by 0.1 mm. Scaled so the
+    arc length is the rest length, the raised particles stand 0.6/0.8 of a segment high (a
+    3-4-5 triangle per segment: 2.4 mm for a 24 mm edge). A face whose only compressed edge
+    is that one scales its interior by the same factor; an edge long enough is left alone;
+    the force clamp still bounds every step."""
+    from cloth.wrinkles import match_required_length
+
+    rest = 0.024
+    ps = np.zeros((9, 3))
+    ps[:7, 0] = np.linspace(0.0, 0.8 * rest, 7)  # edge 0: particles 0..6
+    ps[7] = [0.01, 0.0, 0.01]  # a face interior particle
+    ps[8] = [0.0, 0.0, 0.02]
+    n = np.tile([0.0, 1.0, 0.0], (9, 1))
+    edge_ids = np.array([[0, 1, 2, 3, 4, 5, 6], [6, 7, 7, 7, 7, 7, 8], [8, 7, 7, 7, 7, 7, 0]], dtype=np.int32)
+    edge_rest = np.full(3, rest)
+    edge_required = np.array([0.2 * rest, -0.001, -0.001])  # edges 1 and 2 long enough
+    face_ids = np.array([[7]], dtype=np.int32)
+    face_edges = np.array([[0, 1, 2]], dtype=np.int32)
+    interior = np.array([0], dtype=np.int32)
+    step = np.array([0.0, 1e-4, 0.0, 1e-4, 0.0, 1e-4, 0.0, 1e-4, 0.0])
+    scale = np.zeros(3)
+
+    def run(vf, max_scale=100.0):
+        dh_def = step.copy()
+        match_required_length(ps, n, np.zeros(9), dh_def, np.zeros(9), np.full(9, vf), 3.0, DT, 0.03, edge_ids,
+                              edge_required, edge_rest, face_ids, face_edges, interior, max_scale, 1e-12, 30, scale)
+        return dh_def
+
+    dh_def = run(vf=1e3)  # the force clamp (3 m/(N s) x vf x dt = 50 m) does not bind
+    np.testing.assert_allclose(dh_def[[1, 3, 5]], 0.1 * rest, rtol=1e-9)
+    p = ps + dh_def[:, None] * n
+    assert abs(np.linalg.norm(np.diff(p[:7], axis=0), axis=1).sum() - rest) < 1e-12
+    np.testing.assert_allclose(scale, [0.1 * rest / 1e-4, -1.0, -1.0], rtol=1e-9)
+    np.testing.assert_allclose(dh_def[7], 0.1 * rest, rtol=1e-9)  # the face's mean factor
+    np.testing.assert_array_equal(dh_def[[0, 2, 4, 6, 8]], 0.0)  # no step, none scaled in
+    dh_def = run(vf=1e-3 / (3.0 * DT))  # a clamp of 1 mm: the edge stays short
+    np.testing.assert_allclose(dh_def[[1, 3, 5, 7]], 1e-3, rtol=1e-12)
+    dh_def = run(vf=1e3, max_scale=8.0)  # at most eight times the patent's step
+    np.testing.assert_allclose(dh_def[[1, 3, 5, 7]], 8e-4, rtol=1e-12)
 
 def body_mesh_of(verts, tris):
     return BodyMesh.build(tris, len(verts))
