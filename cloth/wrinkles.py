@@ -652,4 +652,3 @@ def penetration_floor(dh, sd, clearance, floor):
             floor[i] = 0.0
         else:
             floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - clearance))
-
