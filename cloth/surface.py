@@ -35,11 +35,14 @@ class SurfaceSettings:
     max_lift: float = 0.02  # m: S103 lifts a particle at most this far per frame
     max_height: float = 0.03  # m: Δh is clamped to this (wrinkles and lifts together) before the
     # S106 neighbour-distance rounds, which may raise a particle beyond it to keep an edge within d_max
-    constraint_passes: int = 3  # S106 maximum-neighbour-distance rounds
+    constraint_passes: int = 6  # S106 maximum-neighbour-distance rounds
     # S106 step 2: the steps on a compressed coarse edge are scaled to give back its deficit
     max_step_scale: float = 8.0  # the largest factor (beyond it the force clamp binds anyway)
     length_tolerance: float = 1e-3  # of the rest length: the arc length matched this closely
     length_iterations: int = 4  # arc-length evaluations per compressed coarse edge, at most
+    # S106 step 5: a wrinkle on a compressed coarse edge widens into a fold to keep the maximum
+    # neighbour distance (its neighbours rise), rather than coming down (Decision)
+    widen_folds: bool = True
 
 
 @dataclass
@@ -113,6 +116,7 @@ class SurfaceState:
         self.expected = np.zeros(N)  # S106 ΔL_expected
         self.moved = np.zeros((2, N), dtype=np.int32)  # S106 constraint rounds: who moved in the last one
         self.stamp = np.zeros(N, dtype=np.int32)
+        self.fold = np.zeros(N, dtype=np.uint8)  # S106 constraint rounds: particles of a fold being widened
         self.coarse_normals = np.zeros((n, 3))
         self.coarse_force = np.zeros((n, 3))
         self.zero_v = np.zeros((n, 3))
@@ -183,7 +187,8 @@ class DetailedSurface:
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
                           s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.d_edge_start,
-                          m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved, s.stamp, s.p)
+                          m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved, s.stamp,
+                          st.widen_folds, s.fold, s.p)
         shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
         self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)

@@ -492,7 +492,7 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ma
 @kernel
 def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, edge_deficit, coarse_edge_ids,
                       interior_local, d_edges, d_max, edge_start, edge_ids, passes, max_height, flat_edge, moved, stamp,
-                      p):
+                      widen, fold, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
 
     floor_i <= Δh_i <= max_height (floor: 0, or the height S103 needs to keep it out of the
@@ -505,12 +505,19 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
     flat_edge (E,) uint8: scratch.
     Neighbours no farther apart than d_max (per detailed edge): the higher one comes down
     towards its floor, and if that is not enough the lower one goes up (`passes` rounds).
+    Decision (widen): a wrinkle on a compressed coarse edge keeps its height and widens into a
+    fold — the lower end, off that edge, rises to d_max from it (at most to max_height) and
+    carries the fold on to its own neighbours; the patent's step raises the particles along
+    the edge alone, and bringing them down to their unraised neighbours took back nearly all of
+    the length the step gave. Particles held flat by the stretched-face rule are not raised.
     The first round visits every edge; a later one only the edges around the particles the
     round before moved (edge_start, edge_ids: CSR of each particle's detailed edges), as the
-    others are as that round left them. moved (2, N) int32, stamp (N,) int32: scratch."""
+    others are as that round left them. moved (2, N) int32, stamp (N,) int32: scratch; fold
+    (N,) uint8: scratch (1: in a fold, 2: held flat)."""
     for i in range(dh.shape[0]):
         dh[i] = max(floor[i], min(dh[i], max_height))
         stamp[i] = -1
+        fold[i] = 0
     for e in range(flat_edge.shape[0]):
         flat_edge[e] = 1 if edge_deficit[e] <= 0.0 else 0
     for f in range(face_ids.shape[0]):
@@ -519,6 +526,7 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
             for k in range(interior_local.shape[0]):
                 vid = face_ids[f, interior_local[k]]
                 dh[vid] = floor[vid]
+                fold[vid] = 2
         else:
             for k in range(3):
                 flat_edge[face_edges[f, k]] = 0
@@ -527,24 +535,31 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
             for m in range(1, coarse_edge_ids.shape[1] - 1):
                 vid = coarse_edge_ids[e, m]
                 dh[vid] = floor[vid]
+                fold[vid] = 2
+    if widen:
+        for e in range(edge_required.shape[0]):
+            if edge_required[e] > 0.0:
+                for m in range(1, coarse_edge_ids.shape[1] - 1):
+                    fold[coarse_edge_ids[e, m]] = 1
     offset_along_normals(p_smoothed, n_pn, dh, p)
     count = 0
     for e in range(d_edges.shape[0]):  # the first round: every edge
-        count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, p)
+        count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, fold, max_height, p)
     for r in range(1, passes):  # a later round: the edges around a particle moved in the round before
         last_count, count = count, 0
         for k in range(last_count):
             v = moved[(r - 1) % 2, k]
             for m in range(edge_start[v], edge_start[v + 1]):
                 count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp,
-                                    p)
+                                    fold, max_height, p)
 
 
 @njit(cache=True, inline="always")
-def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, p):
+def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, fold, max_height, p):
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than d_max[e],
-    the higher one comes down towards its floor, and if that is not enough the lower one goes
-    up. A particle whose height changed is listed once per round in moved[r % 2] (stamp: the
+    the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
+    still too far, the higher one comes down towards its floor, and if that is not enough the
+    lower one goes up. A particle whose height changed is listed once per round in moved[r % 2] (stamp: the
     round it was listed in; one held at its floor by an edge no height can shorten is not,
     or every later round would revisit it for nothing); returns the new length of that list."""
     i, j = d_edges[e, 0], d_edges[e, 1]
@@ -554,6 +569,19 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
         return count
     this = r % 2
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
+    if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
+        t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
+        if t > dh[lo]:
+            t = min(t, max_height)
+            if stamp[lo] != r:
+                stamp[lo] = r
+                moved[this, count] = lo
+                count += 1
+            _set_height(p_smoothed, n_pn, dh, p, lo, t)
+            fold[lo] = 1
+            d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
+            if d2 <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
+                return count
     # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
     t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
     done = t >= floor[hi]

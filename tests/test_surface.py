@@ -301,6 +301,48 @@ def test_step_scale_gives_a_compressed_edge_back_its_rest_length():
     dh_def = run(vf=1e3, max_scale=8.0)  # at most eight times the patent's step
     np.testing.assert_allclose(dh_def[[1, 3, 5, 7]], 8e-4, rtol=1e-12)
 
+@pytest.mark.parametrize("widen", [True, False])
+def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
+    """S106 step 5 (Decision): every coarse edge along x 20 % short, one particle on such an
+    edge 6 mm high, all else flat. Along the edge its neighbours are close enough (5.3 mm apart
+    in the plane, d_max 8.3 mm), but its neighbours off the edge (6.7 mm in the plane) are
+    not. Widened, it keeps its 6 mm and those neighbours rise until they are exactly d_max
+    from it (6 - 5 = 1 mm); without the Decision it comes down to them (5 mm)."""
+    from cloth.wrinkles import apply_constraints
+
+    m = sheet_model()
+    t = m.tess
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions * np.array([0.8, 1.0, 1.0])
+    surf.step(x, None, None, None, None, DT)  # the reference surface and S105's requirements
+    s = surf.state
+    rest = m.cloth.rest_positions
+    along_x = np.abs(rest[t.coarse_edges[:, 0], 2] - rest[t.coarse_edges[:, 1], 2]) < 1e-12
+    assert np.all(s.edge_required[along_x] > 0)
+    inner = np.where(along_x & (rest[t.coarse_edges[:, 0], 2] == 0.04))[0][0]  # an edge inside the sheet
+    k = t.edge_ids[inner, 3]
+    dh = np.zeros(t.n_vertices)
+    dh[k] = 0.006
+    p = np.zeros_like(s.p)
+    apply_constraints(s.p_smoothed, s.n_pn, dh, np.zeros(t.n_vertices), t.face_ids, t.face_edges, s.edge_required,
+                      s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.d_edge_start,
+                      m.d_edge_ids, 6, 0.03, s.flat_edge, s.moved, s.stamp, widen, s.fold, p)
+    d = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
+    assert np.all(d <= m.d_max * (1 + 1e-9))
+    spacing = 0.04 / t.level
+    off_edge = [j for j in range(t.n_vertices)
+                if abs(abs(s.p_smoothed[j, 2] - s.p_smoothed[k, 2]) - spacing) < 1e-9
+                and abs(s.p_smoothed[j, 0] - s.p_smoothed[k, 0]) < 1e-9]
+    assert len(off_edge) == 2  # straight across the edge, one on each side
+    d_max = 1.25 * spacing  # cotton
+    if widen:
+        np.testing.assert_allclose(dh[k], 0.006, rtol=1e-12)  # to rounding
+        np.testing.assert_allclose(dh[off_edge], 0.006 - np.sqrt(d_max ** 2 - spacing ** 2), rtol=1e-9)
+    else:
+        np.testing.assert_allclose(dh[k], np.sqrt(d_max ** 2 - spacing ** 2), rtol=1e-9)
+        np.testing.assert_array_equal(dh[off_edge], 0.0)
+
+
 def body_mesh_of(verts, tris):
     return BodyMesh.build(tris, len(verts))
 
