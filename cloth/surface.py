@@ -35,7 +35,7 @@ class SurfaceSettings:
     max_lift: float = 0.02  # m: S103 lifts a particle at most this far per frame
     max_height: float = 0.03  # m: Δh is clamped to this (wrinkles and lifts together) before the
     # S106 neighbour-distance rounds, which may raise a particle beyond it to keep an edge within d_max
-    constraint_passes: int = 6  # S106 maximum-neighbour-distance rounds
+    constraint_passes: int = 4  # S106 maximum-neighbour-distance rounds
     # S106 step 2: the steps on a compressed coarse edge are scaled to give back its deficit
     max_step_scale: float = 8.0  # the largest factor (beyond it the force clamp binds anyway)
     length_tolerance: float = 1e-3  # of the rest length: the arc length matched this closely

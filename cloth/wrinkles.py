@@ -509,7 +509,9 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
     fold — the lower end, off that edge, rises to d_max from it (at most to max_height) and
     carries the fold on to its own neighbours; the patent's step raises the particles along
     the edge alone, and bringing them down to their unraised neighbours took back nearly all of
-    the length the step gave. Particles held flat by the stretched-face rule are not raised.
+    the length the step gave. Particles held flat by the stretched-face rule are not raised, nor
+    are coarse vertices (S103 skips a face whose corners are away from the body: a raised
+    corner hid the face's interior from it).
     The first round visits every edge; a later one only the edges around the particles the
     round before moved (edge_start, edge_ids: CSR of each particle's detailed edges), as the
     others are as that round left them. moved (2, N) int32, stamp (N,) int32: scratch; fold
@@ -537,9 +539,12 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
                 dh[vid] = floor[vid]
                 fold[vid] = 2
     if widen:
+        L = coarse_edge_ids.shape[1] - 1
         for e in range(edge_required.shape[0]):
+            fold[coarse_edge_ids[e, 0]] = 2  # coarse vertices: S101 placed them, and S103 skips a
+            fold[coarse_edge_ids[e, L]] = 2  # face by its corners' distance, so a fold lifts none
             if edge_required[e] > 0.0:
-                for m in range(1, coarse_edge_ids.shape[1] - 1):
+                for m in range(1, L):
                     fold[coarse_edge_ids[e, m]] = 1
     offset_along_normals(p_smoothed, n_pn, dh, p)
     count = 0

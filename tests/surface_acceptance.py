@@ -24,6 +24,7 @@ from tests.signed_distance import SignedDistance
 class SurfaceRecord:
     name: str
     depth: list[float] = field(default_factory=list)  # per frame: most negative signed distance, m
+    deep_vertices: int = 0  # vertex-frames deeper than 1 mm
     nan_frames: int = 0
     long_edges: int = 0  # edge-frames over the limit
     edges: int = 0
@@ -31,7 +32,8 @@ class SurfaceRecord:
     max_height: float = 0.0
 
 
-def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int | None = None):
+def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int | None = None,
+            settings: SurfaceSettings | None = None):
     sd = SignedDistance(body.triangles, body.n_visible)
     records: list[SurfaceRecord] = []
 
@@ -44,7 +46,9 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
                 rec.nan_frames += 1
                 continue
             m, s = surf.model, surf.state
-            rec.depth.append(float(sd(skin, p).min()))
+            d = sd(skin, p)
+            rec.depth.append(float(d.min()))
+            rec.deep_vertices += int(np.sum(d < -0.001))
             length = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
             ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
             rec.long_edges += int(np.sum(length > np.maximum(m.d_max, ref) * (1 + 1e-9)))
@@ -59,7 +63,7 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
                 rec.recovered.append(float(np.median((arc[comp] - arc_ref[comp]) / deficit[comp])))
 
     report = run_cloth_clip(body, data / "garments" / outfit, data / "mocap" / f"{clip}.bvh", every=every,
-                            max_frames=max_frames, on_frame=on_frame, surface=SurfaceSettings())
+                            max_frames=max_frames, on_frame=on_frame, surface=settings or SurfaceSettings())
     return records, report
 
 
@@ -76,7 +80,7 @@ def main() -> None:
             for r in records:
                 d = np.array(r.depth)
                 print(f"{clip:26s} {r.name:28s} frames {len(d):5d} deepest {d.min() * 1000:7.1f} mm "
-                      f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}) long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
+                      f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}, vertex-frames {r.deep_vertices:6d}) long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
                       f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
                       f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}", flush=True)
 

@@ -307,10 +307,12 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
     edge 6 mm high, all else flat. Along the edge its neighbours are close enough (5.3 mm apart
     in the plane, d_max 8.3 mm), but its neighbours off the edge (6.7 mm in the plane) are
     not. Widened, it keeps its 6 mm and those neighbours rise until they are exactly d_max
-    from it (6 - 5 = 1 mm); without the Decision it comes down to them (5 mm)."""
+    from it (6 - 5 = 1 mm); without the Decision it comes down to them (5 mm). A particle 7 mm
+    high beside a coarse vertex comes down to d_max from it or lower: folds lift no coarse
+    vertex."""
     from cloth.wrinkles import apply_constraints
 
-    m = sheet_model()
+    m = sheet_model()  # cotton: d_max 1.25 times the rest spacing
     t = m.tess
     surf = DetailedSurface(m)
     x = m.cloth.rest_positions * np.array([0.8, 1.0, 1.0])
@@ -323,6 +325,8 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
     k = t.edge_ids[inner, 3]
     dh = np.zeros(t.n_vertices)
     dh[k] = 0.006
+    corner, beside = t.edge_ids[inner, 0], t.edge_ids[inner, 1]
+    dh[beside] = 0.007  # too high for its coarse vertex (5.3 mm away in the plane, d_max 8.3 mm)
     p = np.zeros_like(s.p)
     apply_constraints(s.p_smoothed, s.n_pn, dh, np.zeros(t.n_vertices), t.face_ids, t.face_edges, s.edge_required,
                       s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.d_edge_start,
@@ -335,6 +339,11 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
                 and abs(s.p_smoothed[j, 0] - s.p_smoothed[k, 0]) < 1e-9]
     assert len(off_edge) == 2  # straight across the edge, one on each side
     d_max = 1.25 * spacing  # cotton
+    # a coarse vertex is never lifted by a fold (S103 skips faces by their corners' distance):
+    # the wrinkle beside it comes down (at least) to d_max from it instead
+    assert dh[corner] == 0.0
+    a = 0.8 * spacing
+    assert dh[beside] <= np.sqrt((1.25 * spacing) ** 2 - a ** 2) * (1 + 1e-9)
     if widen:
         np.testing.assert_allclose(dh[k], 0.006, rtol=1e-12)  # to rounding
         np.testing.assert_allclose(dh[off_edge], 0.006 - np.sqrt(d_max ** 2 - spacing ** 2), rtol=1e-9)
