@@ -30,6 +30,16 @@ def _clips(data: Path, names: list[str] | None) -> list[Path]:
     return out
 
 
+def _frame_list(text: str) -> list[int]:
+    try:
+        frames = [int(f) for f in text.split(",") if f.strip()]
+    except ValueError:
+        raise SystemExit(f"tryon: --frames {text!r}: expected comma-separated frame numbers") from None
+    if not frames or min(frames) < 0:
+        raise SystemExit(f"tryon: --frames {text!r}: expected frame numbers >= 0")
+    return frames
+
+
 def _start(args):
     """Data folder, output folder and (unless --no-png) a renderer, shared by the jobs."""
     out_dir = Path(args.out)
@@ -81,13 +91,17 @@ def cmd_cloth(args) -> int:
         if not outfit_dir.is_dir():
             raise FileNotFoundError(f"outfit {outfit!r} not found (looked for {outfit_dir})")
         for clip in _clips(data, args.clip):
-            frames = [f for f in SHOWCASE_FRAMES.get(clip.stem, [0, 100, 200, 300]) if f % args.every == 0]
-            frames = [max(f, args.every) for f in frames]  # frame 0 is skipped (converter T-pose)
+            if args.frames:
+                frames = _frame_list(args.frames)
+            else:
+                frames = [f for f in SHOWCASE_FRAMES.get(clip.stem, [0, 100, 200, 300]) if f % args.every == 0]
+                frames = [max(f, args.every) for f in frames]  # frame 0 is skipped (converter T-pose)
             report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
                                     snapshot_frames=frames, fabrics=fabrics, surface=surface)
             print(report.summary())
             if renderer is not None and report.snapshots:
-                print(f"  snapshots: {render_cloth_snapshots(body, report, report.models, out_dir, renderer)}")
+                path = render_cloth_snapshots(body, report, report.models, out_dir, renderer, close_up=args.close_up)
+                print(f"  snapshots: {path}")
     if renderer is not None:
         renderer.release()
     return 0
@@ -338,6 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
     p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
+    p.add_argument("--frames", help="snapshot frames, comma-separated session frame numbers (default: a showcase "
+                   "per clip)")
+    p.add_argument("--close-up", action="store_true", help="snapshots from nearer, larger: the folds of the surface")
     p.set_defaults(func=cmd_cloth)
 
     from .bus import add_bus_arguments

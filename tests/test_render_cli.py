@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 from PIL import Image
 
 from services.cli import main
@@ -40,3 +41,18 @@ def test_cli_reports_bad_clip(tmp_path, capsys):
     rc = main(["body", "--clip", str(bad), "--out", str(tmp_path), "--no-png"])
     assert rc == 2
     assert "bad.bvh" in capsys.readouterr().err
+
+
+def test_cli_cloth_close_up_snapshots_of_chosen_frames(tmp_path, capsys):
+    rc = main(["cloth", "--outfit", "female_sportsuit01", "--clip", "cmu_npybvh_example_75f", "--max-frames", "6",
+               "--frames", "2,5", "--close-up", "--out", str(tmp_path)])
+    assert rc == 0
+    assert "cmu_npybvh_example_75f × female_sportsuit01: 5 frames" in capsys.readouterr().out  # frame 0 is skipped
+    img = np.asarray(Image.open(tmp_path / "cloth_cmu_npybvh_example_75f_female_sportsuit01_close.png"))
+    assert img.shape[:2] == (800, 4 * 600)  # two frames, each from two sides
+    assert img.std() > 10
+
+
+def test_cli_cloth_rejects_bad_frames(tmp_path):
+    with pytest.raises(SystemExit, match="--frames 'two'"):
+        main(["cloth", "--frames", "two", "--out", str(tmp_path), "--no-png"])
