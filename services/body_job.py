@@ -20,6 +20,13 @@ SHOWCASE_FRAMES = {
 SKIN = (0.86, 0.69, 0.58)
 
 
+def showcase_frames(clip_stem: str, every: int = 1, first: int = 0) -> list[int]:
+    """A clip's showcase frames (source frame numbers at the clip's rate) as session frame
+    numbers when one frame in `every` is taken, none before `first`."""
+    frames = SHOWCASE_FRAMES.get(clip_stem, [0, 100, 200, 300])
+    return [max(f // every, first) for f in frames if f % every == 0]
+
+
 @dataclass
 class ClipReport:
     name: str

@@ -34,9 +34,9 @@ def _frame_list(text: str) -> list[int]:
     try:
         frames = [int(f) for f in text.split(",") if f.strip()]
     except ValueError:
-        raise SystemExit(f"tryon: --frames {text!r}: expected comma-separated frame numbers") from None
+        raise SystemExit(f"tryon: frames {text!r}: expected comma-separated frame numbers") from None
     if not frames or min(frames) < 0:
-        raise SystemExit(f"tryon: --frames {text!r}: expected frame numbers >= 0")
+        raise SystemExit(f"tryon: frames {text!r}: expected frame numbers >= 0")
     return frames
 
 
@@ -55,7 +55,7 @@ def _start(args):
 def cmd_body(args) -> int:
     from skinning.body import load_body
 
-    from .body_job import SHOWCASE_FRAMES, render_snapshots, run_clip
+    from .body_job import render_snapshots, run_clip, showcase_frames
 
     data, out_dir, renderer = _start(args)
     t0 = time.perf_counter()
@@ -63,8 +63,7 @@ def cmd_body(args) -> int:
     print(f"body: {len(body.vertices)} vertices ({body.n_visible} visible), {len(body.triangles)} triangles, "
           f"{len(body.skeleton.names)} bones, loaded in {time.perf_counter() - t0:.2f} s")
     for clip in _clips(data, args.clip):
-        frames = SHOWCASE_FRAMES.get(clip.stem, [0, 100, 200, 300])
-        frames = [f // args.every for f in frames if f % args.every == 0] if args.every > 1 else frames
+        frames = showcase_frames(clip.stem, args.every)
         report = run_clip(body, clip, every=args.every, snapshot_frames=frames, max_frames=args.max_frames)
         print(report.summary())
         if renderer is not None and report.snapshots:
@@ -79,8 +78,8 @@ def cmd_cloth(args) -> int:
     from cloth.surface import SurfaceSettings
     from skinning.body import load_body
 
-    from .body_job import SHOWCASE_FRAMES
-    from .cloth_job import OUTFITS, render_cloth_snapshots, run_cloth_clip
+    from .body_job import showcase_frames
+    from .cloth_job import OUTFITS, START_FRAME, render_cloth_snapshots, run_cloth_clip
 
     data, out_dir, renderer = _start(args)
     body = load_body(data)
@@ -91,11 +90,8 @@ def cmd_cloth(args) -> int:
         if not outfit_dir.is_dir():
             raise FileNotFoundError(f"outfit {outfit!r} not found (looked for {outfit_dir})")
         for clip in _clips(data, args.clip):
-            if args.frames:
-                frames = _frame_list(args.frames)
-            else:
-                frames = [f for f in SHOWCASE_FRAMES.get(clip.stem, [0, 100, 200, 300]) if f % args.every == 0]
-                frames = [max(f, args.every) for f in frames]  # frame 0 is skipped (converter T-pose)
+            # the first frame is skipped (converter T-pose)
+            frames = _frame_list(args.frames) if args.frames else showcase_frames(clip.stem, args.every, START_FRAME)
             report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
                                     snapshot_frames=frames, fabrics=fabrics, surface=surface)
             print(report.summary())
@@ -159,7 +155,7 @@ def cmd_session(args) -> int:
     if args.serve and not args.listen:
         cfg.listen = ["tcp/0.0.0.0:7447"]  # remote displays and services connect here
     body = load_body(data)
-    frames = [int(f) for f in args.snapshot_frames.split(",")] if args.snapshot_frames else []
+    frames = _frame_list(args.snapshot_frames) if args.snapshot_frames else []
     print(f"session {session}: {clip.stem} × {args.outfit} (level {args.level if not args.coarse_only else 'coarse'}), "
           f"bus {cfg.mode} listening on {', '.join(cfg.listen) or 'nothing'}")
     if args.serve:

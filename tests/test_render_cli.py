@@ -54,5 +54,14 @@ def test_cli_cloth_close_up_snapshots_of_chosen_frames(tmp_path, capsys):
 
 
 def test_cli_cloth_rejects_bad_frames(tmp_path):
-    with pytest.raises(SystemExit, match="--frames 'two'"):
+    with pytest.raises(SystemExit, match="frames 'two'"):
         main(["cloth", "--frames", "two", "--out", str(tmp_path), "--no-png"])
+
+
+def test_showcase_frames_are_session_frame_numbers():
+    from services.body_job import showcase_frames
+
+    # jumping jacks at 60 Hz: the 120 Hz showcase frames halved, the converter T-pose skipped
+    assert showcase_frames("cmu_13_29_jumping_jacks", 2, 1) == [1, 35, 100, 500, 1250, 1980, 2170]
+    assert showcase_frames("cmu_13_29_jumping_jacks") == [0, 70, 200, 1000, 2500, 3960, 4340]
+    assert showcase_frames("unknown", 1) == [0, 100, 200, 300]
