@@ -564,9 +564,10 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than d_max[e],
     the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
     still too far, the higher one comes down towards its floor, and if that is not enough the
-    lower one goes up. A particle whose height changed is listed once per round in moved[r % 2] (stamp: the
-    round it was listed in; one held at its floor by an edge no height can shorten is not,
-    or every later round would revisit it for nothing); returns the new length of that list."""
+    lower one goes up. A particle whose height changed is listed once per round in
+    moved[r % 2] (stamp: the round it was listed in; one held at its floor by an edge no height
+    can shorten is not, or every later round would revisit it for nothing); returns the new
+    length of that list."""
     i, j = d_edges[e, 0], d_edges[e, 1]
     lim = d_max[e]
     d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
@@ -576,7 +577,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
     if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
         t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
-        if t > dh[lo]:
+        if t > dh[lo] and dh[lo] < max_height:  # (a round may have raised lo beyond the bound)
             t = min(t, max_height)
             if stamp[lo] != r:
                 stamp[lo] = r

@@ -80,7 +80,8 @@ def main() -> None:
             for r in records:
                 d = np.array(r.depth)
                 print(f"{clip:26s} {r.name:28s} frames {len(d):5d} deepest {d.min() * 1000:7.1f} mm "
-                      f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}, vertex-frames {r.deep_vertices:6d}) long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
+                      f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}, vertex-frames {r.deep_vertices:6d}) "
+                      f"long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
                       f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
                       f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}", flush=True)
 
