@@ -560,6 +560,11 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
 
 
 @njit(cache=True, inline="always")
+def _dist2(p, i, j):
+    return (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
+
+
+@njit(cache=True, inline="always")
 def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, fold, max_height, p):
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than d_max[e],
     the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
@@ -570,8 +575,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
     length of that list."""
     i, j = d_edges[e, 0], d_edges[e, 1]
     lim = d_max[e]
-    d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
-    if d2 <= lim * lim:
+    if _dist2(p, i, j) <= lim * lim:
         return count
     this = r % 2
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
@@ -585,8 +589,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
                 count += 1
             _set_height(p_smoothed, n_pn, dh, p, lo, t)
             fold[lo] = 1
-            d2 = (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
-            if d2 <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
+            if _dist2(p, i, j) <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
                 return count
     # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
     t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
