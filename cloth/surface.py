@@ -186,7 +186,8 @@ class DetailedSurface:
                               st.max_step_scale, st.length_tolerance, st.length_iterations, s.edge_scale)
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
-                          s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.d_edge_start,
+                          s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max,
+                          1.0 - 1.0 / c.fabric.max_neighbour_ratio ** 2, m.d_edge_start,
                           m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved, s.stamp,
                           st.widen_folds, s.fold, s.p)
         shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)

@@ -491,8 +491,8 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ma
 
 @kernel
 def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, edge_deficit, coarse_edge_ids,
-                      interior_local, d_edges, d_max, edge_start, edge_ids, passes, max_height, flat_edge, moved, stamp,
-                      widen, fold, p):
+                      interior_local, d_edges, d_max, allowance, edge_start, edge_ids, passes, max_height, flat_edge,
+                      moved, stamp, widen, fold, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
 
     floor_i <= Δh_i <= max_height (floor: 0, or the height S103 needs to keep it out of the
@@ -505,6 +505,12 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
     flat_edge (E,) uint8: scratch.
     Neighbours no farther apart than d_max (per detailed edge): the higher one comes down
     towards its floor, and if that is not enough the lower one goes up (`passes` rounds).
+    Decision (stretched edges): where the reference surface alone already parts an edge's ends
+    beyond d_max (the coarse cloth is stretched past the ratio there), no height can meet the
+    limit; the heights may then part them as far as on the edge at rest,
+    |p_i - p_j|² <= |p_s,i - p_s,j|² + d_max² - rest² (allowance = 1 - 1/ratio², so
+    d_max² - rest² = allowance d_max²). Demanding the reference length instead would ask the
+    whole stretched region for one height; the rounds chased that and left the edges too long.
     Decision (widen): a wrinkle on a compressed coarse edge keeps its height and widens into a
     fold — the lower end, off that edge, rises to d_max from it (at most to max_height) and
     carries the fold on to its own neighbours; the patent's step raises the particles along
@@ -549,14 +555,15 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
     offset_along_normals(p_smoothed, n_pn, dh, p)
     count = 0
     for e in range(d_edges.shape[0]):  # the first round: every edge
-        count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, fold, max_height, p)
+        count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance, moved, stamp, fold,
+                            max_height, p)
     for r in range(1, passes):  # a later round: the edges around a particle moved in the round before
         last_count, count = count, 0
         for k in range(last_count):
             v = moved[(r - 1) % 2, k]
             for m in range(edge_start[v], edge_start[v + 1]):
-                count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp,
-                                    fold, max_height, p)
+                count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance, moved,
+                                    stamp, fold, max_height, p)
 
 
 @njit(cache=True, inline="always")
@@ -565,8 +572,10 @@ def _dist2(p, i, j):
 
 
 @njit(cache=True, inline="always")
-def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved, stamp, fold, max_height, p):
-    """S106 step 5 on detailed edge e in round r: if its ends are farther apart than d_max[e],
+def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance, moved, stamp, fold, max_height,
+                p):
+    """S106 step 5 on detailed edge e in round r: if its ends are farther apart than its limit
+    (d_max[e], or on an edge the reference surface stretches beyond it, see apply_constraints),
     the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
     still too far, the higher one comes down towards its floor, and if that is not enough the
     lower one goes up. A particle whose height changed is listed once per round in
@@ -574,13 +583,22 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
     can shorten is not, or every later round would revisit it for nothing); returns the new
     length of that list."""
     i, j = d_edges[e, 0], d_edges[e, 1]
-    lim = d_max[e]
-    if _dist2(p, i, j) <= lim * lim:
+    lim2 = d_max[e] * d_max[e]
+    d2 = _dist2(p, i, j)
+    if d2 <= lim2:
         return count
+    # Decision: where the reference surface alone parts the ends beyond d_max, the heights may
+    # part them as far as on the edge at rest (d_max² - rest² = allowance d_max² beyond it)
+    ref2 = _dist2(p_smoothed, i, j)
+    if ref2 > lim2:
+        lim2 = ref2 + allowance * lim2
+        if d2 <= lim2:
+            return count
+    lim = math.sqrt(lim2)
     this = r % 2
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
     if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
-        t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
+        t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
         if t > dh[lo] and dh[lo] < max_height:  # (a round may have raised lo beyond the bound)
             t = min(t, max_height)
             if stamp[lo] != r:
@@ -592,8 +610,8 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
             if _dist2(p, i, j) <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
                 return count
     # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
-    t = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
-    done = t >= floor[hi]
+    t, exact = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
+    done = exact and t >= floor[hi]
     if not done:
         t = max(floor[hi], min(t, dh[hi]))
     if t != dh[hi]:
@@ -604,7 +622,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, moved,
             count += 1
     if done:
         return count
-    t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])
+    t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
     if t > dh[lo]:
         if stamp[lo] != r:
             stamp[lo] = r
@@ -632,18 +650,18 @@ def _set_height(p_smoothed, n_pn, dh, p, i, h):
 @njit(cache=True, inline="always")
 def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
     """The height t of particle i along its normal with |p_s,i + t n_i - p_j| = lim, the root
-    nearest `current`; if none exists (the reference points alone are too far apart), the
-    height nearest to p_j (the closest approach)."""
+    nearest `current`, and True; if none exists (p_j is farther than lim from the whole normal
+    line), the height nearest to p_j (the closest approach), and False."""
     ax = p_smoothed[i, 0] - p[j, 0]
     ay = p_smoothed[i, 1] - p[j, 1]
     az = p_smoothed[i, 2] - p[j, 2]
     an = ax * n_pn[i, 0] + ay * n_pn[i, 1] + az * n_pn[i, 2]
     disc = an * an - (ax * ax + ay * ay + az * az) + lim * lim
     if disc < 0.0:
-        return -an
+        return -an, False
     r = math.sqrt(disc)
     t1, t2 = -an - r, -an + r
-    return t1 if abs(t1 - current) < abs(t2 - current) else t2
+    return (t1 if abs(t1 - current) < abs(t2 - current) else t2), True
 
 
 @kernel

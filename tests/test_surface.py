@@ -329,8 +329,8 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
     dh[beside] = 0.007  # too high for its coarse vertex (5.3 mm away in the plane, d_max 8.3 mm)
     p = np.zeros_like(s.p)
     apply_constraints(s.p_smoothed, s.n_pn, dh, np.zeros(t.n_vertices), t.face_ids, t.face_edges, s.edge_required,
-                      s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.d_edge_start,
-                      m.d_edge_ids, 6, 0.03, s.flat_edge, s.moved, s.stamp, widen, s.fold, p)
+                      s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, 1 - 1 / 1.25**2,
+                      m.d_edge_start, m.d_edge_ids, 6, 0.03, s.flat_edge, s.moved, s.stamp, widen, s.fold, p)
     d = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
     assert np.all(d <= m.d_max * (1 + 1e-9))
     spacing = 0.04 / t.level
@@ -350,6 +350,51 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
     else:
         np.testing.assert_allclose(dh[k], np.sqrt(d_max ** 2 - spacing ** 2), rtol=1e-9)
         np.testing.assert_array_equal(dh[off_edge], 0.0)
+
+
+def test_an_edge_stretched_beyond_the_limit_keeps_the_slope_allowed_at_rest():
+    """S106 step 5 (Decision): the sheet stretched 1.5 times along x, so its detailed edges
+    along x are longer than d_max (1.25 times rest) before any height. One particle is held
+    6 mm up (an S103 lift: its floor). Its neighbours along x may be parted from it as far as
+    on an edge at rest: |p_i - p_j|² <= ref² + d_max² - rest², a height difference of
+    0.75 rest = 5 mm on a flat sheet; so they rise to 1 mm, as do its neighbours along z (at
+    rest, d_max itself). Every edge ends within its limit. (Without the Decision no height
+    brings an x edge within d_max: both ends would rise to 6 mm and the edge stay too long.)"""
+    from cloth.wrinkles import apply_constraints
+
+    m = sheet_model()  # cotton: d_max 1.25 times the rest spacing
+    t = m.tess
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions * np.array([1.5, 1.0, 1.0])
+    surf.step(x, None, None, None, None, DT)
+    s = surf.state
+    spacing = 0.04 / t.level
+    k = int(np.argmin(np.linalg.norm(s.p_smoothed - [0.09, 0.0, 0.04], axis=1)))  # inside a face
+    assert np.linalg.norm(s.p_smoothed[k] - [0.09, 0.0, 0.04]) < 1e-9 and k >= t.n_coarse
+    dh = np.zeros(t.n_vertices)
+    floor = np.zeros(t.n_vertices)
+    dh[k] = floor[k] = 0.006
+    p = np.zeros_like(s.p)
+    apply_constraints(s.p_smoothed, s.n_pn, dh, floor, t.face_ids, t.face_edges, s.edge_required, s.edge_deficit,
+                      t.edge_ids, t.interior_local, m.d_edges, m.d_max, 1 - 1 / 1.25**2, m.d_edge_start,
+                      m.d_edge_ids, 4, 0.03, s.flat_edge, s.moved, s.stamp, True, s.fold, p)
+    ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
+    stretched = ref > m.d_max
+    assert stretched.sum() > 100  # the edges along x
+    rest2 = (m.d_max / 1.25) ** 2
+    limit = np.where(stretched, np.sqrt(ref**2 + m.d_max**2 - rest2), m.d_max)
+    d = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
+    assert np.all(d <= limit * (1 + 1e-9))
+    assert dh[k] == 0.006
+    q = s.p_smoothed
+    along_x = [j for j in range(t.n_vertices) if abs(abs(q[j, 0] - q[k, 0]) - 1.5 * spacing) < 1e-9
+               and abs(q[j, 2] - q[k, 2]) < 1e-9]
+    along_z = [j for j in range(t.n_vertices) if abs(abs(q[j, 2] - q[k, 2]) - spacing) < 1e-9
+               and abs(q[j, 0] - q[k, 0]) < 1e-9]
+    assert len(along_x) == 2 and len(along_z) == 2
+    np.testing.assert_allclose(dh[along_x + along_z], 0.006 - 0.75 * spacing, rtol=1e-9)
+    others = np.setdiff1d(np.arange(t.n_vertices), [k] + along_x + along_z)
+    assert np.abs(dh[others]).max() < 0.006 - 0.75 * spacing  # the lift spreads no farther than it must
 
 
 def body_mesh_of(verts, tris):
