@@ -54,7 +54,7 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
             ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
             # S106's limit: d_max, or where the reference surface alone is longer, the height
             # difference allowed at rest on top of it (d_max² - rest²)
-            rest2 = (m.d_max / surf.model.cloth.fabric.max_neighbour_ratio) ** 2
+            rest2 = (m.d_max / m.cloth.fabric.max_neighbour_ratio) ** 2
             limit = np.where(ref > m.d_max, np.sqrt(ref**2 + m.d_max**2 - rest2), m.d_max)
             rec.long_edges += int(np.sum(length > limit * (1 + 1e-9)))
             rec.beyond_d_max += int(np.sum(length > m.d_max * (1 + 1e-9)))
