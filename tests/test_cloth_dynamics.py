@@ -229,6 +229,46 @@ def test_collision_skips_a_particle_far_in_front_of_the_faces_of_its_last_test()
     np.testing.assert_allclose(x[0], [0.01, 0.303, 0.02], atol=1e-12)
 
 
+def test_air_drag_acts_across_the_cloth_only():
+    """A particle whose cloth faces up (n = +Y) falls from rest while moving sideways at 1 m/s:
+    the drag -d (v·n) n gives the falling plate v_y(t) = -(g m / d)(1 - exp(-d t / m)) and leaves
+    the motion along the sheet alone."""
+    m, d, T = 0.002, 0.01, 0.5
+    x = np.zeros((1, 3))
+    v = np.array([[1.0, 0.0, 0.0]])
+    empty = np.zeros(0, np.int32)
+    args = spring_table(empty, empty, *[np.zeros(0)] * 5)
+    run_rk4(x, v, np.array([1.0 / m]), args, 1e-3, int(round(T / 1e-3)), gravity=G, drag=np.array([d]),
+            normals=np.array([[0.0, 1.0, 0.0]]))
+    tau = m / d
+    assert v[0, 1] == pytest.approx(-G * tau * (1 - math.exp(-T / tau)), rel=1e-9)
+    assert x[0, 1] == pytest.approx(-G * tau * (T - tau * (1 - math.exp(-T / tau))), rel=1e-9)
+    assert v[0, 0] == 1.0 and x[0, 0] == pytest.approx(T, rel=1e-12)
+
+
+@pytest.mark.parametrize("friction, body_vel, expected", [
+    (0.5, (0.0, 0.0, 0.0), (1.5, 0.0, 0.0)),  # the slide slowed by 0.5 x the 1 m/s stopped
+    (3.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),  # static: the slide stops
+    (0.5, (0.0, 0.0, 1.0), (2 * (1 - 0.5 / math.sqrt(5)), 0.0, 1 - (1 - 0.5 / math.sqrt(5)))),  # relative to the body
+])
+def test_contact_stops_the_inward_velocity_and_friction_slows_the_slide(friction, body_vel, expected):
+    """S101 collision on a box's top face (y = 0.3): a particle 1 cm inside, moving at (2, -1, 0)
+    m/s, is put on the surface plus thickness; its velocity relative to the body loses the
+    inward 1 m/s, and Coulomb friction takes friction x 1 m/s off the tangential part (all of
+    it when that is more)."""
+    verts, tris = box(0.3)
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[0.075, 0.29, 0.0]])
+    v = np.array([[2.0, -1.0, 0.0]])
+    contact = np.zeros(1, np.uint8)
+    collide_particles(x, v, verts, np.array([body_vel]), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                      mesh.tri_ids, mesh.regions, np.full(1, 255, np.uint8), np.zeros(1, np.int32), 0.003, friction,
+                      contact, np.zeros(1, np.uint8), face_normals(verts, tris), np.zeros_like(x), np.full(1, -np.inf))
+    assert contact[0] == 1
+    np.testing.assert_allclose(x[0], [0.075, 0.303, 0.0], atol=1e-12)
+    np.testing.assert_allclose(v[0], expected, atol=1e-12)
+
+
 def test_particle_inside_a_sphere_is_pushed_out_to_its_surface():
     verts, tris = uv_sphere(0.5)
     rng = np.random.default_rng(1)
