@@ -393,7 +393,8 @@ class ClothService:
         if gs is None and msg.stamp_ns <= self.ended.get(session, -1):
             self.stats.reject(MessageError(key_expr, f"frame {msg.frame} arrives after the session's end"))
             return False
-        if gs is None:
+        joined = gs is None
+        if joined:
             if session in self.failed:
                 self.stats.reject(MessageError(key_expr, self.failed[session]))
                 return False
@@ -409,6 +410,8 @@ class ClothService:
         except MessageError as err:
             gs.stats.reject(err)
             gs.stats.publish(self.bus)
+        if joined:
+            freeze_heap()  # set up and settled into this frame: alive until the session ends
         self._close_if_done(session)
         return False
 

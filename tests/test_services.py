@@ -335,6 +335,48 @@ def test_two_concurrent_sessions_do_not_see_each_other(hub, body, data, monkeypa
             b.close()
 
 
+def test_a_cloth_service_started_late_joins_a_running_session(body, data, monkeypatch):
+    """A cloth service that starts while a session is already streaming (it never saw the
+    announcement) takes the session's description from its latched key, settles the garments
+    into the first body frame it gets and serves every frame from there on, in order; what
+    it set up for the session is then exempt from the collector's full collections."""
+    port = free_port()
+    host = BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open()
+    ingest_bus, watch = peer(port), peer(port)
+    bodies = Collector(watch, key("joined", "body"))
+    garments = Collector(watch, key("joined", "garment", GARMENTS[0]))
+    stop = threading.Event()
+    cloth = None
+    gc.unfreeze()
+    monkeypatch.setattr("services.ingest.freeze_heap", lambda: None)  # the cloth service's own freeze is checked
+    source = BVHSource(mocap_clip(data), pace="realtime", loop=True, every=8)
+    svc = IngestService(ingest_bus, "joined", body, source, {"outfit": OUTFIT, "level": LEVEL})
+    t = threading.Thread(target=svc.run, kwargs={"start_frame": START_FRAME, "stop": stop, "wait_subscribers": 10},
+                         daemon=True)
+    try:
+        t.start()
+        wait_until(lambda: len(bodies.frames("body")) >= 3, 60, "the session's first body frames")
+        cloth = ClothService(host, body, data, OutfitSpec(OUTFIT, None, LEVEL)).start()
+        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) >= 4, 60, "the joined session's garments")
+        served = garments.frames(f"garment/{GARMENTS[0]}")
+        assert served[0] > min(bodies.frames("body")) + 2  # joined mid-stream
+        assert served == list(range(served[0], served[0] + len(served)))
+        first = next(m for k, m in garments.messages if m.frame == served[0])
+        assert first.meta["preroll_s"] > 0  # settled into its first frame
+        assert np.isfinite(first.arrays["positions"]).all()
+        gs = cloth.sessions["joined"]
+        assert not any(o is gs for o in gc.get_objects())  # frozen: no collection walks it
+    finally:
+        stop.set()
+        t.join(30)
+        if cloth is not None:
+            cloth.stop()
+        bodies.close()
+        garments.close()
+        for b in (ingest_bus, watch, host):
+            b.close()
+
+
 class SlowFirstCall:
     """An animator whose first call takes `seconds` longer (as when it loads its kernels)."""
 
