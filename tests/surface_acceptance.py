@@ -27,6 +27,7 @@ class SurfaceRecord:
     deep_vertices: int = 0  # vertex-frames deeper than 1 mm
     nan_frames: int = 0
     long_edges: int = 0  # edge-frames over the limit
+    long_floored: int = 0  # of those, with both ends at their S103 floor
     beyond_d_max: int = 0  # edge-frames longer than d_max itself (the coarse cloth's stretch included)
     edges: int = 0
     recovered: list[float] = field(default_factory=list)  # per frame: median recovered share of the deficit
@@ -56,7 +57,11 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
             # difference allowed at rest on top of it (d_max² - rest²)
             rest2 = (m.d_max / m.cloth.fabric.max_neighbour_ratio) ** 2
             limit = np.where(ref > m.d_max, np.sqrt(ref**2 + m.d_max**2 - rest2), m.d_max)
-            rec.long_edges += int(np.sum(length > limit * (1 + 1e-9)))
+            long = length > limit * (1 + 1e-9)
+            rec.long_edges += int(np.sum(long))
+            # held up by S103: both ends at the floor its lifts need (no height S106 may give shortens them)
+            at_floor = s.dh <= s.floor + 1e-12
+            rec.long_floored += int(np.sum(long & at_floor[m.d_edges[:, 0]] & at_floor[m.d_edges[:, 1]]))
             rec.beyond_d_max += int(np.sum(length > m.d_max * (1 + 1e-9)))
             rec.edges += len(length)
             rec.max_height = max(rec.max_height, float(s.dh.max()))
@@ -88,7 +93,8 @@ def main() -> None:
                 print(f"{clip:26s} {r.name:28s} frames {len(d):5d} deepest {d.min() * 1000:7.1f} mm "
                       f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}, vertex-frames {r.deep_vertices:6d}) "
                       f"long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
-                      f"(beyond d_max {r.beyond_d_max / max(r.edges, 1) * 100:5.2f} %) "
+                      f"(both ends at S103 floors {r.long_floored / max(r.edges, 1) * 100:6.3f} %, "
+                      f"beyond d_max {r.beyond_d_max / max(r.edges, 1) * 100:5.2f} %) "
                       f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
                       f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}", flush=True)
 
