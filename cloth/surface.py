@@ -61,6 +61,7 @@ class SurfaceModel:
     k_out_plane: float
     h_normal: float
     transfer_exponent: float
+    height_allowance: float  # (d_max² - rest²) / d_max² = 1 - 1/ratio²: S106 step 5 on stretched edges
 
     @property
     def n_vertices(self) -> int:
@@ -85,7 +86,8 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)
     es, ei = vertex_cells(tess.n_vertices, d_edges)
     return SurfaceModel(tess, settings, cloth, edge_rest, straight, d_edges,
-                        f.max_neighbour_ratio * rest_len, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent)
+                        f.max_neighbour_ratio * rest_len, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
+                        1.0 - 1.0 / f.max_neighbour_ratio**2)
 
 
 class SurfaceState:
@@ -186,9 +188,8 @@ class DetailedSurface:
                               st.max_step_scale, st.length_tolerance, st.length_iterations, s.edge_scale)
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
-                          s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max,
-                          1.0 - 1.0 / c.fabric.max_neighbour_ratio ** 2, m.d_edge_start,
-                          m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved, s.stamp,
+                          s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,
+                          m.d_edge_start, m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved, s.stamp,
                           st.widen_folds, s.fold, s.p)
         shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

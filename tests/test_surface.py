@@ -329,7 +329,7 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
     dh[beside] = 0.007  # too high for its coarse vertex (5.3 mm away in the plane, d_max 8.3 mm)
     p = np.zeros_like(s.p)
     apply_constraints(s.p_smoothed, s.n_pn, dh, np.zeros(t.n_vertices), t.face_ids, t.face_edges, s.edge_required,
-                      s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, 1 - 1 / 1.25**2,
+                      s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,
                       m.d_edge_start, m.d_edge_ids, 6, 0.03, s.flat_edge, s.moved, s.stamp, widen, s.fold, p)
     d = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
     assert np.all(d <= m.d_max * (1 + 1e-9))
@@ -376,7 +376,7 @@ def test_an_edge_stretched_beyond_the_limit_keeps_the_slope_allowed_at_rest():
     dh[k] = floor[k] = 0.006
     p = np.zeros_like(s.p)
     apply_constraints(s.p_smoothed, s.n_pn, dh, floor, t.face_ids, t.face_edges, s.edge_required, s.edge_deficit,
-                      t.edge_ids, t.interior_local, m.d_edges, m.d_max, 1 - 1 / 1.25**2, m.d_edge_start,
+                      t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance, m.d_edge_start,
                       m.d_edge_ids, 4, 0.03, s.flat_edge, s.moved, s.stamp, True, s.fold, p)
     ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
     stretched = ref > m.d_max
