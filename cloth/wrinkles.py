@@ -562,8 +562,8 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
         for k in range(last_count):
             v = moved[(r - 1) % 2, k]
             for m in range(edge_start[v], edge_start[v + 1]):
-                count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance, moved,
-                                    stamp, fold, max_height, p)
+                count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance,
+                                    moved, stamp, fold, max_height, p)
 
 
 @njit(cache=True, inline="always")
@@ -595,17 +595,11 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowa
         if d2 <= lim2:
             return count
     lim = math.sqrt(lim2)
-    this = r % 2
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
     if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
         t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
         if t > dh[lo] and dh[lo] < max_height:  # (a round may have raised lo beyond the bound)
-            t = min(t, max_height)
-            if stamp[lo] != r:
-                stamp[lo] = r
-                moved[this, count] = lo
-                count += 1
-            _set_height(p_smoothed, n_pn, dh, p, lo, t)
+            count = _move(p_smoothed, n_pn, dh, p, lo, min(t, max_height), r, moved, stamp, count)
             fold[lo] = 1
             if _dist2(p, i, j) <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
                 return count
@@ -615,20 +609,12 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowa
     if not done:
         t = max(floor[hi], min(t, dh[hi]))
     if t != dh[hi]:
-        _set_height(p_smoothed, n_pn, dh, p, hi, t)
-        if stamp[hi] != r:
-            stamp[hi] = r
-            moved[this, count] = hi
-            count += 1
+        count = _move(p_smoothed, n_pn, dh, p, hi, t, r, moved, stamp, count)
     if done:
         return count
     t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
     if t > dh[lo]:
-        if stamp[lo] != r:
-            stamp[lo] = r
-            moved[this, count] = lo
-            count += 1
-        _set_height(p_smoothed, n_pn, dh, p, lo, t)
+        count = _move(p_smoothed, n_pn, dh, p, lo, t, r, moved, stamp, count)
     return count
 
 
@@ -645,6 +631,18 @@ def _set_height(p_smoothed, n_pn, dh, p, i, h):
     dh[i] = h
     for a in range(3):
         p[i, a] = p_smoothed[i, a] + h * n_pn[i, a]
+
+
+@njit(cache=True, inline="always")
+def _move(p_smoothed, n_pn, dh, p, i, h, r, moved, stamp, count):
+    """Particle i to height h in round r, listed in moved[r % 2] unless it already is this
+    round (stamp); returns the list's new length."""
+    _set_height(p_smoothed, n_pn, dh, p, i, h)
+    if stamp[i] != r:
+        stamp[i] = r
+        moved[r % 2, count] = i
+        count += 1
+    return count
 
 
 @njit(cache=True, inline="always")
