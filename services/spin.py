@@ -3,17 +3,26 @@
 A thread that blocks until the next 60 Hz frame leaves its core idle for about 10 ms, and on a
 virtual machine an idle virtual CPU is descheduled: waking it again took about 1 ms here
 (p99 3 ms; 55 µs when it had not been idle), and a garment stepped on it started that much
-later. So a thread that expects work soon polls for it, sleeping at most `time.sleep(0)` at a
-time (which releases the GIL and keeps the CPU awake), for `spin` seconds after its last work,
+later. So a thread that expects work soon polls for it, for `spin` seconds after its last work,
 and only then blocks. OpenMP runtimes do the same (Intel's spins 200 ms by default).
+
+Between polls it calls `sched_yield()` (which releases the GIL): the scheduler then runs
+whatever else is runnable on that core first. `time.sleep(0)` did not: the scheduler treated
+the poller as one more busy thread, and when it shared a core with a garment's thread the
+garment waited out the poller's time slices, 3-4 ms in one garment-step of ten (measured as
+the garment thread's run-queue wait, `/proc/self/task/<id>/schedstat`; p99 latency at 60 Hz
+12 ms, 9 ms with `sched_yield`).
 """
 
 from __future__ import annotations
 
+import os
 import queue
 import threading
 import time
 from typing import Any, Callable
+
+_yield = getattr(os, "sched_yield", None) or (lambda: time.sleep(0))  # sched_yield: Unix only
 
 
 def spin_get(q: queue.Queue, spin: float, timeout: float) -> Any:
@@ -26,7 +35,7 @@ def spin_get(q: queue.Queue, spin: float, timeout: float) -> Any:
             except queue.Empty:
                 if time.monotonic() >= end:
                     break
-                time.sleep(0)
+                _yield()
         timeout = max(0.0, timeout - spin)
     return q.get(timeout=timeout)
 
@@ -63,7 +72,7 @@ class SpinWorker:
         """Wait (polling, then blocking) for the submitted call; re-raises its exception."""
         end = time.monotonic() + self.spin
         while not self._done.is_set() and time.monotonic() < end:
-            time.sleep(0)
+            _yield()
         self._done.wait()
         self._pending = False
         # nothing of the call stays referenced here: an ended session's models and state are freed
@@ -86,7 +95,7 @@ class SpinWorker:
             if job is None or job[0] == ran:
                 job = None  # not held while idle
                 if time.monotonic() - self._last < self.spin:
-                    time.sleep(0)
+                    _yield()
                 else:
                     self._wake.wait()
                     self._wake.clear()
