@@ -11,6 +11,7 @@ view in a loop with branches costs numba two atomic reference counts (see `cloth
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -637,7 +638,12 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
 class BodyPose:
     """What every garment reads from one body pose, computed once per pose and shared: the
     vertices (float64, contiguous), the face normals, the vertex grid and the face tree (of
-    the faces clothes can touch, `BodyMesh.clothed_faces`)."""
+    the faces clothes can touch, `BodyMesh.clothed_faces`).
+
+    `update()` computes all of it. A caller that steps garments on several threads can split it:
+    `update_surface()` (vertices, face normals: what a step needs from its start), then
+    `update_queries()` (grid, face tree: needed only by the contact passes at the end of S101)
+    while the garments start; `ClothSim` calls `wait_queries()` before its contact passes."""
 
     def __init__(self, body: BodyMesh, face_tree: bool = True):
         """face_tree: keep the face tree (the contact pass's nearest-face query; False when every
@@ -647,14 +653,38 @@ class BodyPose:
         self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
         self.grid = VertexGrid(body.n_vertices)
         self.faces = FaceTree(body.triangles, np.flatnonzero(body.clothed_faces), body.regions) if face_tree else None
+        self._queries = threading.Event()  # set: grid and tree are this pose's
+        self._queries_failed = False
 
     def update(self, body_vertices: np.ndarray) -> None:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
+        self.update_surface(body_vertices)
+        self.update_queries()
+
+    def update_surface(self, body_vertices: np.ndarray) -> None:
+        """The vertices and face normals of this pose; the grid and tree are stale until
+        `update_queries()`."""
+        self._queries.clear()
         self.x[:] = body_vertices[: self.body.n_vertices]
         body_face_normals(self.x, self.body.triangles, self.face_n)
-        self.grid.update(self.x, self.body.regions)
-        if self.faces is not None:
-            self.faces.update(self.x)
+
+    def update_queries(self) -> None:
+        """The vertex grid and the face tree's boxes for the pose `update_surface()` set."""
+        self._queries_failed = True
+        try:
+            self.grid.update(self.x, self.body.regions)
+            if self.faces is not None:
+                self.faces.update(self.x)
+            self._queries_failed = False
+        finally:  # a waiting garment is released either way, and told if this failed
+            self._queries.set()
+
+    def wait_queries(self) -> None:
+        """Block until the grid and the face tree are this pose's (`update_queries()` on another
+        thread)."""
+        self._queries.wait()
+        if self._queries_failed:
+            raise RuntimeError("BodyPose: the vertex grid or face tree update failed for this pose")
 
     def face_tree_arrays(self) -> tuple:
         """What `resolve_contacts` takes of the face tree (`FaceTree.arrays()`), or an empty

@@ -281,6 +281,7 @@ class ClothSim:
         (see `SimSettings`)."""
         s, m, st = self.state, self.model, self.model.settings
         f = m.fabric
+        pose.wait_queries()  # its grid and tree may still be updated on another thread
         self._contact_pass(pose)
         if st.slide_passes:
             # the pass puts a particle where the skin under it went, and skin stretches more than

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -137,14 +138,20 @@ class OutfitSession:
         self.cloth_seconds = np.zeros(len(self.sims))
 
     def step_cloth(self, body_vertices: np.ndarray, dt: float, surface: bool = True,
-                   surface_dt: float | None = None) -> list[np.ndarray]:
+                   surface_dt: float | None = None,
+                   on_garment: Callable[[int, np.ndarray], None] | None = None) -> list[np.ndarray]:
         """One frame of every garment: S101, then (if `surface`) S102-S106 with time step
         `surface_dt` (default dt; longer when frames were skipped for the surface).
 
         The garments are independent given the body, and every kernel releases the GIL, so with
-        `threads` > 1 they run on separate cores (the result is the same bit for bit)."""
-        self.pose.update(body_vertices)
-        self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt)
+        `threads` > 1 they run on separate cores (the result is the same bit for bit). The body
+        pose's grid and face tree (needed only by the contact passes at the end of S101) are
+        updated on the calling thread while the helpers' garments start.
+        on_garment(k, positions): called on the thread that stepped garment k, as soon as it is
+        done (a service publishes it there while the other garments are still stepping); its
+        detailed surface is `garment_surface(k)`."""
+        self.pose.update_surface(body_vertices)
+        self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt, on_garment)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
         shares = self._shares[min(self._threads, 1 + len(helpers)) if helpers else 1]
         out: list = [None] * len(self.sims)
@@ -153,6 +160,7 @@ class OutfitSession:
             for helper, share in zip(helpers or [], shares[1:]):
                 helper.submit(self._step_share, share)
                 submitted.append((helper, share))
+            self.pose.update_queries()
             for k in shares[0]:
                 out[k] = self._step_garment(k)
         finally:
@@ -171,11 +179,15 @@ class OutfitSession:
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
         return out
 
+    def garment_surface(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Garment k's detailed (positions, normals) of the frame last stepped."""
+        return self._detailed[k]
+
     def _step_share(self, share: list[int]) -> list[np.ndarray]:
         return [self._step_garment(k) for k in share]
 
     def _step_garment(self, k: int) -> np.ndarray:
-        body_vertices, dt, surface, surface_dt = self._frame
+        body_vertices, dt, surface, surface_dt, on_garment = self._frame
         sim = self.sims[k]
         t0 = time.perf_counter()
         x = sim.step(body_vertices, dt, profile=self.profile, body_pose=self.pose)
@@ -186,6 +198,8 @@ class OutfitSession:
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
                                           surface_dt)
             self.surface_seconds[k] = surf.stage_seconds
+        if on_garment is not None:
+            on_garment(k, x)
         return x
 
     def close(self) -> None:

@@ -95,6 +95,8 @@ class GarmentSession:
         self.announced_ns = 0  # stamp of the announcement it was set up from (0: none)
         self.end_frame: int | None = None  # set by the session's end message
         self.skipped_since = 0  # frames stepped without their surface since the last published one
+        self._msg: Message | None = None  # the body frame being stepped (read by _publish_garment)
+        self._first = False  # ... and whether it is the session's first
         self.last_seen = time.monotonic()
         for k, (n, m) in enumerate(zip(self.names, outfit.models)):
             tris = self.sim.surfaces[k].model.tess.triangles if self.sim.surfaces else m.triangles
@@ -141,9 +143,14 @@ class GarmentSession:
         first = not self.started
         if first:  # joined without the announcement: settle the garments into this first pose
             self.preroll(q)
+        self._msg, self._first = msg, first
         t0 = time.perf_counter()
-        positions = self.sim.step_cloth(self.body_x, self.dt, surface=publish,
-                                        surface_dt=self.dt * (self.skipped_since + 1))
+        try:
+            # each garment is published from the thread that stepped it, as soon as it is done
+            self.sim.step_cloth(self.body_x, self.dt, surface=publish, surface_dt=self.dt * (self.skipped_since + 1),
+                                on_garment=self._publish_garment if publish else None)
+        finally:
+            self._msg = None
         step_ms = (time.perf_counter() - t0) * 1000
         self.stats.add("received")
         if not publish:
@@ -151,30 +158,33 @@ class GarmentSession:
             self.stats.add("skipped")
             return
         self.skipped_since = 0
-        for k, name in enumerate(self.names):
-            if self.sim.detailed:
-                p, n = self.sim.detailed[k]
-            else:
-                p = positions[k]
-                n = self._coarse_normals[k]
-                vertex_normals(p, self.sim.outfit.models[k].triangles, n)
-            meta = {"garment": name, "s101_ms": round(float(self.sim.cloth_seconds[k]) * 1000, 4),
-                    "resets": int(self.sim.sims[k].stats.reset_particles)}
-            if first:
-                meta["preroll_s"] = self.stats.values["preroll_s"]
-            if self.sim.detailed:
-                pn, col, deform = (float(x) * 1000 for x in self.sim.surface_seconds[k])
-                meta.update(pn_ms=round(pn, 4), collision_ms=round(col, 4), deformation_ms=round(deform, 4))
-            self._p32[k][:] = p
-            self._n32[k][:] = n
-            out = Message("garment", self.session, msg.frame, msg.time,
-                          {"positions": self._p32[k], "normals": self._n32[k]}, meta,
-                          origin_ns=msg.stamp_ns)
-            self.publishers[k].put(encode(out))
-            self.stats.add("published")
         self.stats.values.update(step_ms=round(step_ms, 3), backlog=svc.backlog(),
                                  latency_ms=round((time.time_ns() - msg.stamp_ns) / 1e6, 3))
         self.stats.publish(svc.bus)
+
+    def _publish_garment(self, k: int, positions: np.ndarray) -> None:
+        """Garment k of the body frame being stepped, encoded and published (on the thread that
+        stepped it; each garment has its own buffers and publisher)."""
+        msg, sim = self._msg, self.sim
+        if sim.surfaces:
+            p, n = sim.garment_surface(k)
+        else:
+            p = positions
+            n = self._coarse_normals[k]
+            vertex_normals(p, sim.outfit.models[k].triangles, n)
+        meta = {"garment": self.names[k], "s101_ms": round(float(sim.cloth_seconds[k]) * 1000, 4),
+                "resets": int(sim.sims[k].stats.reset_particles)}
+        if self._first:
+            meta["preroll_s"] = self.stats.values["preroll_s"]
+        if sim.surfaces:
+            pn, col, deform = (float(x) * 1000 for x in sim.surface_seconds[k])
+            meta.update(pn_ms=round(pn, 4), collision_ms=round(col, 4), deformation_ms=round(deform, 4))
+        self._p32[k][:] = p
+        self._n32[k][:] = n
+        out = Message("garment", self.session, msg.frame, msg.time, {"positions": self._p32[k], "normals": self._n32[k]},
+                      meta, origin_ns=msg.stamp_ns)
+        self.publishers[k].put(encode(out))
+        self.stats.add("published")
 
     def close(self) -> None:
         self.sim.close()

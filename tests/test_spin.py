@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from cloth.collision import BodyMesh
+from cloth.collision import BodyMesh, BodyPose
 from cloth.surface import SurfaceSettings
 from services.cloth_job import OUTFITS, OutfitSession, load_outfit_models
 from services.spin import SpinPool, SpinWorker, spin_get
@@ -104,7 +104,7 @@ def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
     session._pool, session._threads, session.sims = pool, 2, [None, None]
     session._shares = {1: [[0, 1]], 2: [[0], [1]]}
     session.surfaces = []
-    session.pose = SimpleNamespace(update=lambda v: None)
+    session.pose = SimpleNamespace(update_surface=lambda v: None, update_queries=lambda: None)
     calls = []
 
     def step(k):
@@ -128,7 +128,8 @@ def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
 def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, data):
     """The casual outfit (two garments, coarse and detailed) over 12 run-clip frames: on one
     thread; on a helper thread beside the caller (own pool, and a shared polling pool); and
-    with the shared pool held by someone else (the frame falls back to one thread)."""
+    with the shared pool held by someone else (the frame falls back to one thread). Each
+    garment is handed to on_garment once a frame, done, on the thread that stepped it."""
     with BVHSource(data / "mocap" / "cmu_npybvh_example_75f.bvh", every=2, max_frames=14) as source:
         animator = BodyAnimator(body, source.skeleton)
         frames = [animator(f.local_rot, f.root_position).vertices.copy() for f in source][2:]
@@ -143,7 +144,19 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
                 assert shared.acquire() is not None
             try:
                 for v in frames:
-                    session.step_cloth(v, 1 / 60)
+                    handed = []
+
+                    def on_garment(k, x, session=session, handed=handed):
+                        p, n = session.garment_surface(k)
+                        handed.append((k, threading.get_ident(), x.copy(), p.copy()))
+
+                    session.step_cloth(v, 1 / 60, on_garment=on_garment)
+                    assert sorted(k for k, *_ in handed) == [0, 1]
+                    helper_used = threads == 2 and not hold
+                    for k, ident, x, p in handed:
+                        assert (ident != threading.get_ident()) == (helper_used and k == 1)
+                        np.testing.assert_array_equal(x, session.sims[k].state.x)
+                        np.testing.assert_array_equal(p, session.detailed[k][0])
             finally:
                 if hold:
                     shared.release()
@@ -154,3 +167,32 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
     for other in runs[1:]:
         for a, b in zip(runs[0], other):
             np.testing.assert_array_equal(a, b)
+
+
+def test_a_pose_updated_in_two_parts_on_two_threads_equals_one_update(body):
+    """BodyPose.update_surface, then update_queries on another thread while a garment waits
+    for them (wait_queries): the same normals, grid and tree as update(); a failed query
+    update releases the waiter with an error instead of leaving it blocked."""
+    mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
+    rng = np.random.default_rng(3)
+    poses = [body.vertices + rng.normal(0.0, 0.002, body.vertices.shape) for _ in range(2)]
+    whole, split = BodyPose(mesh), BodyPose(mesh)
+    for v in poses:
+        whole.update(v)
+        split.update_surface(v)
+        np.testing.assert_array_equal(split.face_n, whole.face_n)
+        worker = threading.Timer(0.05, split.update_queries)
+        worker.start()
+        split.wait_queries()  # blocks until the other thread is done
+        worker.join()
+        for a, b in zip(split.grid.arrays()[1:], whole.grid.arrays()[1:]):
+            np.testing.assert_array_equal(a, b)
+        for a, b in zip(split.face_tree_arrays(), whole.face_tree_arrays()):
+            np.testing.assert_array_equal(a, b)
+    split.update_surface(poses[0])
+    split.grid = None  # its update fails
+    worker = threading.Thread(target=lambda: pytest.raises(AttributeError, split.update_queries))
+    worker.start()
+    with pytest.raises(RuntimeError, match="grid or face tree"):
+        split.wait_queries()
+    worker.join()
