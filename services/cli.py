@@ -10,6 +10,7 @@ import threading
 import time
 from pathlib import Path
 
+from services.spin import LIVE_SPIN
 from skinning.data import ENV_VAR, data_dir
 
 
@@ -399,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--catch-up", action="store_true",
                    help="when behind, simulate every body frame but build and publish the detailed surface only "
                         "for the newest (live displays stay current; output no longer bit-reproducible)")
-    p.add_argument("--spin-ms", type=float, default=20.0,
+    p.add_argument("--spin-ms", type=float, default=1000.0 * LIVE_SPIN,
                    help="after each frame, poll this long for the next before sleeping (default 20: a 60 Hz "
                         "session keeps the cores awake; an idle core can wake a millisecond late; 0: never poll)")
     add_bus_arguments(p)

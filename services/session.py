@@ -25,6 +25,7 @@ from .cloth_service import ClothService, OutfitSpec
 from .ingest import IngestService
 from .protocol import MessageError, decode
 from .recorder import Recorder
+from .spin import LIVE_SPIN
 from .viewer import RecordingSink, ViewerBridge
 
 
@@ -172,7 +173,10 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
     t_start = time.perf_counter()
     cloth = viewer = recorder = tap = None
     try:
-        cloth = ClothService(bus, body, data, spec, sessions=session, catch_up=serve).start()
+        # live (--serve): frames come at the clip's pace, and the service polls between them as
+        # `tryon cloth-service` does; offline they come back to back and it never waits
+        cloth = ClothService(bus, body, data, spec, sessions=session, catch_up=serve,
+                             spin=LIVE_SPIN if serve else 0.0).start()
         sink = RecordingSink(session, rrd=out_dir / f"{session}.rrd", serve_port=serve_port, web_port=web_port)
         viewer = ViewerBridge(bus, session, sink, lossless=not serve).start()
         recorder = Recorder(bus, session, out_dir / f"{session}.mcap") if record else None

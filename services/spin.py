@@ -22,6 +22,8 @@ import threading
 import time
 from typing import Any, Callable
 
+LIVE_SPIN = 0.02  # s: how long a live service polls after a frame (covers the 16.7 ms of 60 Hz)
+
 _yield = getattr(os, "sched_yield", None) or (lambda: time.sleep(0))  # sched_yield: Unix only
 
 
