@@ -10,7 +10,7 @@ import threading
 import time
 from pathlib import Path
 
-from services.spin import LIVE_SPIN
+from .spin import LIVE_SPIN
 from skinning.data import ENV_VAR, data_dir
 
 
