@@ -10,8 +10,9 @@ import threading
 import time
 from pathlib import Path
 
-from .spin import LIVE_SPIN
 from skinning.data import ENV_VAR, data_dir
+
+from .spin import LIVE_SPIN
 
 
 def _clips(data: Path, names: list[str] | None) -> list[Path]:
