@@ -116,10 +116,11 @@ def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, 
     return arrivals
 
 
-def start_cloth(endpoint: str, level: int, catch_up: bool) -> subprocess.Popen:
+def start_cloth(endpoint: str, level: int, catch_up: bool, pin_cores: str | None = None) -> subprocess.Popen:
     level_args = ["--coarse-only"] if level == 0 else ["--level", str(level)]
     cloth = subprocess.Popen(cli("cloth-service", "--listen", endpoint, "--outfit", OUTFIT, *level_args,
-                                 *(["--catch-up"] if catch_up else [])), cwd=ROOT,
+                                 *(["--catch-up"] if catch_up else []),
+                                 *(["--pin-cores", pin_cores] if pin_cores else [])), cwd=ROOT,
                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     for line in cloth.stdout:
         if "ready" in line:
@@ -148,22 +149,24 @@ def main() -> None:
     ap.add_argument("--level", type=int, default=6, help="PN level (0: coarse cloth only)")
     ap.add_argument("--seconds", type=float, default=8.0, help="length of each run in seconds of motion")
     ap.add_argument("--max-sessions", type=int, default=3)
+    ap.add_argument("--pin-cores", metavar="LIST", help="passed to the cloth service (e.g. 0,1)")
     args = ap.parse_args()
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     print(f"machine: {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}")
     print(f"outfit {OUTFIT} (two garments), level {args.level or 'coarse only'}, clip {CLIP}; "
-          f"cloth service, ingest and this subscriber in separate processes over TCP loopback\n")
+          f"cloth service, ingest and this subscriber in separate processes over TCP loopback"
+          f"{'; cloth service threads pinned to cores ' + args.pin_cores if args.pin_cores else ''}\n")
     print("| cloth service | input | frames | latency p50 ms | p99 ms | max ms | frames without garments | "
           "compute ms/frame |")
     print("|---|---|---|---|---|---|---|---|")
-    cloth = start_cloth(endpoint, args.level, catch_up=True)
+    cloth = start_cloth(endpoint, args.level, catch_up=True, pin_cores=args.pin_cores)
     try:
         latency_rows(endpoint, args.seconds, args.level, "--catch-up")
     finally:
         cloth.terminate()
         cloth.wait(10)
-    cloth = start_cloth(endpoint, args.level, catch_up=False)
+    cloth = start_cloth(endpoint, args.level, catch_up=False, pin_cores=args.pin_cores)
     try:
         latency_rows(endpoint, args.seconds, args.level, "in order")
         n = int(args.seconds * 60)

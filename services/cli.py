@@ -12,7 +12,7 @@ from pathlib import Path
 
 from skinning.data import ENV_VAR, data_dir
 
-from .spin import LIVE_SPIN
+from .spin import LIVE_SPIN, check_cpus
 
 
 def _clips(data: Path, names: list[str] | None) -> list[Path]:
@@ -215,11 +215,17 @@ def cmd_cloth_service(args) -> int:
     _logging(args)
     if not args.spin_ms >= 0.0:
         raise SystemExit(f"tryon cloth-service: --spin-ms must be 0 or more, got {args.spin_ms}")
+    cpus = None
+    if args.pin_cores:
+        try:
+            cpus = check_cpus(int(c) for c in args.pin_cores.split(","))
+        except ValueError as err:  # also a value that is not an integer
+            raise SystemExit(f"tryon cloth-service: --pin-cores {args.pin_cores!r}: {err}") from None
     data = data_dir(args.data)
     body = load_body(data)
     with bus_config_from_args(args).open() as bus:
         svc = ClothService(bus, body, data, _spec(args), idle_seconds=args.idle, catch_up=args.catch_up,
-                           spin=args.spin_ms / 1000.0).start()
+                           spin=args.spin_ms / 1000.0, cpus=cpus).start()
         print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)
         _wait()
         svc.stop()
@@ -401,6 +407,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--catch-up", action="store_true",
                    help="when behind, simulate every body frame but build and publish the detailed surface only "
                         "for the newest (live displays stay current; output no longer bit-reproducible)")
+    p.add_argument("--pin-cores", metavar="LIST",
+                   help="keep the serving thread on the first of these cores and a garment thread on each of the "
+                        "others, e.g. 0,1 (Linux; default: unpinned, one garment thread per core)")
     p.add_argument("--spin-ms", type=float, default=1000.0 * LIVE_SPIN,
                    help="after each frame, poll this long for the next before sleeping (default 20: a 60 Hz "
                         "session keeps the cores awake; an idle core can wake a millisecond late; 0: never poll)")

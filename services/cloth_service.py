@@ -40,7 +40,7 @@ from .bus import Latched, Stats, fetch_latched, key, parse_key
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, load_outfit_models
 from .heap import freeze_heap, reclaim_heap
 from .protocol import Message, MessageError, decode, encode
-from .spin import SpinPool, spin_get
+from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
 
 log = logging.getLogger("tryon.cloth")
 
@@ -201,19 +201,26 @@ class ClothService:
 
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
                  queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
-                 catch_up: bool = False, spin: float = 0.0):
+                 catch_up: bool = False, spin: float = 0.0, cpus: list[int] | None = None):
         """catch_up: when a session's body frames queue up, step the coarse cloth through every one
         of them but build and publish the detailed surface only for the newest (live displays stay
         current; the output then depends on timing). Off: every frame is published, in order, and
         the output is deterministic (replays reproduce it bit for bit).
         spin: seconds after a frame that this service's threads poll for the next one before they
         block (`services.spin`: on a virtual machine an idle core wakes about 1 ms late; the
-        cores stay busy while sessions stream)."""
+        cores stay busy while sessions stream).
+        cpus: cores to keep the threads to, one each (`services.spin.pin_to_cpu`): the serving
+        thread on the first, a garment helper on each of the others; None: one helper per core
+        beyond the first, unpinned."""
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
         self.catch_up = catch_up
         self.spin = spin
         # helper threads for the garments, one per core beyond this one, shared by the sessions
-        self.garment_pool = SpinPool(max(0, (os.cpu_count() or 1) - 1), spin)
+        self.cpus = check_cpus(cpus) if cpus else None
+        if self.cpus is None:
+            self.garment_pool = SpinPool(max(0, (os.cpu_count() or 1) - 1), spin)
+        else:
+            self.garment_pool = SpinPool(len(self.cpus) - 1, spin, cpus=self.cpus[1:])
         self._last_work = 0.0  # monotonic time the serving thread last handled a message
         self.idle_seconds = idle_seconds
         self.animator = BodyAnimator(body)
@@ -285,6 +292,8 @@ class ClothService:
 
     def serve(self) -> None:
         """Consume body frames until stop(); every error is logged and counted, never fatal."""
+        if self.cpus is not None:
+            pin_to_cpu(self.cpus[0])
         while not self._stop.is_set():
             self._finish_setups()
             try:

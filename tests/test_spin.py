@@ -1,5 +1,6 @@
 """The polling helpers of services/spin.py and the garments stepped on them (services.cloth_job)."""
 
+import os
 import queue
 import threading
 import time
@@ -12,7 +13,7 @@ import pytest
 from cloth.collision import BodyMesh, BodyPose
 from cloth.surface import SurfaceSettings
 from services.cloth_job import OUTFITS, OutfitSession, load_outfit_models
-from services.spin import SpinPool, SpinWorker, spin_get
+from services.spin import SpinPool, SpinWorker, check_cpus, spin_get
 from skinning.animate import BodyAnimator
 from skinning.body import body_clothed_faces, body_regions
 from skinning.source import BVHSource
@@ -196,3 +197,31 @@ def test_a_pose_updated_in_two_parts_on_two_threads_equals_one_update(body):
     with pytest.raises(RuntimeError, match="grid or face tree"):
         split.wait_queries()
     worker.join()
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="thread affinity is Linux-only")
+def test_pool_workers_keep_to_their_cores_and_bad_core_lists_are_refused():
+    cores = sorted(os.sched_getaffinity(0))
+    pool = SpinPool(1, 0.0, cpus=[cores[-1]])
+    try:
+        worker = pool.workers[0]
+        worker.submit(lambda _: os.sched_getaffinity(0), None)  # 0: the calling thread, the worker's
+        assert worker.result() == {cores[-1]}
+        assert os.sched_getaffinity(0) == set(cores)  # the caller is left as it was
+    finally:
+        pool.close()
+    assert check_cpus([cores[0]]) == [cores[0]]
+    for bad, problem in (([], "at least one"), ([cores[0], cores[0]], "distinct"),
+                         ([max(cores) + 1], "not among this process's cores")):
+        with pytest.raises(ValueError, match=problem):
+            check_cpus(bad)
+    with pytest.raises(ValueError, match="2 workers, 1 cores"):
+        SpinPool(2, 0.0, cpus=[cores[0]])
+
+
+def test_cloth_service_cli_rejects_bad_core_lists():
+    from services.cli import main
+
+    for value, problem in (("0,0", "distinct"), ("x", "invalid literal"), ("4096", "not among")):
+        with pytest.raises(SystemExit, match=f"--pin-cores '{value}': .*{problem}"):
+            main(["cloth-service", "--pin-cores", value])
