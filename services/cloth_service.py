@@ -215,7 +215,8 @@ class ClothService:
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
         self.catch_up = catch_up
         self.spin = spin
-        # helper threads for the garments, one per core beyond this one, shared by the sessions
+        # helper threads for the garments, shared by the sessions: one per core beyond this
+        # thread's, or one per given core beyond the first
         self.cpus = check_cpus(cpus) if cpus else None
         if self.cpus is None:
             self.garment_pool = SpinPool(max(0, (os.cpu_count() or 1) - 1), spin)

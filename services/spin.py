@@ -33,9 +33,8 @@ def pin_to_cpu(cpu: int) -> None:
     A pinned garment thread is never moved onto the other garment's core, where the two would
     share it until the load balancer parts them: on this project's 2-core machine, with the
     service's two threads pinned apart, the 60 Hz latency's p99 came to 8.1-9.3 ms against
-    8.7-10.1 ms unpinned (three alternating pairs of runs, ninth session)."""
-    if not hasattr(os, "sched_setaffinity"):
-        raise OSError("pinning threads to cores needs os.sched_setaffinity (Linux)")
+    8.7-10.1 ms unpinned (three alternating pairs of runs, ninth session). `check_cpus` says
+    beforehand whether the platform and the cores allow it."""
     os.sched_setaffinity(0, {cpu})
 
 
