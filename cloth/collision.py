@@ -533,7 +533,10 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     thickness in front of both planes (a narrow crease: alternate pushes close in by only the
     squared cosine of the planes' angle a round). Planes within CREASE_COS of parallel or
     opposite are not solved together, nor is a solution farther than MAX_CREASE_MOVE taken,
-    nor a gripped particle moved off the surface by one.
+    nor a gripped particle moved off the surface by one. Planes that face each other (within
+    CREASE_COS of opposite) are two body surfaces pressed together, skin on skin, with a slit
+    between them narrower than twice the thickness: the particle goes midway into the slit and
+    stays there, outside both (where the surfaces overlap there is no slit, and the last push stands).
     Gripped particles (fixed) are placed too, their velocity untouched. One found deeper than
     MAX_CONTACT_DEPTH is left where it is. Where two body parts meet (an arm against the torso,
     the thighs), a face of the other part can be nearer than every vertex of it, and the ring
@@ -602,10 +605,24 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             ty = qy + thickness * ny
             tz = qz + thickness * nz
             d_new = nx * qx + ny * qy + nz * qz + thickness
-            if pushed and not fixed[i]:  # a gripped particle keeps to the surface: no crease solve
+            slit = False
+            if pushed and pnx * tx + pny * ty + pnz * tz < pd:  # this push would undo the last one
                 c = pnx * nx + pny * ny + pnz * nz
-                if abs(c) < CREASE_COS and pnx * tx + pny * ty + pnz * tz < pd:
-                    # a crease: this push would undo the last one. The nearest point in front of
+                if c <= -CREASE_COS:
+                    # the planes face each other: a slit between two body surfaces pressed together
+                    # (skin on skin) narrower than twice the thickness. The particle goes midway
+                    # between them along the last push (pn·x >= pd - thickness, n·x >= d_new -
+                    # thickness) and stays; where the surfaces overlap there is no outside here
+                    lo = pd - thickness - (pnx * px + pny * py + pnz * pz)
+                    hi = (nx * px + ny * py + nz * pz - d_new + thickness) / -c
+                    if lo < hi:
+                        a = 0.5 * (lo + hi)
+                        tx = px + a * pnx
+                        ty = py + a * pny
+                        tz = pz + a * pnz
+                        slit = True
+                elif abs(c) < CREASE_COS and not fixed[i]:  # a gripped particle keeps to the surface
+                    # a crease. The nearest point in front of
                     # both planes (on both: x = p + a pn + b n with pn·x = pd, n·x = d_new)
                     ra = pd - (pnx * px + pny * py + pnz * pz)
                     rb = d_new - (nx * px + ny * py + nz * pz)
@@ -621,18 +638,19 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
             px, py, pz = tx, ty, tz
             x[i, 0], x[i, 1], x[i, 2] = px, py, pz
             placed_inv_mass[i] = 0.0
-            if it == CONTACT_ITERATIONS - 1:
+            if it == CONTACT_ITERATIONS - 1 and not slit:
                 unsettled[i] = 1
-            if fixed[i]:
-                continue  # a gripped particle is placed, not moved: it has no velocity of its own
-            rx = v[i, 0] - body_vel[i, 0]
-            ry = v[i, 1] - body_vel[i, 1]
-            rz = v[i, 2] - body_vel[i, 2]
-            vn = rx * nx + ry * ny + rz * nz
-            if vn < 0.0:
-                v[i, 0] -= vn * nx
-                v[i, 1] -= vn * ny
-                v[i, 2] -= vn * nz
+            if not fixed[i]:  # a gripped particle is placed, not moved: it has no velocity of its own
+                rx = v[i, 0] - body_vel[i, 0]
+                ry = v[i, 1] - body_vel[i, 1]
+                rz = v[i, 2] - body_vel[i, 2]
+                vn = rx * nx + ry * ny + rz * nz
+                if vn < 0.0 or slit:  # in a slit, towards either side
+                    v[i, 0] -= vn * nx
+                    v[i, 1] -= vn * ny
+                    v[i, 2] -= vn * nz
+            if slit:
+                break  # as far out as this place allows: a test would push it back into one side
 
 
 class BodyPose:

@@ -377,6 +377,46 @@ def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices(
     assert placed[0] == 0.0
 
 
+@pytest.mark.parametrize("same_part", [False, True])
+def test_resolve_contacts_puts_a_particle_midway_into_a_slit_narrower_than_twice_the_thickness(same_part):
+    """Above the fine box a coarse one whose bottom face is 2 mm above the fine box's top (skin
+    pressed against skin, as parts or as the sheets of one fold), thickness 3 mm. A particle
+    1 mm inside the fine box: out of it at thickness lands it 1 mm inside the coarse box, out of
+    that back 1 mm inside the fine one, for ever. The pass puts it midway into the slit
+    (z = 0.001, outside both) and leaves it there, its velocity towards either side removed."""
+    coarse_v, coarse_t = box(1.0, n=1)
+    coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.012]
+    x = np.array([[0.0005, 0.001, -0.001]])
+    v = np.array([[0.3, 0.0, 1.0]])
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=same_part)
+    np.testing.assert_allclose(x[0], [0.0005, 0.001, 0.001], atol=1e-12)
+    np.testing.assert_allclose(v[0], [0.3, 0.0, 0.0], atol=1e-12)
+    assert placed[0] == 0.0
+
+
+def test_resolve_contacts_leaves_overlapping_facing_surfaces_to_the_last_push():
+    """The same two boxes overlapping by 1 mm (the coarse box's bottom at z = -0.001, as linear
+    blend skinning presses one part into another): there is no slit to go into, and the
+    particle between the two surfaces (z = -0.0005) ends where the pass's last push put it,
+    flagged unsettled, 3 mm in front of one of the two faces."""
+    coarse_v, coarse_t = box(1.0, n=1)
+    coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.009]
+    x = np.array([[0.0005, 0.001, -0.0005]])
+    fine_v, fine_t = box(0.01, n=8)
+    fine_v = fine_v + [0.0, 0.0, -0.01]
+    verts = np.concatenate([fine_v, coarse_v])
+    tris = np.concatenate([fine_t, coarse_t + len(fine_v)]).astype(np.int32)
+    regions = np.r_[np.full(len(fine_v), 1), np.full(len(coarse_v), 2)].astype(np.uint8)
+    mesh = BodyMesh.build(tris, len(verts), regions)
+    scratch = contact_scratch(len(x))
+    resolve_contacts(x, np.zeros_like(x), verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles,
+                     mesh.tri_start, mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003,
+                     np.zeros(1, np.uint8), face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh),
+                     *scratch)
+    assert scratch[UNSETTLED][0] == 1
+    assert min(abs(x[0, 2] - 0.003), abs(x[0, 2] - (-0.001 - 0.003))) < 1e-12, x
+
+
 @pytest.mark.parametrize("refine", [0.0, REFINE_RADIUS])
 def test_resolve_contacts_finds_a_nearer_face_of_the_same_part_by_the_face_tree(refine):
     """The boxes of the test above as one body part, two sheets of a fold: no other part to
