@@ -86,6 +86,10 @@ def mark_moved(x, before, distance, out):
 
 
 SLIDE_RECHECK = 0.1  # x thickness: a particle that slid less is not tested again (ClothSim.settle_contacts)
+# x thickness: the same for the held strain-limiting passes before the final contact pass. Not
+# more: where the skinned skin intersects itself, a sub-millimetre move can make a buried sheet
+# facing the other way the nearest surface, and a particle outside reads deep inside
+FINAL_RECHECK = 0.1
 REGION_RADIUS = 0.06  # m: a particle may attach to the body parts within this distance at rest
 
 
@@ -306,7 +310,7 @@ class ClothSim:
         if st.final_contact and st.contact_limit_passes:
             # pulled after a placed particle, a free one cuts the chord across a curved limb:
             # what moved far enough to have reached the body is tested once more
-            mark_moved(s.x, s.held_from, 0.5 * f.thickness, s.recheck)
+            mark_moved(s.x, s.held_from, FINAL_RECHECK * f.thickness, s.recheck)
             self._contact_pass(pose, s.recheck)
 
     def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
