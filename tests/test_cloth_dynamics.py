@@ -394,6 +394,28 @@ def test_resolve_contacts_puts_a_particle_midway_into_a_slit_narrower_than_twice
     assert placed[0] == 0.0
 
 
+@pytest.mark.parametrize("tilt", [15.0, 45.0])
+def test_resolve_contacts_treats_surfaces_at_an_angle_as_a_slit(tilt):
+    """The coarse box of the slit test tilted about y (its bottom's normal (sin φ, 0, -cos φ):
+    cos φ from opposite the fine box's top, 0.966 and 0.707, a wedge, within SLIT_COS), the
+    bottom through (0, 0, 2 mm). The two surfaces are 2 mm + x tan φ apart above the particle;
+    the particle 1 mm inside the fine box goes midway between them along the fine box's
+    normal, z = 1 mm + x tan φ / 2, and stays (the crease solve for both planes at thickness
+    would take it out along the wedge, a long way where they are near opposite)."""
+    phi = np.radians(tilt)
+    rot = np.array([[np.cos(phi), 0.0, -np.sin(phi)], [0.0, 1.0, 0.0], [np.sin(phi), 0.0, np.cos(phi)]])
+    coarse_v, coarse_t = box(1.0, n=1)
+    coarse_v = (coarse_v * 0.01) @ rot.T
+    bottom = np.array([0.0, 0.0, -0.01]) @ rot.T
+    np.testing.assert_allclose(bottom / 0.01, [np.sin(phi), 0.0, -np.cos(phi)], atol=1e-15)
+    coarse_v = coarse_v + ([0.0, 0.0, 0.002] - bottom)
+    x0 = 0.0005
+    x = np.array([[x0, 0.001, -0.001]])
+    placed = resolve_against_two_parts(x, np.zeros_like(x), coarse_v, coarse_t)
+    np.testing.assert_allclose(x[0], [x0, 0.001, 0.001 + x0 * np.tan(phi) / 2], atol=1e-12)
+    assert placed[0] == 0.0
+
+
 def test_resolve_contacts_leaves_overlapping_facing_surfaces_to_the_last_push():
     """The same two boxes overlapping by 1 mm (the coarse box's bottom at z = -0.001, as linear
     blend skinning presses one part into another): there is no slit to go into, and the
@@ -641,11 +663,16 @@ def test_resolve_contacts_settles_a_particle_in_a_concave_corner_away_from_both_
     assert x[0, 0] < 1.0031 and x[0, 1] < 1.0031 and x[0, 2] == 0.5, x
 
 
-def notch_prism(depth=1.0):
+NOTCH_HALF_ANGLE = np.radians(30.0)
+
+
+def notch_prism(depth=1.0, half_angle=NOTCH_HALF_ANGLE):
     """A closed prism (outward triangles) whose section is a square with a V notch cut into its
-    top: (0,0)-(2,0)-(2,2)-(1.4,2)-(1,0.5)-(0.6,2)-(0,2), extruded from z = 0 to depth. The
-    notch's walls are 30° apart, their normals (-1.5, 0.4) and (1.5, 0.4) over 1.552."""
-    ring = np.array([[0, 0], [2, 0], [2, 2], [1.4, 2], [1, 0.5], [0.6, 2], [0, 2]], float)
+    top: (0,0)-(2,0)-(2,2)-(1+w,2)-(1,0.5)-(1-w,2)-(0,2), w = 1.5 tan(half_angle), extruded
+    from z = 0 to depth. The notch's walls are 2 half_angle apart (60°: their planes face each
+    other no more than cos 120° = -0.5, a crease, not a slit)."""
+    w = 1.5 * np.tan(half_angle)
+    ring = np.array([[0, 0], [2, 0], [2, 2], [1 + w, 2], [1, 0.5], [1 - w, 2], [0, 2]], float)
     n = len(ring)
     verts = np.concatenate([np.c_[ring, np.zeros(n)], np.c_[ring, np.full(n, depth)]])
     cap = np.array([[0, 1, 4], [1, 2, 3], [1, 3, 4], [0, 4, 5], [0, 5, 6]])  # counter-clockwise seen from +z
@@ -657,11 +684,11 @@ def notch_prism(depth=1.0):
 
 
 def test_resolve_contacts_solves_a_narrow_crease_for_both_walls_at_once():
-    """A particle 1 cm inside the bottom of a 30° notch. The first push (along the bottom edge's
+    """A particle 1 cm inside the bottom of a 60° notch. The first push (along the bottom edge's
     pseudo-normal, +y) lands it nearer than thickness to both walls; pushing out of one wall
     then lands it behind the other, and alternating pushes close in on the answer by only
-    cos² 150° = 0.75 a round. The pass solves for a point in front of both planes at once:
-    the notch's bisector x = 1 at thickness from each wall, y = 0.5 + 0.003 · 1.552 / 0.4."""
+    cos² 120° = 0.25 a round. The pass solves for a point in front of both planes at once:
+    the notch's bisector x = 1 at thickness from each wall, y = 0.5 + 0.003 / sin 30°."""
     verts, tris = notch_prism()
     mesh = BodyMesh.build(tris, len(verts))
     face_n = face_normals(verts, tris)
@@ -671,7 +698,7 @@ def test_resolve_contacts_solves_a_narrow_crease_for_both_walls_at_once():
     resolve_contacts(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
                      mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003, np.zeros(1, np.uint8),
                      face_n, np.zeros(3), *contact_grids(verts, mesh), *contact_scratch(len(x)))
-    np.testing.assert_allclose(x[0], [1.0, 0.5 + 0.003 * np.hypot(1.5, 0.4) / 0.4, 0.5], atol=1e-9)
+    np.testing.assert_allclose(x[0], [1.0, 0.5 + 0.003 / np.sin(NOTCH_HALF_ANGLE), 0.5], atol=1e-9)
 
 
 def test_resolve_contacts_flags_a_particle_its_last_push_left_untested():
@@ -689,8 +716,8 @@ def test_resolve_contacts_flags_a_particle_its_last_push_left_untested():
                      np.array([0, 1], np.uint8), face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh),
                      *scratch)
     np.testing.assert_array_equal(scratch[UNSETTLED], [0, 1])
-    np.testing.assert_allclose(x[0], [1.0, 0.5 + 0.003 * np.hypot(1.5, 0.4) / 0.4, 0.5], atol=1e-9)
-    assert abs(x[1, 0] - 1.0) > 1e-4  # on one wall, not solved
+    np.testing.assert_allclose(x[0], [1.0, 0.5 + 0.003 / np.sin(NOTCH_HALF_ANGLE), 0.5], atol=1e-9)
+    assert np.abs(x[1] - x[0]).max() > 1e-6  # closing in by alternate pushes, not solved
 
 
 def test_resolve_contacts_places_a_gripped_particle_outside_and_leaves_its_velocity():
