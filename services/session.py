@@ -214,10 +214,14 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         deadline = time.monotonic() + 10
         while tap.last_garment_frame < ingest.last_index and time.monotonic() < deadline:
             time.sleep(0.02)
+        # a garment is published from its stepping thread before the service counts the body
+        # frame it came from: the counts are read once that frame is counted too
+        gs = cloth.sessions.get(session)
+        while gs is not None and gs.stats.counts["received"] < ingest.frames and time.monotonic() < deadline:
+            time.sleep(0.005)
         bar.finish(ingest.frames)
         seconds = time.perf_counter() - t_start
         stats = {"ingest": ingest.stats.snapshot()}
-        gs = cloth.sessions.get(session)
         stats["cloth"] = gs.stats.snapshot() if gs is not None else cloth.closed_stats.get(session, {"counts": {}})
         time.sleep(0.1)
         viewer.stop()
