@@ -686,8 +686,8 @@ def notch_prism(depth=1.0, half_angle=NOTCH_HALF_ANGLE):
 def test_resolve_contacts_solves_a_narrow_crease_for_both_walls_at_once():
     """A particle 1 cm inside the bottom of a 60° notch. The first push (along the bottom edge's
     pseudo-normal, +y) lands it nearer than thickness to both walls; pushing out of one wall
-    then lands it behind the other, and alternating pushes close in on the answer by only
-    cos² 120° = 0.25 a round. The pass solves for a point in front of both planes at once:
+    then lands it behind the other, and alternating pushes close in on the answer by cos² 120°
+    = 0.25 a round, never reaching it. The pass solves for a point in front of both planes at once:
     the notch's bisector x = 1 at thickness from each wall, y = 0.5 + 0.003 / sin 30°."""
     verts, tris = notch_prism()
     mesh = BodyMesh.build(tris, len(verts))
