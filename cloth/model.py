@@ -37,10 +37,10 @@ class SimSettings:
     final_contact: bool = True  # after those, the contact pass again for the particles they moved
     # m: a contact-pass result nearer than this is checked against every
     # clothed body face (collision.FaceTree: the other sheet of a fold); 0: off, for speed.
-    # 6 cm, not 2: where skinning sinks a limb into the skin under the cloth (a thigh into the
+    # 8 cm, not 2: where skinning sinks a limb into the skin under the cloth (a thigh into the
     # belly, an arm's fold at the armpit) a particle can lie 2-6 cm inside with the nearest
-    # vertex's ring, on the far side, saying "outside"
-    nearest_face_radius: float = 0.06
+    # vertex's ring, on the far side or on the torso beyond, saying "outside" by up to 7 cm
+    nearest_face_radius: float = 0.08
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
 
 
