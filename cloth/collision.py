@@ -628,8 +628,8 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
                         tz = pz + a * pnz
                         slit = True
                 elif abs(c) < CREASE_COS and not fixed[i]:  # a gripped particle keeps to the surface
-                    # a crease. The nearest point in front of
-                    # both planes (on both: x = p + a pn + b n with pn·x = pd, n·x = d_new)
+                    # a crease: the nearest point in front of both planes
+                    # (on both: x = p + a pn + b n with pn·x = pd, n·x = d_new)
                     ra = pd - (pnx * px + pny * py + pnz * pz)
                     rb = d_new - (nx * px + ny * py + nz * pz)
                     det = 1.0 - c * c

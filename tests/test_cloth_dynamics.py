@@ -319,8 +319,8 @@ def resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=False, refine=
     """resolve_contacts against two body parts: a finely meshed box (vertices every 2.5 mm,
     top face at z = 0, bottom at z = -0.02) and a coarse one (coarse_v, coarse_t); same_part:
     both boxes are one body part (two sheets of a fold); refine: the nearest-face query's
-    radius (0: off). Returns the placed inverse masses; the nearest vertex found must be the
-    fine box's."""
+    radius (0: off). Returns resolve_contacts' scratch (placed inverse masses at PLACED, unsettled
+    flags at UNSETTLED); the nearest vertex found must be the fine box's."""
     fine_v, fine_t = box(0.01, n=8)
     fine_v = fine_v + [0.0, 0.0, -0.01]
     verts = np.concatenate([fine_v, coarse_v])
@@ -334,7 +334,7 @@ def resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=False, refine=
                      face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh)[:-2], refine,
                      np.zeros(FACE_TREE_STACK, np.int32), *scratch)
     assert nearest[0] < len(fine_v)  # the nearest vertex is the fine box's
-    return scratch[PLACED]
+    return scratch
 
 
 def test_body_face_normals_are_unit_normals_and_twice_the_areas():
@@ -371,7 +371,7 @@ def test_resolve_contacts_finds_a_face_of_another_part_nearer_than_its_vertices(
     coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.016]
     x = np.array([[0.0005, 0.001, 0.007]])
     v = np.array([[0.0, 0.0, 1.0]])
-    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t)
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t)[PLACED]
     np.testing.assert_allclose(x[0], [0.0005, 0.001, 0.003], atol=1e-9)
     np.testing.assert_allclose(v[0], [0.0, 0.0, 0.0], atol=1e-12)  # into the coarse box: removed
     assert placed[0] == 0.0
@@ -388,7 +388,7 @@ def test_resolve_contacts_puts_a_particle_midway_into_a_slit_narrower_than_twice
     coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.012]
     x = np.array([[0.0005, 0.001, -0.001]])
     v = np.array([[0.3, 0.0, 1.0]])
-    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=same_part)
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=same_part)[PLACED]
     np.testing.assert_allclose(x[0], [0.0005, 0.001, 0.001], atol=1e-12)
     np.testing.assert_allclose(v[0], [0.3, 0.0, 0.0], atol=1e-12)
     assert placed[0] == 0.0
@@ -411,7 +411,7 @@ def test_resolve_contacts_treats_surfaces_at_an_angle_as_a_slit(tilt):
     coarse_v = coarse_v + ([0.0, 0.0, 0.002] - bottom)
     x0 = 0.0005
     x = np.array([[x0, 0.001, -0.001]])
-    placed = resolve_against_two_parts(x, np.zeros_like(x), coarse_v, coarse_t)
+    placed = resolve_against_two_parts(x, np.zeros_like(x), coarse_v, coarse_t)[PLACED]
     np.testing.assert_allclose(x[0], [x0, 0.001, 0.001 + x0 * np.tan(phi) / 2], atol=1e-12)
     assert placed[0] == 0.0
 
@@ -424,17 +424,7 @@ def test_resolve_contacts_leaves_overlapping_facing_surfaces_to_the_last_push():
     coarse_v, coarse_t = box(1.0, n=1)
     coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.009]
     x = np.array([[0.0005, 0.001, -0.0005]])
-    fine_v, fine_t = box(0.01, n=8)
-    fine_v = fine_v + [0.0, 0.0, -0.01]
-    verts = np.concatenate([fine_v, coarse_v])
-    tris = np.concatenate([fine_t, coarse_t + len(fine_v)]).astype(np.int32)
-    regions = np.r_[np.full(len(fine_v), 1), np.full(len(coarse_v), 2)].astype(np.uint8)
-    mesh = BodyMesh.build(tris, len(verts), regions)
-    scratch = contact_scratch(len(x))
-    resolve_contacts(x, np.zeros_like(x), verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles,
-                     mesh.tri_start, mesh.tri_ids, mesh.tri_nbrs, mesh.regions, np.zeros(1, np.int32), 0.003,
-                     np.zeros(1, np.uint8), face_normals(verts, tris), np.zeros(3), *contact_grids(verts, mesh),
-                     *scratch)
+    scratch = resolve_against_two_parts(x, np.zeros_like(x), coarse_v, coarse_t)
     assert scratch[UNSETTLED][0] == 1
     assert min(abs(x[0, 2] - 0.003), abs(x[0, 2] - (-0.001 - 0.003))) < 1e-12, x
 
@@ -450,7 +440,7 @@ def test_resolve_contacts_finds_a_nearer_face_of_the_same_part_by_the_face_tree(
     coarse_v = coarse_v * [0.01, 0.01, 0.01] + [0.0, 0.0, 0.016]
     x = np.array([[0.0005, 0.001, 0.007]])
     v = np.array([[0.0, 0.0, 1.0]])
-    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=True, refine=refine)
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t, same_part=True, refine=refine)[PLACED]
     if refine == 0.0:
         np.testing.assert_array_equal(x[0], [0.0005, 0.001, 0.007])
         assert placed[0] == 1.0
@@ -522,7 +512,7 @@ def test_resolve_contacts_takes_no_push_from_deep_behind_another_part():
     coarse_v = coarse_v * [0.02, 0.02, 0.03] + [0.0, 0.0, 0.025]
     x = np.array([[0.0, 0.0, 0.006]])
     v = np.array([[0.0, 0.0, 1.0]])
-    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t)
+    placed = resolve_against_two_parts(x, v, coarse_v, coarse_t)[PLACED]
     np.testing.assert_array_equal(x[0], [0.0, 0.0, 0.006])
     np.testing.assert_array_equal(v[0], [0.0, 0.0, 1.0])
     assert placed[0] == 1.0
