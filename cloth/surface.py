@@ -103,8 +103,10 @@ class SurfaceState:
         self.dh = np.zeros(N)  # Δh, carried to the next frame (Δh_last_frame)
         self.dh_pen = np.zeros(N)  # S103 Δh_penetration
         self.sd = np.zeros(N)  # S103 signed distance of tested particles (inf: untested)
+        self.facing = np.zeros(N)  # S103: n_i . n_body at each tested particle's closest body point
         self.body_face = np.full(N, -1, dtype=np.int32)  # S103: body face each particle's last walk ended on
-        self.floor = np.zeros(N)
+        self.floor = np.zeros(N)  # S106: the lowest and highest heights S103 allows
+        self.ceiling = np.zeros(N)
         self.ef = np.zeros((N, 3))  # S104 elastic force, N
         self.vf = np.zeros(N)  # S104 normal force, N
         self.required = np.zeros(N)  # S105 ΔL_required,i, m
@@ -161,12 +163,12 @@ class DetailedSurface:
             s.dh_pen[:] = 0.0
             self.tested = 0
         else:
-            self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, t.face_ids, t.order, t.parents,
+            self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, s.facing, t.face_ids, t.order, t.parents,
                                             coarse_nearest, body_x, body.nbr_start, body.nbr_ids, body.regions,
                                             body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face,
                                             face_n, s.q, st.clearance, st.contact_margin,
                                             st.penetration_iterations, st.max_lift, st.max_height)
-        penetration_floor(s.dh, s.sd, st.clearance, s.floor)
+        penetration_floor(s.dh, s.sd, s.facing, st.clearance, st.max_height, s.floor, s.ceiling)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0
@@ -183,11 +185,11 @@ class DetailedSurface:
                             s.required)
         # S106: deformation, constraints, positions, shading normals
         deformation_heights(s.vf, s.dh, s.required, m.d_edges, t.n_coarse, m.k_out_plane, dt, s.expected, s.dh_def)
-        match_required_length(s.p_smoothed, s.n_pn, s.dh, s.dh_def, s.floor, s.vf, m.k_out_plane, dt, st.max_height,
+        match_required_length(s.p_smoothed, s.n_pn, s.dh, s.dh_def, s.floor, s.vf, m.k_out_plane, dt, s.ceiling,
                               t.edge_ids, s.edge_required, m.edge_rest, t.face_ids, t.face_edges, t.interior_local,
                               st.max_step_scale, st.length_tolerance, st.length_iterations, s.edge_scale)
         s.dh += s.dh_def
-        apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, t.face_ids, t.face_edges, s.edge_required,
+        apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, s.ceiling, t.face_ids, t.face_edges, s.edge_required,
                           s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,
                           m.d_edge_start, m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved,
                           s.stamp, st.widen_folds, s.fold, s.p)

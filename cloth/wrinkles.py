@@ -72,65 +72,78 @@ def _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 
 @kernel
 def _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
-              tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance, max_iterations, max_lift):
-    """The smallest lift along n_i that puts particle vid `clearance` outside the body (S103).
+              tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance, max_iterations, up_cap, down_cap):
+    """The smallest move along n_i that puts particle vid `clearance` outside the body (S103):
+    a lift of at most up_cap, or (Decision) a lowering of at most down_cap.
 
     Along n_i the signed distance grows at the rate n_i . n_body, so where the body faces n_i
     one step of (clearance - d) / rate reaches the surface of a locally flat body and a few
-    settle a curved one. Where it does not (the nearest surface is a side wall, a fold), the
-    lift doubles until outside and is then bisected. Lifts are capped at max_lift per frame;
-    a particle no lift gets out of (caught where body parts intersect) keeps its height.
-    Returns the signed distance at the end."""
+    settle a curved one. Decision: where it faces against n_i the body part lies on the
+    cloth's outer side (a hand pressed on a skirt, the arm over a sleeve's underside at the
+    armpit), and lifting would carry the particle through the whole part: there the same step
+    lowers it (rate < 0), towards the side the coarse cloth came from. Where neither works
+    (the nearest surface is a side wall, a fold) the move doubles until outside, first in the
+    direction the body's normal suggests, then in the other, and is then bisected. A particle
+    no move gets out of (caught where body parts intersect) keeps its height.
+    Returns (signed distance, n_i . n_body) at the end."""
     b0, b1, b2 = p[vid, 0], p[vid, 1], p[vid, 2]
+    rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
+    sense = 1.0 if rate >= 0.0 else -1.0
     it = 0
     while d < clearance and it < max_iterations:
-        rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
-        if rate < 0.2:
+        if rate * sense < 0.2:
             break  # n_i runs along the body here: a linear step would overshoot
-        lift = min(dh_pen[vid] + (clearance - d) / rate, max_lift)
-        if lift <= dh_pen[vid]:
+        lift = min(max(dh_pen[vid] + (clearance - d) / rate, -down_cap), up_cap)
+        if (lift - dh_pen[vid]) * sense <= 0.0:
             break
         _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift)
         d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
                                                             tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
+        rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
         it += 1
     if d >= clearance:
-        return d
-    lo = dh_pen[vid]
-    hi = lo
-    step = max(clearance - d, 0.002)
-    found = False
-    while hi < max_lift:
-        hi = min(hi + step, max_lift)
-        step *= 2.0
-        _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
-        d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
-        if d >= clearance:
-            found = True
-            break
-        lo = hi
-    if not found:
-        _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
-        return detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
-                                       tri_nbrs, body_face, face_n, q)[0]
-    for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
-        mid = 0.5 * (lo + hi)
-        _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, mid)
-        dm = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
-                                     tri_nbrs, body_face, face_n, q)[0]
-        if dm >= clearance:
-            hi = mid
-            d = dm
-        else:
-            lo = mid
-    _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
-    return d
+        return d, rate
+    for attempt in range(2):
+        sgn = sense if attempt == 0 else -sense
+        cap = up_cap if sgn > 0.0 else down_cap
+        lo = dh_pen[vid] if (dh_pen[vid] * sgn > 0.0) else 0.0  # inside, the linear steps' last lift
+        hi = lo
+        step = max(clearance - d, 0.002)
+        found = False
+        while hi * sgn < cap:
+            hi = sgn * min(hi * sgn + step, cap)
+            step *= 2.0
+            _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
+            d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions,
+                                                                tris, tri_start, tri_ids, tri_nbrs, body_face, face_n,
+                                                                q)
+            if d >= clearance:
+                found = True
+                break
+            lo = hi
+        if found:
+            for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
+                mid = 0.5 * (lo + hi)
+                _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, mid)
+                dm, mx, my, mz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids,
+                                                                    regions, tris, tri_start, tri_ids, tri_nbrs,
+                                                                    body_face, face_n, q)
+                if dm >= clearance:
+                    hi = mid
+                    d, bx, by, bz = dm, mx, my, mz
+                else:
+                    lo = mid
+            _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
+            return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
+    _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
+    d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
+                                                        tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
+    return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
 
 
 @kernel
-def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coarse_nearest, body_x, nbr_start,
-                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance,
+def avoid_penetration(p, normals, dh, dh_pen, sd, facing, face_ids, order, parents, coarse_nearest, body_x,
+                      nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance,
                       margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
@@ -139,8 +152,10 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
     Hierarchical: a coarse face none of whose corners (the coarse particles) is within
     `margin` of the body is skipped; inside a face the lattice is visited top-down (`order`),
     and a finer particle is tested only if one of its coarser parents was within `margin`.
-    p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out); sd: signed
-    distance of each tested particle after lifting (UNTESTED otherwise); body_face: the body
+    p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
+    a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
+    distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
+    at its closest body point (< 0: the body lies above it, along n_i); body_face: the body
     face each particle's last distance walk ended on (-1: none yet), carried between frames.
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
@@ -172,13 +187,16 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, face_ids, order, parents, coar
                 d, bx, by, bz, qx, qy, qz = _detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids,
                                                                     regions, tris, tri_start, tri_ids, tri_nbrs,
                                                                     body_face, face_n, q)
+                rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 if d < clearance:
-                    cap = min(max_lift, max_height - dh[vid])  # Δh never exceeds max_height
-                    if cap > 0.0:
-                        d = _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
-                                      nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n,
-                                      q, clearance, max_iterations, cap)
+                    # |Δh| never exceeds max_height
+                    up = max(0.0, min(max_lift, max_height - dh[vid]))
+                    down = max(0.0, min(max_lift, max_height + dh[vid]))
+                    d, rate = _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
+                                        nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n, q,
+                                        clearance, max_iterations, up, down)
                 sd[vid] = d
+                facing[vid] = rate
             if parents[loc, 0] < 0 and sd[vid] < margin:
                 near = True
     return tested
@@ -409,16 +427,16 @@ def deformation_heights(vf, dh, required, edges, n_coarse, k_out, dt, expected, 
 
 
 @njit(cache=True, inline="always")
-def _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, i, s):
+def _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s):
     """Particle i's height with its S106 step scaled by s, through the force clamp (step 4)
     and the floor and ceiling of step 5, as they will apply."""
     limit = abs(k_out * vf[i] * dt)
     step = min(limit, max(-limit, s * dh_def[i]))
-    return max(floor[i], min(dh[i] + step, max_height))
+    return max(floor[i], min(dh[i] + step, ceiling[i]))
 
 
 @njit(cache=True, inline="always")
-def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, e, s):
+def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, e, s):
     """Detailed arc length along coarse edge e with its interior particles' steps scaled by s."""
     L1 = edge_ids.shape[1]
     length = 0.0
@@ -426,7 +444,7 @@ def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height
     ha = dh[a]
     for m in range(1, L1):
         b = edge_ids[e, m]
-        hb = dh[b] if m == L1 - 1 else _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, b, s)
+        hb = dh[b] if m == L1 - 1 else _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, b, s)
         dx = p_smoothed[b, 0] + hb * n_pn[b, 0] - p_smoothed[a, 0] - ha * n_pn[a, 0]
         dy = p_smoothed[b, 1] + hb * n_pn[b, 1] - p_smoothed[a, 1] - ha * n_pn[a, 1]
         dz = p_smoothed[b, 2] + hb * n_pn[b, 2] - p_smoothed[a, 2] - ha * n_pn[a, 2]
@@ -436,7 +454,7 @@ def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height
 
 
 @kernel
-def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, edge_required,
+def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, edge_required,
                           edge_rest, face_ids, face_edges, interior_local, max_scale, tolerance, iterations,
                           edge_scale):
     """S106 step 2, how far (Decision): on each compressed coarse edge (ΔLE_required > 0) the
@@ -460,7 +478,7 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ma
         target = edge_rest[e]
         s0, a0 = 0.0, edge_rest[e] - edge_required[e]
         s1 = 1.0
-        a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, e, s1)
+        a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, e, s1)
         for _ in range(iterations - 1):
             if abs(a1 - target) <= tolerance * target or a1 == a0:
                 break
@@ -469,11 +487,11 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ma
                 break
             s0, a0 = s1, a1
             s1 = s2
-            a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, max_height, edge_ids, e, s1)
+            a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, e, s1)
         edge_scale[e] = s1
         for m in range(1, L1 - 1):
             i = edge_ids[e, m]
-            dh_def[i] = _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, i, s1) - dh[i]
+            dh_def[i] = _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s1) - dh[i]
     for f in range(face_ids.shape[0]):
         total = 0.0
         count = 0
@@ -486,18 +504,19 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ma
             s = total / count
             for k in range(interior_local.shape[0]):
                 i = face_ids[f, interior_local[k]]
-                dh_def[i] = _scaled_height(dh, dh_def, floor, vf, k_out, dt, max_height, i, s) - dh[i]
+                dh_def[i] = _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s) - dh[i]
 
 
 @kernel
-def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_required, edge_deficit, coarse_edge_ids,
-                      interior_local, d_edges, d_max, allowance, edge_start, edge_ids, passes, max_height, flat_edge,
-                      moved, stamp, widen, fold, p):
+def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_required, edge_deficit,
+                      coarse_edge_ids, interior_local, d_edges, d_max, allowance, edge_start, edge_ids, passes,
+                      max_height, flat_edge, moved, stamp, widen, fold, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
 
-    floor_i <= Δh_i <= max_height (floor: 0, or the height S103 needs to keep it out of the
-    body; max_height bounds what S103 lifts pile up where the coarse cloth is deep in the body); in a coarse face
-    all of whose edges are stretched (ΔLE_required < 0) the interior is flat (Δh = floor).
+    floor_i <= Δh_i <= ceiling_i (floor: 0, or the height S103 needs to keep it out of the
+    body; ceiling: max_height, which bounds what S103 lifts pile up where the coarse cloth is
+    deep in the body, or lower under a body part above, see `penetration_floor`); in a coarse
+    face all of whose edges are stretched (ΔLE_required < 0) the interior is flat (Δh = floor).
     Decision: so are the particles on a coarse edge (coarse_edge_ids) all of whose faces are
     such faces — the edge is inside the stretched region, and keeping its particles' heights
     left a bump on every edge between flattened faces — unless the coarse cloth is short along
@@ -523,7 +542,7 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
     others are as that round left them. moved (2, N) int32, stamp (N,) int32: scratch; fold
     (N,) uint8: scratch (1: in a fold, 2: held flat)."""
     for i in range(dh.shape[0]):
-        dh[i] = max(floor[i], min(dh[i], max_height))
+        dh[i] = max(floor[i], min(dh[i], ceiling[i]))
         stamp[i] = -1
         fold[i] = 0
     for e in range(flat_edge.shape[0]):
@@ -555,15 +574,15 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, face_ids, face_edges, edge_re
     offset_along_normals(p_smoothed, n_pn, dh, p)
     count = 0
     for e in range(d_edges.shape[0]):  # the first round: every edge
-        count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance, moved, stamp, fold,
-                            max_height, p)
+        count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved,
+                            stamp, fold, max_height, p)
     for r in range(1, passes):  # a later round: the edges around a particle moved in the round before
         last_count, count = count, 0
         for k in range(last_count):
             v = moved[(r - 1) % 2, k]
             for m in range(edge_start[v], edge_start[v + 1]):
-                count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance,
-                                    moved, stamp, fold, max_height, p)
+                count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max,
+                                    allowance, moved, stamp, fold, max_height, p)
 
 
 @njit(cache=True, inline="always")
@@ -572,8 +591,8 @@ def _dist2(p, i, j):
 
 
 @njit(cache=True, inline="always")
-def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowance, moved, stamp, fold, max_height,
-                p):
+def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved, stamp, fold,
+                max_height, p):
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than its limit
     (d_max[e], or on an edge the reference surface stretches beyond it, see apply_constraints),
     the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
@@ -598,8 +617,8 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowa
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
     if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
         t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
-        if t > dh[lo] and dh[lo] < max_height:  # (a round may have raised lo beyond the bound)
-            count = _move(p_smoothed, n_pn, dh, p, lo, min(t, max_height), r, moved, stamp, count)
+        if t > dh[lo] and dh[lo] < ceiling[lo]:  # (a round may have raised lo beyond the bound)
+            count = _move(p_smoothed, n_pn, dh, p, lo, min(t, ceiling[lo]), r, moved, stamp, count)
             fold[lo] = 1
             if _dist2(p, i, j) <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
                 return count
@@ -613,6 +632,8 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, d_edges, d_max, allowa
     if done:
         return count
     t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
+    if ceiling[lo] < max_height:  # beyond the 3 cm bound if need be, never into a body part above
+        t = min(t, ceiling[lo])
     if t > dh[lo]:
         count = _move(p_smoothed, n_pn, dh, p, lo, t, r, moved, stamp, count)
     return count
@@ -697,11 +718,21 @@ def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
 
 
 @kernel
-def penetration_floor(dh, sd, clearance, floor):
-    """The lowest height S106 may give each particle without undoing S103: a tested particle
-    may come down by its distance beyond the clearance, an untested one to the reference."""
+def penetration_floor(dh, sd, facing, clearance, max_height, floor, ceiling):
+    """The lowest and highest heights S106 may give each particle without undoing S103.
+
+    An untested particle: from the reference surface (0) to max_height. A tested one whose
+    body lies below it (facing >= 0) may come down by its distance beyond the clearance, never
+    below 0; Decision: one whose body lies above it (a body part on the cloth's outer side,
+    facing < 0) may rise only by that distance, and comes back up to the reference surface as
+    far as that allows (where S103 lowered it, it stays)."""
     for i in range(dh.shape[0]):
         if sd[i] == UNTESTED:
             floor[i] = 0.0
-        else:
+            ceiling[i] = max_height
+        elif facing[i] >= 0.0:
             floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - clearance))
+            ceiling[i] = max_height
+        else:
+            ceiling[i] = min(max_height, dh[i] + max(0.0, sd[i] - clearance))
+            floor[i] = min(0.0, ceiling[i])

@@ -285,8 +285,9 @@ def test_step_scale_gives_a_compressed_edge_back_its_rest_length():
 
     def run(vf, max_scale=100.0):
         dh_def = step.copy()
-        match_required_length(ps, n, np.zeros(9), dh_def, np.zeros(9), np.full(9, vf), 3.0, DT, 0.03, edge_ids,
-                              edge_required, edge_rest, face_ids, face_edges, interior, max_scale, 1e-12, 30, scale)
+        match_required_length(ps, n, np.zeros(9), dh_def, np.zeros(9), np.full(9, vf), 3.0, DT, np.full(9, 0.03),
+                              edge_ids, edge_required, edge_rest, face_ids, face_edges, interior, max_scale, 1e-12, 30,
+                              scale)
         return dh_def
 
     dh_def = run(vf=1e3)  # the force clamp (3 m/(N s) x vf x dt = 50 m) does not bind
@@ -328,7 +329,8 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
     corner, beside = t.edge_ids[inner, 0], t.edge_ids[inner, 1]
     dh[beside] = 0.007  # too high for its coarse vertex (5.3 mm away in the plane, d_max 8.3 mm)
     p = np.zeros_like(s.p)
-    apply_constraints(s.p_smoothed, s.n_pn, dh, np.zeros(t.n_vertices), t.face_ids, t.face_edges, s.edge_required,
+    apply_constraints(s.p_smoothed, s.n_pn, dh, np.zeros(t.n_vertices), np.full(t.n_vertices, 0.03), t.face_ids,
+                      t.face_edges, s.edge_required,
                       s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,
                       m.d_edge_start, m.d_edge_ids, 6, 0.03, s.flat_edge, s.moved, s.stamp, widen, s.fold, p)
     d = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
@@ -375,7 +377,8 @@ def test_an_edge_stretched_beyond_the_limit_keeps_the_slope_allowed_at_rest():
     floor = np.zeros(t.n_vertices)
     dh[k] = floor[k] = 0.006
     p = np.zeros_like(s.p)
-    apply_constraints(s.p_smoothed, s.n_pn, dh, floor, t.face_ids, t.face_edges, s.edge_required, s.edge_deficit,
+    apply_constraints(s.p_smoothed, s.n_pn, dh, floor, np.full(t.n_vertices, 0.03), t.face_ids, t.face_edges,
+                      s.edge_required, s.edge_deficit,
                       t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance, m.d_edge_start,
                       m.d_edge_ids, 4, 0.03, s.flat_edge, s.moved, s.stamp, True, s.fold, p)
     ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
@@ -429,3 +432,35 @@ def test_detailed_particle_inside_a_body_ends_outside(shape):
         sag = 0.05 * (1 - np.cos(np.pi / 32))
         assert surf.state.dh_pen.max() > 0.004
         assert r.min() >= 0.05 - sag - 1e-6
+
+
+def test_a_body_part_pressing_from_the_outer_side_lowers_the_sheet_and_lets_it_go():
+    """Decision (S103): a box above the sheet (on its outer side, along n_i) whose bottom
+    reaches 5 mm below it, like a hand pressed on a skirt. Lifting would carry the particles
+    through the whole box; they go down instead, to the box's bottom less the clearance
+    (y = -6 mm where the bottom face is nearest), and S106 keeps them there. When the box has
+    gone, the sheet is flat at its reference surface again."""
+    bv, bt = box(half=0.05, n=8)
+    centre = np.array([0.08, 0.045, 0.04])  # bottom face at y = -5 mm
+    body = body_mesh_of(bv + centre, bt)
+    m = sheet_model()
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+
+    def step(offset):
+        b = np.ascontiguousarray(bv + centre + offset)
+        nearest = np.array([int(np.argmin(np.linalg.norm(b - q, axis=1))) for q in x], dtype=np.int32)
+        return surf.step(x, nearest, b, body, face_normals(b, bt), DT)[0].copy()
+
+    p = step(0.0)
+    s = surf.state
+    q = np.abs(p - centre)
+    assert not np.all(q < 0.05 + 0.001 - 1e-9, axis=1).any()  # every particle clearance outside the box
+    under = np.all(np.abs(s.p_smoothed - centre)[:, [0, 2]] < 0.05 - 0.005, axis=1)  # away from the side walls
+    assert under.sum() > 100
+    np.testing.assert_allclose(p[under, 1], -0.006, atol=1e-9)
+    assert np.all(s.dh_pen[under] < 0.0) and s.dh_pen.max() <= 0.0  # lowered, nothing lifted
+    outside = np.any(np.abs(s.p_smoothed - centre)[:, [0, 2]] > 0.05 + 0.01, axis=1)
+    np.testing.assert_allclose(p[outside, 1], 0.0, atol=1e-12)
+    p = step(np.array([0.0, 0.2, 0.0]))  # the box lifted away
+    np.testing.assert_allclose(p[:, 1], 0.0, atol=1e-12)

@@ -16,7 +16,10 @@ def test_surface_through_the_run_clip(body, data, outfit):
         for surf, (p, n), x in zip(session.surfaces, session.detailed, positions):
             s, st = surf.state, surf.model.settings
             assert np.isfinite(p).all() and np.isfinite(n).all()
-            assert s.dh.min() >= 0.0 and s.dh.max() <= 2 * st.max_height
+            assert s.dh.min() >= -st.max_height and s.dh.max() <= 2 * st.max_height
+            # below the reference surface only where S103 found a body part above (Decision)
+            low = s.dh < 0.0
+            assert np.all(s.facing[low] < 0.0) and np.all(np.isfinite(s.sd[low]))
             np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-9)
             # the coarse particles are detailed vertices 0..n-1, moved only along their normal
             off = p[: len(x)] - x
