@@ -12,7 +12,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .collision import deepest_plane, face_walk_distance, walk_nearest
+from .collision import deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
 from .geometry import add_face_normal
 from .jit import kernel
 
@@ -21,9 +21,59 @@ UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test th
 
 # ---------------------------------------------------------------- S103 penetration avoidance
 
+# m: another body part is tried when its nearest vertex is at most this much farther from
+# the particle than the surface found so far (a face can be nearer than its vertices)
+PART_SLACK = 0.01
+MAX_PART_SEEDS = 4  # other body parts remembered per coarse particle
+PART_NEAR = 0.01  # m: S103 walks a finer particle into other parts only if a parent found one this near
+
+
+@kernel
+def other_part_seeds(x, coarse_nearest, body_x, regions, cell, grid_start, grid_ids, grid_x, grid_regions, grid_parts,
+                     part, part_vertex, part_d2, seeds, seed_reach, seed_count):
+    """S103's way into the other body parts near each coarse particle: the nearest vertex of
+    every body part other than its nearest vertex's within one grid cell (an arm beside the
+    torso under a sleeve, the other thigh). seeds (n, MAX_PART_SEEDS) int32, seed_reach (n,
+    MAX_PART_SEEDS) float64 (the seed's distance), seed_count (n,) int32: written. part,
+    part_vertex, part_d2: `grid_nearest_per_part` scratch."""
+    for i in range(x.shape[0]):
+        v = coarse_nearest[i]
+        if (x[i, 0] - body_x[v, 0]) ** 2 + (x[i, 1] - body_x[v, 1]) ** 2 + (x[i, 2] - body_x[v, 2]) ** 2 > cell * cell:
+            seed_count[i] = 0  # away from the body (a hem swinging free): its faces are not tested
+            continue
+        n = grid_nearest_per_part(x[i, 0], x[i, 1], x[i, 2], grid_x, grid_regions, grid_parts, cell, grid_start,
+                                  grid_ids, cell, regions[v], part, part_vertex, part_d2)
+        n = min(n, seeds.shape[1])
+        for k in range(n):
+            seeds[i, k] = part_vertex[k]
+            seed_reach[i, k] = math.sqrt(part_d2[k])
+        seed_count[i] = n
+
+
+@kernel
+def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                        tri_nbrs, face_n, q):
+    """Signed distance from p to the body by a face walk that starts in another body part:
+    from `face` (face >= 0: where such a walk ended the frame before), else from the face
+    around the nearest vertex to p of the part of vertex `start` (a vertex walk within the
+    part) whose plane p is least behind; there d is inf when that vertex is farther than
+    bound + PART_SLACK (the part cannot be the nearest). Returns (d, n_body, closest point,
+    the face to start from next time: -1 if none)."""
+    if face < 0:
+        vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, regions[start])
+        face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
+        if face < 0:
+            return np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
+        d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
+        if d2 > (bound + PART_SLACK) ** 2:
+            return np.inf, 0.0, 0.0, 0.0, px, py, pz, face
+    return face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
+                              face, face_n, q)
+
+
 @njit(cache=True, inline="always")
-def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                            body_face, face_n, q):
+def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, body_x, nbr_start, nbr_ids, regions,
+                            tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
     """Signed distance of detailed particle i (at p[i]) to the body, by a walk over the body's
     faces (`face_walk_distance`) from the face its last walk ended on (body_face[i]): the
     body and the cloth move little between two tests, so that is usually one exact closest
@@ -31,7 +81,16 @@ def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tri
     `seed` (the coarse particle's nearest body vertex, a point of the body), it starts again
     from the face around the nearest vertex to p, found by a vertex walk from `seed`, whose
     plane p is least behind. (One call site of the walk: numba inlines it, and each copy
-    lengthens compilation.)"""
+    lengthens compilation.)
+    A walk ends at a local minimum of the distance: where another body part comes near (an arm
+    inside a sleeve beside the torso) it can stop on the torso while p is inside the arm. So a
+    walk also starts in each other part near the coarse face and the nearest surface found
+    decides, as the closest point does: parts[:n_parts] (int32 (K, 2)) are vertices of the parts
+    near its corners (`other_part_seeds`, and each corner's nearest vertex) and the corner each
+    was found from (x: the coarse positions), reach[:n_parts] their distance from it. One walk
+    per part, from its seed nearest to p, where the part is not ruled out by those distances,
+    nor the part the first walk ended in. Returns (d, n_body, closest point, the distance to the
+    nearest other part walked to: inf if none)."""
     px, py, pz = p[i, 0], p[i, 1], p[i, 2]
     f = body_face[i]
     fresh = f < 0
@@ -41,24 +100,70 @@ def _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tri
             f = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
             if f < 0:  # no usable face around the vertex
                 body_face[i] = -1
-                return np.inf, 0.0, 0.0, 0.0, px, py, pz
+                return np.inf, 0.0, 0.0, 0.0, px, py, pz, np.inf
         d, nx, ny, nz, qx, qy, qz, last = face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
                                                              nbr_start, nbr_ids, regions, f, face_n, q)
         d_seed = (body_x[seed, 0] - px) ** 2 + (body_x[seed, 1] - py) ** 2 + (body_x[seed, 2] - pz) ** 2
         if fresh or d_seed >= d * d:
             body_face[i] = last
-            return d, nx, ny, nz, qx, qy, qz
+            break
         fresh = True
+    walked = regions[tris[body_face[i], 0]]
+    other = np.inf
+    if start_face >= 0:  # where this particle's walk in another part ended the frame before
+        dk, mx, my, mz, ax, ay, az, last = other_part_distance(px, py, pz, -1, start_face, np.inf, body_x,
+                                                               nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                                                               tri_nbrs, face_n, q)
+        if last >= 0 and regions[tris[last, 0]] != walked:
+            part_face[i] = last if abs(dk) < PART_NEAR else -1
+            if abs(dk) < abs(d):
+                d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
+            return d, nx, ny, nz, qx, qy, qz, abs(dk)
+        part_face[i] = -1  # it came back to the first walk's part: look again
+    for k in range(n_parts):
+        sk = parts[k, 0]
+        r = regions[sk]
+        if r == walked:
+            continue
+        dk2 = (body_x[sk, 0] - px) ** 2 + (body_x[sk, 1] - py) ** 2 + (body_x[sk, 2] - pz) ** 2
+        first = True  # the part's seed nearest to p (the first of equals) walks for the part
+        # a lower bound on p's distance to the part: no vertex of it was nearer than reach[j]
+        # to corner parts[j, 1] (and a face is nearer than its vertices by less than PART_SLACK)
+        bound = -np.inf
+        for j in range(n_parts):
+            sj = parts[j, 0]
+            if regions[sj] != r:
+                continue
+            if j != k:
+                dj2 = (body_x[sj, 0] - px) ** 2 + (body_x[sj, 1] - py) ** 2 + (body_x[sj, 2] - pz) ** 2
+                first = first and (dj2 > dk2 or (dj2 == dk2 and j > k))
+            c = parts[j, 1]
+            bound = max(bound, reach[j] - PART_SLACK
+                        - math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2))
+        if not first:
+            continue
+        if bound >= abs(d) or hint >= abs(d):
+            other = min(other, max(bound, hint))
+            continue
+        dk, mx, my, mz, ax, ay, az, last = other_part_distance(px, py, pz, sk, -1, abs(d), body_x, nbr_start,
+                                                               nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
+                                                               face_n, q)
+        other = min(other, abs(dk) if dk < np.inf else abs(d))
+        if last >= 0 and abs(dk) < PART_NEAR and regions[tris[last, 0]] != walked:
+            part_face[i] = last  # next frame's walk in another part starts there
+        if abs(dk) < abs(d):
+            d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
+    return d, nx, ny, nz, qx, qy, qz, other
 
 
 @kernel
-def detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                           body_face, face_n, q):
+def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, body_x, nbr_start, nbr_ids, regions,
+                           tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
     particles a frame), where the call costs little and more inlined copies would cost
     compilation time."""
-    return _detail_signed_distance(p, i, seed, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
-                                   tri_nbrs, body_face, face_n, q)
+    return _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, body_x, nbr_start, nbr_ids,
+                                   regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q)
 
 
 @njit(cache=True, inline="always")
@@ -71,8 +176,9 @@ def _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 
 
 @kernel
-def _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
-              tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance, max_iterations, up_cap, down_cap):
+def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
+              nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, clearance,
+              max_iterations, up_cap, down_cap):
     """The smallest move along n_i that puts particle vid `clearance` outside the body (S103):
     a lift of at most up_cap, or (Decision) a lowering of at most down_cap.
 
@@ -97,8 +203,10 @@ def _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_star
         if (lift - dh_pen[vid]) * sense <= 0.0:
             break
         _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift)
-        d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                            tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
+        d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
+                                                              -np.inf, body_x, nbr_start, nbr_ids, regions, tris,
+                                                              tri_start, tri_ids, tri_nbrs, body_face, part_face,
+                                                              face_n, q)
         rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
         it += 1
     if d >= clearance:
@@ -114,9 +222,10 @@ def _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_star
             hi = sgn * min(hi * sgn + step, cap)
             step *= 2.0
             _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
-            d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions,
-                                                                tris, tri_start, tri_ids, tri_nbrs, body_face, face_n,
-                                                                q)
+            d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
+                                                                  part_face[vid], -np.inf, body_x, nbr_start, nbr_ids,
+                                                                  regions, tris, tri_start, tri_ids, tri_nbrs,
+                                                                  body_face, part_face, face_n, q)
             if d >= clearance:
                 found = True
                 break
@@ -125,9 +234,10 @@ def _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_star
             for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
                 mid = 0.5 * (lo + hi)
                 _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, mid)
-                dm, mx, my, mz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids,
-                                                                    regions, tris, tri_start, tri_ids, tri_nbrs,
-                                                                    body_face, face_n, q)
+                dm, mx, my, mz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
+                                                                       part_face[vid], -np.inf, body_x, nbr_start,
+                                                                       nbr_ids, regions, tris, tri_start, tri_ids,
+                                                                       tri_nbrs, body_face, part_face, face_n, q)
                 if dm >= clearance:
                     hi = mid
                     d, bx, by, bz = dm, mx, my, mz
@@ -136,15 +246,17 @@ def _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_star
             _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
             return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
     _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
-    d, bx, by, bz, qx, qy, qz = detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids, regions, tris,
-                                                        tri_start, tri_ids, tri_nbrs, body_face, face_n, q)
+    d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
+                                                          -np.inf, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
+                                                          tri_ids, tri_nbrs, body_face, part_face, face_n, q)
     return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
 
 
 @kernel
-def avoid_penetration(p, normals, dh, dh_pen, sd, facing, face_ids, order, parents, coarse_nearest, body_x,
-                      nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n, q, clearance,
-                      margin, max_iterations, max_lift, max_height):
+def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, x, coarse_nearest,
+                      find_parts, part_seeds, seed_reach, seed_count, parts, reach, body_x, nbr_start, nbr_ids, regions,
+                      tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, clearance, margin,
+                      max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
@@ -155,8 +267,13 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, face_ids, order, paren
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
     a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
-    at its closest body point (< 0: the body lies above it, along n_i); body_face: the body
-    face each particle's last distance walk ended on (-1: none yet), carried between frames.
+    at its closest body point (< 0: the body lies above it, along n_i); part_seeds,
+    seed_reach, seed_count: each coarse particle's other body parts (`other_part_seeds`), whose
+    walks the particles of its faces take too (x: the coarse positions; find_parts False: none
+    are); parts
+    (3 (MAX_PART_SEEDS + 1), 2) int32, reach (3 (MAX_PART_SEEDS + 1),): scratch; body_face: the body
+    face each particle's last distance walk ended on (-1: none yet), and part_face the face its
+    last walk in another body part ended on, both carried between frames.
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
     `_lift_out` for the other cases). Returns the number of particles tested."""
@@ -165,9 +282,18 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, face_ids, order, paren
     for i in range(n):
         sd[i] = UNTESTED
         dh_pen[i] = 0.0
+        other[i] = np.inf
     tested = 0
     for f in range(face_ids.shape[0]):
         near = False
+        n_parts = 0  # the body parts near the face's corners: their nearest vertices, and the other parts'
+        for c in range(3 if find_parts else 0):
+            corner = face_ids[f, order[c]]
+            for k in range(-1, seed_count[corner]):  # (a vertex twice walks once: see _detail_signed_distance)
+                parts[n_parts, 0] = coarse_nearest[corner] if k < 0 else part_seeds[corner, k]
+                parts[n_parts, 1] = corner
+                reach[n_parts] = 0.0 if k < 0 else seed_reach[corner, k]
+                n_parts += 1
         for k in range(order.shape[0]):
             loc = order[k]
             vid = face_ids[f, loc]
@@ -184,17 +310,31 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, face_ids, order, paren
             if sd[vid] == UNTESTED:
                 tested += 1
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
-                d, bx, by, bz, qx, qy, qz = _detail_signed_distance(p, vid, seed, body_x, nbr_start, nbr_ids,
-                                                                    regions, tris, tri_start, tri_ids, tri_nbrs,
-                                                                    body_face, face_n, q)
+                # top-down like the test itself: the parents' distances to the other body parts
+                # bound the particle's (a walk in another part starts where its own ended the
+                # frame before, if it ended near)
+                hint = -np.inf
+                if parents[loc, 0] >= 0:
+                    for m in range(3):
+                        if parents[loc, m] < 0:
+                            continue
+                        par = face_ids[f, parents[loc, m]]
+                        hint = max(hint, other[par] - math.sqrt((p[par, 0] - p[vid, 0]) ** 2
+                                                                + (p[par, 1] - p[vid, 1]) ** 2
+                                                                + (p[par, 2] - p[vid, 2]) ** 2))
+                d, bx, by, bz, qx, qy, qz, other[vid] = _detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
+                                                                                part_face[vid], hint, body_x, nbr_start,
+                                                                                nbr_ids, regions, tris, tri_start,
+                                                                                tri_ids, tri_nbrs, body_face, part_face,
+                                                                                face_n, q)
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 if d < clearance:
                     # |Δh| never exceeds max_height
                     up = max(0.0, min(max_lift, max_height - dh[vid]))
                     down = max(0.0, min(max_lift, max_height + dh[vid]))
-                    d, rate = _lift_out(p, vid, seed, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
-                                        nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, face_n, q,
-                                        clearance, max_iterations, up, down)
+                    d, rate = _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh,
+                                        dh_pen, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
+                                        body_face, part_face, face_n, q, clearance, max_iterations, up, down)
                 sd[vid] = d
                 facing[vid] = rate
             if parents[loc, 0] < 0 and sd[vid] < margin:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from cloth.coarsen import CoarseMesh
-from cloth.collision import BodyMesh, face_normals
+from cloth.collision import BodyMesh, VertexGrid, face_normals
 from cloth.fabric import fabric
 from cloth.garment import Garment
 from cloth.model import SimSettings, build_cloth_model
@@ -464,3 +464,38 @@ def test_a_body_part_pressing_from_the_outer_side_lowers_the_sheet_and_lets_it_g
     np.testing.assert_allclose(p[outside, 1], 0.0, atol=1e-12)
     p = step(np.array([0.0, 0.2, 0.0]))  # the box lifted away
     np.testing.assert_allclose(p[:, 1], 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("find_parts", [True, False])
+def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(find_parts):
+    """Two body parts: a torso box 4 mm under the sheet, whose faces every walk from the coarse
+    particles' nearest vertices (on the torso) ends on, and an arm box in the sheet's middle
+    whose bottom is 1 mm under it. The nearest surface to the particles over the arm's bottom
+    is the arm's: they are 1 mm inside it, though the walk on the torso says 4 mm outside. The
+    walk that starts in the arm (through the vertex grid) finds it; they go down, out of the
+    arm, to y = -2 mm (1 mm under its bottom, 2 mm over the torso), and no particle is left
+    inside the arm. Without the grid they stay where they are, inside the arm."""
+    tv, tt = box(half=0.05, n=8)
+    tv = tv + [0.08, -0.054, 0.04]  # torso: top face at y = -4 mm
+    av, at = box(half=0.02, n=8)
+    av = av + [0.08, 0.019, 0.04]  # arm: bottom face at y = -1 mm, x 0.06-0.10, z 0.02-0.06
+    bv = np.ascontiguousarray(np.vstack([tv, av]))
+    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint8)
+    body = BodyMesh.build(bt, len(bv), regions)
+    grid = VertexGrid(len(bv))
+    grid.update(bv, regions)
+    m = sheet_model()
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(tv - q, axis=1))) for q in x], dtype=np.int32)
+    p = surf.step(x, nearest, bv, body, face_normals(bv, bt), DT, grid if find_parts else None)[0]
+    s = surf.state
+    over = np.all(np.abs(s.p_smoothed - [0.08, 0.0, 0.04])[:, [0, 2]] < 0.02 - 0.004, axis=1)  # off the arm's walls
+    assert over.sum() > 20
+    if find_parts:
+        np.testing.assert_allclose(p[over, 1], -0.002, atol=1e-9)
+        inside_arm = np.all(np.abs(p - [0.08, 0.019, 0.04]) < 0.02 - 1e-9, axis=1)  # (some lie on its walls)
+        assert not inside_arm.any()
+    else:
+        np.testing.assert_allclose(p[over, 1], 0.0, atol=1e-12)
