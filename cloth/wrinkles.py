@@ -25,7 +25,7 @@ UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test th
 # the particle than the surface found so far (a face can be nearer than its vertices)
 PART_SLACK = 0.01
 MAX_PART_SEEDS = 4  # other body parts remembered per coarse particle
-PART_NEAR = 0.01  # m: S103 walks a finer particle into other parts only if a parent found one this near
+PART_NEAR = 0.01  # m: a walk in another part that ended this near is where the particle's next one starts
 
 
 @kernel
@@ -39,7 +39,7 @@ def other_part_seeds(x, coarse_nearest, body_x, regions, cell, grid_start, grid_
     for i in range(x.shape[0]):
         v = coarse_nearest[i]
         if (x[i, 0] - body_x[v, 0]) ** 2 + (x[i, 1] - body_x[v, 1]) ** 2 + (x[i, 2] - body_x[v, 2]) ** 2 > cell * cell:
-            seed_count[i] = 0  # away from the body (a hem swinging free): its faces are not tested
+            seed_count[i] = 0  # away from the body (a hem swinging free): no seeds
             continue
         n = grid_nearest_per_part(x[i, 0], x[i, 1], x[i, 2], grid_x, grid_regions, grid_parts, cell, grid_start,
                                   grid_ids, cell, regions[v], part, part_vertex, part_d2)
@@ -88,9 +88,12 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
     decides, as the closest point does: parts[:n_parts] (int32 (K, 2)) are vertices of the parts
     near its corners (`other_part_seeds`, and each corner's nearest vertex) and the corner each
     was found from (x: the coarse positions), reach[:n_parts] their distance from it. One walk
-    per part, from its seed nearest to p, where the part is not ruled out by those distances,
-    nor the part the first walk ended in. Returns (d, n_body, closest point, the distance to the
-    nearest other part walked to: inf if none)."""
+    per part, from its seed nearest to p, where the part is not ruled out by those distances or
+    by `hint` (a lower bound on p's distance to the other parts, from its parents'), nor the
+    part the first walk ended in; start_face >= 0 (the face where p's walk in another part
+    ended the frame before, part_face[i]) replaces them while that walk ends in another part.
+    Returns (d, n_body, closest point, p's distance to the other parts as far as it is known:
+    the nearest walked to, else the bounds that ruled them out; inf if none)."""
     px, py, pz = p[i, 0], p[i, 1], p[i, 2]
     f = body_face[i]
     fresh = f < 0
