@@ -89,8 +89,10 @@ def cli(*args) -> list[str]:
     return [sys.executable, "-m", "services.cli", *args]
 
 
-def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, level: int):
-    """Ingest processes (one per session) against the running cloth service; returns Arrivals."""
+def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, level: int, patience: float = 20.0):
+    """Ingest processes (one per session) against the running cloth service; returns Arrivals
+    (`complete`: every session's last frame came back before `patience` seconds passed without
+    a new garment mesh)."""
     bus = BusConfig(mode="client", listen=[], connect=[endpoint]).open()
     arrivals = Arrivals(bus, sessions)
     level_args = ["--coarse-only"] if level == 0 else ["--level", str(level)]
@@ -101,8 +103,8 @@ def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, 
     for p in procs:
         p.wait()
     # wait for the cloth service to finish what is queued: the garments of every session's last frame
-    last, still = None, 0.0
-    while still < 20.0:
+    last, still, done = None, 0.0, False
+    while still < patience:
         time.sleep(0.25)
         with arrivals.lock:
             done = all(b and len(arrivals.frames.get((s, b[-1]), {})) == 2 for s, b in arrivals.body.items())
@@ -113,6 +115,7 @@ def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, 
         last = n
     arrivals.close()
     bus.close()
+    arrivals.complete = done
     return arrivals
 
 
@@ -125,7 +128,11 @@ def start_cloth(endpoint: str, level: int, catch_up: bool, pin_cores: str | None
     for line in cloth.stdout:
         if "ready" in line:
             break
-    run(endpoint, ["warmup"], 2, "fast", 20, level)  # models built, kernels loaded
+    # models built, kernels compiled or loaded: a service whose numba cache is stale compiles
+    # for minutes, and frames measured meanwhile would time the compiler
+    if not run(endpoint, ["warmup"], 2, "fast", 20, level, patience=900.0).complete:
+        cloth.terminate()
+        raise SystemExit("the cloth service did not return the warm-up frames' garments")
     return cloth
 
 
