@@ -192,7 +192,7 @@ class DetailedSurface:
                                             body.regions, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
                                             s.body_face, s.part_face, face_n, s.q, st.clearance, st.contact_margin,
                                             st.penetration_iterations, st.max_lift, st.max_height)
-        penetration_floor(s.dh, s.sd, s.facing, st.clearance, st.max_height, s.floor, s.ceiling)
+        penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.max_height, s.floor, s.ceiling)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0

@@ -861,14 +861,18 @@ def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
 
 
 @kernel
-def penetration_floor(dh, sd, facing, clearance, max_height, floor, ceiling):
+def penetration_floor(dh, sd, facing, other, dh_pen, clearance, max_height, floor, ceiling):
     """The lowest and highest heights S106 may give each particle without undoing S103.
 
     An untested particle: from the reference surface (0) to max_height. A tested one whose
     body lies below it (facing >= 0) may come down by its distance beyond the clearance, never
     below 0; Decision: one whose body lies above it (a body part on the cloth's outer side,
     facing < 0) may rise only by that distance, and comes back up to the reference surface as
-    far as that allows (where S103 lowered it, it stays)."""
+    far as that allows (where S103 lowered it, it stays). Decision: where S103 measured
+    another body part near the particle (other: its distance, before S103 moved it by
+    dh_pen), the particle may rise by no more than that distance beyond the clearance either:
+    in the gap between the torso and an arm resting on the cloth a wrinkle would rise into
+    the arm."""
     for i in range(dh.shape[0]):
         if sd[i] == UNTESTED:
             floor[i] = 0.0
@@ -876,6 +880,9 @@ def penetration_floor(dh, sd, facing, clearance, max_height, floor, ceiling):
         elif facing[i] >= 0.0:
             floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - clearance))
             ceiling[i] = max_height
+            gap = other[i] - abs(dh_pen[i]) - clearance  # a ball this wide around p is outside the other parts
+            if gap < max_height:
+                ceiling[i] = max(floor[i], min(max_height, dh[i] + max(0.0, gap)))
         else:
             ceiling[i] = min(max_height, dh[i] + max(0.0, sd[i] - clearance))
             floor[i] = min(0.0, ceiling[i])

@@ -499,3 +499,34 @@ def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(fin
         assert not inside_arm.any()
     else:
         np.testing.assert_allclose(p[over, 1], 0.0, atol=1e-12)
+
+
+def test_wrinkles_under_another_body_part_stay_out_of_it():
+    """Decision (S103-S106): a compressed strip grows wrinkles over a torso box 2 mm below it,
+    under an arm box whose bottom is 4 mm above its middle. The particles under the arm are
+    nearest to the torso (facing it), and S103 measures the arm 4 mm away through the vertex
+    grid; S106 lets them rise no farther than that less the clearance, so in no frame does a
+    particle enter the arm, and those under it stop at y = 3 mm while the wrinkles elsewhere
+    grow higher than the arm's bottom."""
+    m, x = compressed_strip(0.8)
+    c = x.mean(axis=0)
+    tv, tt = box(half=0.1, n=10)
+    tv = tv + [c[0], -0.102, c[2]]  # torso: top face at y = -2 mm
+    av, at = box(half=0.02, n=8)
+    arm = np.array([c[0], 0.024, c[2]])  # arm: bottom face at y = 4 mm over the strip's middle
+    bv = np.ascontiguousarray(np.vstack([tv, av + arm]))
+    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint8)
+    body = BodyMesh.build(bt, len(bv), regions)
+    grid = VertexGrid(len(bv))
+    grid.update(bv, regions)
+    nearest = np.array([int(np.argmin(np.linalg.norm(tv - q, axis=1))) for q in x], dtype=np.int32)
+    fn = face_normals(bv, bt)
+    surf = DetailedSurface(m)
+    for _ in range(240):
+        p = surf.step(x, nearest, bv, body, fn, DT, grid)[0]
+        assert not np.all(np.abs(p - arm) < 0.02 - 1e-9, axis=1).any()  # nothing inside the arm
+    under = np.all(np.abs(surf.state.p_smoothed - c)[:, [0, 2]] < 0.02 - 0.004, axis=1)  # off the arm's walls
+    assert under.sum() > 20
+    assert p[under, 1].max() == pytest.approx(0.003, abs=1e-9)
+    assert p[~under, 1].max() > 0.004

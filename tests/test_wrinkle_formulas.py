@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from cloth.pn import build_tessellation
-from cloth.wrinkles import deformation_heights, elastic_forces, normal_force, shading_normals
+from cloth.wrinkles import (UNTESTED, deformation_heights, elastic_forces, normal_force, penetration_floor,
+                            shading_normals)
 
 
 def single_face(level, corners):
@@ -125,3 +126,24 @@ def test_shading_normals_blend_by_height():
     out = np.full((3, 3), np.nan)
     shading_normals(p, tris, n_pn, np.array([0.0, h / 2, 2 * h]), h, np.zeros((3, 3)), out)
     np.testing.assert_allclose(out, [[1, 0, 0], [np.sqrt(0.5), np.sqrt(0.5), 0], [0, 1, 0]], atol=1e-12)
+
+
+def test_penetration_floor_and_ceiling():
+    """The heights S106 may give a particle after S103 (clearance 1 mm, max_height 30 mm, mm):
+    untested: 0 to 30. Body below (facing >= 0) at 4 mm, height 2: down by 4 - 1 = 3 mm, not
+    below 0: floor 0, ceiling 30; at 2.5 mm with height 5: floor 3.5. Body above (facing < 0),
+    lowered to -3 and 1.5 mm under it: up by 0.5 at most, ceiling -2.5, floor -2.5; one under a
+    body part 4 mm above at height 1: ceiling 4, floor 0. Decision: another body part 6 mm away
+    (before S103 moved the particle by 1 mm), body below: up by 6 - 1 - 1 = 4 mm at most,
+    ceiling 2 + 4 = 6; 1.5 mm away: up by 0.5, ceiling 2.5; 0.5 mm away: no rise (ceiling =
+    height 2, never under the floor 0)."""
+    inf = UNTESTED
+    dh = np.array([0.0, 2.0, 5.0, -3.0, 1.0, 2.0, 2.0, 2.0]) / 1000
+    sd = np.array([inf, 4.0, 2.5, 1.5, 4.0, 4.0, 4.0, 4.0]) / 1000
+    facing = np.array([0.0, 1.0, 0.9, -1.0, -0.8, 1.0, 1.0, 1.0])
+    other = np.array([inf, inf, inf, inf, inf, 6.0, 1.5, 0.5]) / 1000
+    dh_pen = np.array([0.0, 0.0, 0.0, -3.0, 0.0, 1.0, 0.0, 0.0]) / 1000
+    floor, ceiling = np.full(8, np.nan), np.full(8, np.nan)
+    penetration_floor(dh, sd, facing, other, dh_pen, 0.001, 0.03, floor, ceiling)
+    np.testing.assert_allclose(floor * 1000, [0.0, 0.0, 3.5, -2.5, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(ceiling * 1000, [30.0, 30.0, 30.0, -2.5, 4.0, 6.0, 2.5, 2.0], atol=1e-12)
