@@ -30,7 +30,10 @@ from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coa
 class SurfaceSettings:
     level: int = 6  # PN tessellation level L: L² detailed triangles per coarse triangle
     clearance: float = 0.001  # m: S103 lifts a detailed particle this far out of the body
-    contact_margin: float = 0.005  # m: S103 tests a face / a finer particle only near a particle this close
+    contact_margin: float = 0.005  # m: S103 tests a finer particle only near a particle this close
+    # m: S103 tests a coarse face, and its first subdivision, only if a corner is this close
+    # (wider than contact_margin: a face whose corners stand off a convex part can cut into it)
+    face_margin: float = 0.01
     # S103 also walks in the other body parts near a coarse face (an arm by the torso under a
     # sleeve): finds particles inside them that a walk from the torso misses, for about 0.4 ms
     # per garment-frame
@@ -191,7 +194,7 @@ class DetailedSurface:
                                             s.seed_count, s.parts, s.reach, body_x, body.nbr_start, body.nbr_ids,
                                             body.regions, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
                                             s.body_face, s.part_face, face_n, s.q, st.clearance, st.contact_margin,
-                                            st.penetration_iterations, st.max_lift, st.max_height)
+                                            st.face_margin, st.penetration_iterations, st.max_lift, st.max_height)
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.max_height, s.floor, s.ceiling)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force

@@ -259,14 +259,17 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
 def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, x, coarse_nearest,
                       find_parts, part_seeds, seed_reach, seed_count, parts, reach, body_x, nbr_start, nbr_ids, regions,
                       tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, clearance, margin,
-                      max_iterations, max_lift, max_height):
+                      face_margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
 
     Hierarchical: a coarse face none of whose corners (the coarse particles) is within
-    `margin` of the body is skipped; inside a face the lattice is visited top-down (`order`),
-    and a finer particle is tested only if one of its coarser parents was within `margin`.
+    `face_margin` of the body is skipped; inside a face the lattice is visited top-down
+    (`order`), and a finer particle is tested only if one of its coarser parents was within
+    `margin`, or within `face_margin` for a parent that is a corner (Decision: a coarse face
+    whose corners stand a little off a convex body part can cut into it between them, S101
+    testing vertices only, so its first subdivision is tested from further out).
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
     a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
@@ -306,7 +309,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                 hit = False
                 for m in range(3):
                     par = parents[loc, m]
-                    if par >= 0 and sd[face_ids[f, par]] < margin:
+                    if par >= 0 and sd[face_ids[f, par]] < (face_margin if parents[par, 0] < 0 else margin):
                         hit = True
                 if not hit:
                     continue
@@ -340,7 +343,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                                         body_face, part_face, face_n, q, clearance, max_iterations, up, down)
                 sd[vid] = d
                 facing[vid] = rate
-            if parents[loc, 0] < 0 and sd[vid] < margin:
+            if parents[loc, 0] < 0 and sd[vid] < face_margin:
                 near = True
     return tested
 
