@@ -285,6 +285,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     `_lift_out` for the other cases). Returns the number of particles tested."""
     n = p.shape[0]
     n_coarse = coarse_nearest.shape[0]
+    face_margin = max(face_margin, margin)  # (never narrower than the test inside a face)
     for i in range(n):
         sd[i] = UNTESTED
         dh_pen[i] = 0.0
