@@ -273,13 +273,14 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
     a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
-    at its closest body point (< 0: the body lies above it, along n_i); part_seeds,
-    seed_reach, seed_count: each coarse particle's other body parts (`other_part_seeds`), whose
-    walks the particles of its faces take too (x: the coarse positions; find_parts False: none
-    are); parts
-    (3 (MAX_PART_SEEDS + 1), 2) int32, reach (3 (MAX_PART_SEEDS + 1),): scratch; body_face: the body
-    face each particle's last distance walk ended on (-1: none yet), and part_face the face its
-    last walk in another body part ended on, both carried between frames.
+    at its closest body point (< 0: the body lies above it, along n_i); other: each tested
+    particle's distance to the other body parts as far as S103 knows it (inf: none near; out);
+    part_seeds, seed_reach, seed_count: each coarse particle's other body parts
+    (`other_part_seeds`), whose walks the particles of its faces take too (x: the coarse
+    positions; find_parts False: none are); parts (3 (MAX_PART_SEEDS + 1), 2) int32, reach
+    (3 (MAX_PART_SEEDS + 1),): scratch; body_face: the body face each particle's last distance
+    walk ended on (-1: none yet), and part_face the face its last walk in another body part
+    ended on, both carried between frames.
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
     `_lift_out` for the other cases). Returns the number of particles tested."""
