@@ -137,6 +137,7 @@ class SurfaceState:
         self.expected = np.zeros(N)  # S106 ΔL_expected
         self.moved = np.zeros((2, N), dtype=np.int32)  # S106 constraint rounds: who moved in the last one
         self.stamp = np.zeros(N, dtype=np.int32)
+        self.start_h = np.zeros(N)  # S106 constraint rounds: each listed particle's height before the round moved it
         self.fold = np.zeros(N, dtype=np.uint8)  # S106 constraint rounds: particles of a fold being widened
         self.coarse_normals = np.zeros((n, 3))
         self.coarse_force = np.zeros((n, 3))
@@ -219,7 +220,7 @@ class DetailedSurface:
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, s.ceiling, t.face_ids, t.face_edges, s.edge_required,
                           s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,
                           m.d_edge_start, m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved,
-                          s.stamp, st.widen_folds, s.fold, s.p)
+                          s.stamp, s.start_h, st.widen_folds, s.fold, s.p)
         shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
         self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)

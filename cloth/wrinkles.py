@@ -658,7 +658,7 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ce
 @kernel
 def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_required, edge_deficit,
                       coarse_edge_ids, interior_local, d_edges, d_max, allowance, edge_start, edge_ids, passes,
-                      max_height, flat_edge, moved, stamp, widen, fold, p):
+                      max_height, flat_edge, moved, stamp, start_h, widen, fold, p):
     """S106 steps 5-6: constraints on Δh, then p_i = p_smoothed,i + Δh_i n_i.
 
     floor_i <= Δh_i <= ceiling_i (floor: 0, or the height S103 needs to keep it out of the
@@ -687,8 +687,11 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges
     corner hid the face's interior from it).
     The first round visits every edge; a later one only the edges around the particles the
     round before moved (edge_start, edge_ids: CSR of each particle's detailed edges), as the
-    others are as that round left them. moved (2, N) int32, stamp (N,) int32: scratch; fold
-    (N,) uint8: scratch (1: in a fold, 2: held flat)."""
+    others are as that round left them; a particle back at the height it had when the round
+    first moved it is dropped from the list (where an edge's two limits conflict, the rounds
+    move a particle up for one edge and down for the next, round after round, to the same
+    end). moved (2, N) int32, stamp (N,) int32, start_h (N,): scratch; fold (N,) uint8:
+    scratch (1: in a fold, 2: held flat)."""
     for i in range(dh.shape[0]):
         dh[i] = max(floor[i], min(dh[i], ceiling[i]))
         stamp[i] = -1
@@ -723,14 +726,29 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges
     count = 0
     for e in range(d_edges.shape[0]):  # the first round: every edge
         count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved,
-                            stamp, fold, max_height, p)
+                            stamp, start_h, fold, max_height, p)
+    count = _keep_changed(moved[0], count, dh, start_h)
     for r in range(1, passes):  # a later round: the edges around a particle moved in the round before
         last_count, count = count, 0
         for k in range(last_count):
             v = moved[(r - 1) % 2, k]
             for m in range(edge_start[v], edge_start[v + 1]):
                 count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max,
-                                    allowance, moved, stamp, fold, max_height, p)
+                                    allowance, moved, stamp, start_h, fold, max_height, p)
+        count = _keep_changed(moved[r % 2], count, dh, start_h)
+
+
+@njit(cache=True, inline="always")
+def _keep_changed(listed, count, dh, start_h):
+    """Compact a round's list of moved particles to those whose height differs from the one
+    they had when first moved in that round; returns the new length."""
+    kept = 0
+    for k in range(count):
+        v = listed[k]
+        if dh[v] != start_h[v]:
+            listed[kept] = v
+            kept += 1
+    return kept
 
 
 @njit(cache=True, inline="always")
@@ -739,8 +757,8 @@ def _dist2(p, i, j):
 
 
 @njit(cache=True, inline="always")
-def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved, stamp, fold,
-                max_height, p):
+def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved, stamp, start_h,
+                fold, max_height, p):
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than its limit
     (d_max[e], or on an edge the reference surface stretches beyond it, see apply_constraints),
     the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
@@ -766,7 +784,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
     if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
         t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
         if t > dh[lo] and dh[lo] < ceiling[lo]:  # (a round may have raised lo beyond the bound)
-            count = _move(p_smoothed, n_pn, dh, p, lo, min(t, ceiling[lo]), r, moved, stamp, count)
+            count = _move(p_smoothed, n_pn, dh, p, lo, min(t, ceiling[lo]), r, moved, stamp, start_h, count)
             fold[lo] = 1
             if _dist2(p, i, j) <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
                 return count
@@ -776,14 +794,14 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
     if not done:
         t = max(floor[hi], min(t, dh[hi]))
     if t != dh[hi]:
-        count = _move(p_smoothed, n_pn, dh, p, hi, t, r, moved, stamp, count)
+        count = _move(p_smoothed, n_pn, dh, p, hi, t, r, moved, stamp, start_h, count)
     if done:
         return count
     t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
     if ceiling[lo] < max_height:  # beyond the 3 cm bound if need be, never into a body part above
         t = min(t, ceiling[lo])
     if t > dh[lo]:
-        count = _move(p_smoothed, n_pn, dh, p, lo, t, r, moved, stamp, count)
+        count = _move(p_smoothed, n_pn, dh, p, lo, t, r, moved, stamp, start_h, count)
     return count
 
 
@@ -803,14 +821,15 @@ def _set_height(p_smoothed, n_pn, dh, p, i, h):
 
 
 @njit(cache=True, inline="always")
-def _move(p_smoothed, n_pn, dh, p, i, h, r, moved, stamp, count):
-    """Particle i to height h in round r, listed in moved[r % 2] unless it already is this
-    round (stamp); returns the list's new length."""
-    _set_height(p_smoothed, n_pn, dh, p, i, h)
+def _move(p_smoothed, n_pn, dh, p, i, h, r, moved, stamp, start_h, count):
+    """Particle i to height h in round r, listed in moved[r % 2] with the height it had
+    (start_h) unless it already is this round (stamp); returns the list's new length."""
     if stamp[i] != r:
         stamp[i] = r
+        start_h[i] = dh[i]
         moved[r % 2, count] = i
         count += 1
+    _set_height(p_smoothed, n_pn, dh, p, i, h)
     return count
 
 

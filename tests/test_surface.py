@@ -332,7 +332,8 @@ def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
     apply_constraints(s.p_smoothed, s.n_pn, dh, np.zeros(t.n_vertices), np.full(t.n_vertices, 0.03), t.face_ids,
                       t.face_edges, s.edge_required,
                       s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,
-                      m.d_edge_start, m.d_edge_ids, 6, 0.03, s.flat_edge, s.moved, s.stamp, widen, s.fold, p)
+                      m.d_edge_start, m.d_edge_ids, 6, 0.03, s.flat_edge, s.moved, s.stamp, s.start_h, widen, s.fold,
+                      p)
     d = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
     assert np.all(d <= m.d_max * (1 + 1e-9))
     spacing = 0.04 / t.level
@@ -380,7 +381,7 @@ def test_an_edge_stretched_beyond_the_limit_keeps_the_slope_allowed_at_rest():
     apply_constraints(s.p_smoothed, s.n_pn, dh, floor, np.full(t.n_vertices, 0.03), t.face_ids, t.face_edges,
                       s.edge_required, s.edge_deficit,
                       t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance, m.d_edge_start,
-                      m.d_edge_ids, 4, 0.03, s.flat_edge, s.moved, s.stamp, True, s.fold, p)
+                      m.d_edge_ids, 4, 0.03, s.flat_edge, s.moved, s.stamp, s.start_h, True, s.fold, p)
     ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
     stretched = ref > m.d_max
     assert stretched.sum() > 100  # the edges along x
