@@ -790,6 +790,12 @@ def _cell_block(px, py, pz, r, cell):
             int(math.floor((pz - r) / cell)), int(math.floor((pz + r) / cell)))
 
 
+def part_scratch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scratch for `grid_nearest_per_part` (part, best, best_d2): one slot per region bit, as
+    the regions are uint8 bit masks."""
+    return np.zeros(8, dtype=np.uint8), np.zeros(8, dtype=np.int32), np.zeros(8)
+
+
 @njit(cache=True, inline="always")
 def grid_nearest_per_part(px, py, pz, grid_x, grid_regions, parts, cell, start, ids, radius, own, part, best,
                           best_d2):

@@ -21,7 +21,7 @@ import numpy as np
 
 from .coarsen import coarsen
 from .collision import (FACE_TREE_STACK, BodyMesh, BodyPose, attach_to_body, collide_particles,
-                        face_normals, follow_body, resolve_contacts)
+                        face_normals, follow_body, part_scratch, resolve_contacts)
 from .dynamics import limit_stretch, rk4_substep
 from .fabric import Fabric
 from .garment import Garment
@@ -157,9 +157,7 @@ class ClothState:
         self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
         self.q = np.zeros(3)  # contact pass scratch, and for the body parts near a particle:
         self.stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # the face tree's traversal
-        self.part = np.zeros(8, dtype=np.uint8)
-        self.part_vertex = np.zeros(8, dtype=np.int32)
-        self.part_d2 = np.zeros(8)
+        self.part, self.part_vertex, self.part_d2 = part_scratch()
         self.placed_inv_mass = np.zeros(n)  # inverse masses with 0 for the particles the contact pass placed
         self.held_from = np.zeros((n, 3))  # positions before the strain-limiting passes with those held
         self.all_particles = np.ones(n, dtype=np.uint8)  # contact pass masks: every particle,

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .collision import BodyMesh, VertexGrid
+from .collision import BodyMesh, VertexGrid, part_scratch
 from .dynamics import spring_forces
 from .model import ClothModel
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -119,9 +119,7 @@ class SurfaceState:
         self.seed_count = np.zeros(n, dtype=np.int32)
         self.parts = np.zeros((3 * (MAX_PART_SEEDS + 1), 2), dtype=np.int32)  # S103 scratch
         self.reach = np.zeros(3 * (MAX_PART_SEEDS + 1))
-        self.part = np.zeros(8, dtype=np.uint8)  # other_part_seeds scratch
-        self.part_vertex = np.zeros(8, dtype=np.int32)
-        self.part_d2 = np.zeros(8)
+        self.part, self.part_vertex, self.part_d2 = part_scratch()  # other_part_seeds scratch
         self.floor = np.zeros(N)  # S106: the lowest and highest heights S103 allows
         self.ceiling = np.zeros(N)
         self.ef = np.zeros((N, 3))  # S104 elastic force, N

@@ -727,15 +727,13 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges
     for e in range(d_edges.shape[0]):  # the first round: every edge
         count = _limit_edge(e, 0, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved,
                             stamp, start_h, fold, max_height, p)
-    count = _keep_changed(moved[0], count, dh, start_h)
     for r in range(1, passes):  # a later round: the edges around a particle moved in the round before
-        last_count, count = count, 0
+        last_count, count = _keep_changed(moved[(r - 1) % 2], count, dh, start_h), 0
         for k in range(last_count):
             v = moved[(r - 1) % 2, k]
             for m in range(edge_start[v], edge_start[v + 1]):
                 count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max,
                                     allowance, moved, stamp, start_h, fold, max_height, p)
-        count = _keep_changed(moved[r % 2], count, dh, start_h)
 
 
 @njit(cache=True, inline="always")
