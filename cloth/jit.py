@@ -29,6 +29,12 @@ from numba.core.options import DefaultOptions
 
 NO_REFCOUNT = {"_nrt": False} if hasattr(DefaultOptions, "_nrt") else {}
 
+# fastmath without the no-NaN and no-inf assumptions: reassociation, fused multiply-add,
+# reciprocals and approximate functions, for kernels whose sums and products need no fixed order
+# (the detailed surface's per-edge scatter loops: 10-20 % faster). A NaN still reads as one, and
+# the result is deterministic on one machine (the replay test).
+FAST_ARITHMETIC = {"nsz", "arcp", "contract", "afn", "reassoc"}
+
 
 def kernel(fn=None, **options):
     """njit(cache=True, nogil=True, error_model="numpy") without numba's reference-counting
@@ -39,4 +45,4 @@ def kernel(fn=None, **options):
     return njit(**opts)(fn)
 
 
-__all__ = ["kernel"]
+__all__ = ["FAST_ARITHMETIC", "kernel"]

@@ -74,8 +74,10 @@ class Tessellation:
     order: np.ndarray  # (P,) int32
     parents: np.ndarray  # (P, 3) int32 local indices
     interior_local: np.ndarray  # (I,) int32 local indices of face-interior lattice points
-    lines: np.ndarray  # (3, L - 1, L + 1) int32 local lattice lines (constant a, b, c), -1 padded
-    line_length: np.ndarray  # (3, L - 1) int32 points on each line
+    # S104 step 4: every face's interior lattice lines (constant a, b or c, at least one interior
+    # point), face by face, as detailed vertices: line k is line_ids[line_start[k]:line_start[k + 1]]
+    line_start: np.ndarray  # (K + 1,) int32
+    line_ids: np.ndarray  # (sum of lengths,) int32
     # S102 per face: the Bernstein weights of every lattice point (the same in every face) and
     # which of a face's lattice points it owns
     cubic: np.ndarray  # (10, P) float64, in the order of pn_control_points' ctrl
@@ -148,23 +150,24 @@ def build_tessellation(coarse_triangles: np.ndarray, n_coarse: int, level: int) 
     triangles = face_ids[:, local_tris].reshape(-1, 3)
     d_edges = unique_edges(triangles)[0].astype(np.int32)
     order, parents = _hierarchy(lat, L)
-    lines = np.full((3, max(L - 1, 1), L + 1), -1, dtype=np.int32)
-    line_length = np.zeros((3, max(L - 1, 1)), dtype=np.int32)
+    by_direction: list[list[list[int]]] = [[], [], []]  # local lattice points of each line, per direction
     for m in range(1, L):
-        # constant a: from (L-m-0... ) edge AB (c = 0) to edge CA (b = 0), b decreasing
-        pts_a = [local[(b, L - m - b)] for b in range(L - m, -1, -1)]
+        # constant a: from edge AB (c = 0) to edge CA (b = 0), b decreasing
+        by_direction[0].append([local[(b, L - m - b)] for b in range(L - m, -1, -1)])
         # constant b: from edge AB (c = 0) to edge BC (a = 0)
-        pts_b = [local[(m, c)] for c in range(0, L - m + 1)]
+        by_direction[1].append([local[(m, c)] for c in range(0, L - m + 1)])
         # constant c: from edge CA (b = 0) to edge BC (a = 0)
-        pts_c = [local[(b, m)] for b in range(0, L - m + 1)]
-        for d, pts in enumerate((pts_a, pts_b, pts_c)):
-            lines[d, m - 1, : len(pts)] = pts
-            line_length[d, m - 1] = len(pts)
+        by_direction[2].append([local[(b, m)] for b in range(0, L - m + 1)])
+    lines = [pts for direction in by_direction for pts in direction if len(pts) >= 3]
+    local_ids = np.array([k for pts in lines for k in pts], dtype=np.int32)
+    line_ids = face_ids[:, local_ids].ravel().astype(np.int32)
+    lengths = np.tile(np.array([len(pts) for pts in lines], dtype=np.int64), T)
+    line_start = np.concatenate([[0], np.cumsum(lengths)]).astype(np.int32)
     cubic, quadratic = bernstein_weights(L)
     owned = (owner_face[face_ids] == np.arange(T, dtype=np.int32)[:, None]).astype(np.uint8)
     return Tessellation(L, n_coarse, tris, edges, face_ids, owner_face, owner_w, edge_ids, face_edges,
                         triangles.astype(np.int32), d_edges, lat, order, parents,
-                        np.array(interior, dtype=np.int32), lines, line_length, cubic, quadratic, owned)
+                        np.array(interior, dtype=np.int32), line_start, line_ids, cubic, quadratic, owned)
 
 
 def bernstein_weights(level: int) -> tuple[np.ndarray, np.ndarray]:

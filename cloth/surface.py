@@ -148,7 +148,6 @@ class SurfaceState:
         self.rates = np.zeros(L1)
         self.f1 = np.zeros(3)
         self.fn = np.zeros(3)
-        self.ids = np.zeros(L1, dtype=np.int32)
         self.q = np.zeros(3)
 
 
@@ -202,8 +201,8 @@ class DetailedSurface:
         np.negative(s.coarse_force, out=s.coarse_force)
         coarse_edge_forces(x, t.coarse_edges, m.edge_rest_coarse, c.fabric.stretch_stiffness,
                            c.fabric.compression_stiffness, s.edge_force)
-        elastic_forces(s.p, s.coarse_force, s.edge_force, t.edge_ids, t.face_ids, t.lines, t.line_length,
-                       t.interior_local, m.transfer_exponent, s.rates, s.f1, s.fn, s.ids, s.ef)
+        elastic_forces(s.p, s.coarse_force, s.edge_force, t.edge_ids, t.line_start, t.line_ids, m.transfer_exponent,
+                       s.rates, s.f1, s.fn, s.ef)
         normal_force(s.p, s.ef, m.d_edges, s.vf)
         # S105: length displacement
         length_displacement(s.p, s.p_smoothed, t.edge_ids, m.edge_rest, t.coarse_triangles, t.owner_face,

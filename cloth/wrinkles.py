@@ -14,7 +14,7 @@ from numba import njit
 
 from .collision import deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
 from .geometry import add_face_normal
-from .jit import kernel
+from .jit import FAST_ARITHMETIC, kernel
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -353,15 +353,9 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
 # ---------------------------------------------------------------- S104 normal force
 
 @njit(cache=True, inline="always")
-def transfer_rate(p, i, k, j, exponent):
-    """S104 step 2: c_k = cos θ = (p_k - p_i).(p_j - p_k) / (|p_k - p_i| |p_j - p_k|), mapped by the
-    fabric's transfer curve max(c, 0)^exponent (exponent 1: the patent's plain cosine)."""
-    ax, ay, az = p[k, 0] - p[i, 0], p[k, 1] - p[i, 1], p[k, 2] - p[i, 2]
-    bx, by, bz = p[j, 0] - p[k, 0], p[j, 1] - p[k, 1], p[j, 2] - p[k, 2]
-    den = math.sqrt((ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz))
-    if den == 0.0:
-        return 1.0
-    c = (ax * bx + ay * by + az * bz) / den
+def transfer_curve(c, exponent):
+    """S104 step 2's mapping of c = cos θ to a transfer rate: max(c, 0)^exponent (exponent 1:
+    the patent's plain cosine)."""
     if c <= 0.0:
         return 0.0
     # the presets' exponents without a call to pow (the rate is computed for every detailed particle)
@@ -375,16 +369,35 @@ def transfer_rate(p, i, k, j, exponent):
 
 
 @njit(cache=True, inline="always")
+def _line_rates(p, ids, count, exponent, rates):
+    """S104 step 2 along chain ids[0..count-1]: rates[m] = the mapped
+    c_m = (p_m - p_{m-1}).(p_{m+1} - p_m) / (|p_m - p_{m-1}| |p_{m+1} - p_m|) of each inner particle
+    (1 where a segment has no length); returns their sum. Each segment is formed once."""
+    i1 = ids[1]
+    ax, ay, az = p[i1, 0] - p[ids[0], 0], p[i1, 1] - p[ids[0], 1], p[i1, 2] - p[ids[0], 2]
+    la = ax * ax + ay * ay + az * az
+    total = 0.0
+    for m in range(1, count - 1):
+        i2 = ids[m + 1]
+        bx, by, bz = p[i2, 0] - p[i1, 0], p[i2, 1] - p[i1, 1], p[i2, 2] - p[i1, 2]
+        lb = bx * bx + by * by + bz * bz
+        den = math.sqrt(la * lb)
+        rate = 1.0 if den == 0.0 else transfer_curve((ax * bx + ay * by + az * bz) / den, exponent)
+        rates[m] = rate
+        total += rate
+        ax, ay, az, la, i1 = bx, by, bz, lb, i2
+    return total
+
+
+@njit(cache=True, inline="always")
 def _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, weight, accumulate):
     """S104 step 3 along one chain ids[0..count-1] whose end forces are f1, fn:
     ef_i = f_1 + (Σ_{j=2}^{i-1} c_j + 0.5 c_i) / (Σ_{j=2}^{n-1} c_j) (f_n - f_1).
     accumulate: add weight * ef_i (face lines, averaged) instead of storing it (edges)."""
-    total = 0.0
-    for m in range(1, count - 1):
-        rates[m] = transfer_rate(p, ids[m - 1], ids[m], ids[m + 1], exponent)
-        total += rates[m]
+    total = _line_rates(p, ids, count, exponent, rates)
     run = 0.0
     inv_total = 1.0 / total if total > 1e-12 else 0.0
+    d0, d1, d2 = fn[0] - f1[0], fn[1] - f1[1], fn[2] - f1[2]
     for m in range(1, count - 1):
         if inv_total > 0.0:
             s = (run + 0.5 * rates[m]) * inv_total
@@ -392,12 +405,14 @@ def _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, weight, accumu
             s = (m - 0.5) / (count - 2)
         run += rates[m]
         i = ids[m]
-        for a in range(3):
-            val = f1[a] + s * (fn[a] - f1[a])
-            if accumulate:
-                ef[i, a] += weight * val
-            else:
-                ef[i, a] = val
+        if accumulate:
+            ef[i, 0] += weight * (f1[0] + s * d0)
+            ef[i, 1] += weight * (f1[1] + s * d1)
+            ef[i, 2] += weight * (f1[2] + s * d2)
+        else:
+            ef[i, 0] = f1[0] + s * d0
+            ef[i, 1] = f1[1] + s * d1
+            ef[i, 2] = f1[2] + s * d2
 
 
 @kernel
@@ -425,17 +440,17 @@ def coarse_edge_forces(x, edges, rest, k_stretch, k_compress, out):
         out[e, 1, 0], out[e, 1, 1], out[e, 1, 2] = -fx, -fy, -fz
 
 
-@kernel
-def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_length, interior_local, exponent,
-                   rates, f1, fn, ids, ef):
+@kernel(fastmath=FAST_ARITHMETIC)
+def elastic_forces(p, coarse_force, edge_force, edge_ids, line_start, line_ids, exponent, rates, f1, fn, ef):
     """S104 steps 1-4: elastic force ef_i of every detailed particle.
 
     Coarse-vertex particles take the coarse elastic force (coarse_force, reaction sign);
     particles on a coarse edge interpolate between the edge's end forces with the transfer
-    rates (step 3); face-interior particles interpolate the same way along the lattice
-    lines through them, from the edge values at the lines' ends, and average the three
+    rates (step 3); face-interior particles (numbered after the edges' particles)
+    interpolate the same way along the lattice lines through them (line_start, line_ids: the
+    Tessellation's), from the edge values at the lines' ends, and average the three
     directions (step 4: a triangle's lattice has three grid directions).
-    rates (L + 1,), f1 (3,), fn (3,), ids (L + 1,) int32: scratch."""
+    rates (L + 1,), f1 (3,), fn (3,): scratch."""
     n_coarse = coarse_force.shape[0]
     for i in range(n_coarse):
         for a in range(3):
@@ -443,26 +458,20 @@ def elastic_forces(p, coarse_force, edge_force, edge_ids, face_ids, lines, line_
     L1 = edge_ids.shape[1]
     for e in range(edge_ids.shape[0]):
         _interpolate_line(p, edge_ids[e], L1, edge_force[e, 0], edge_force[e, 1], exponent, rates, ef, 1.0, False)
+    for i in range(n_coarse + edge_ids.shape[0] * (L1 - 2), ef.shape[0]):
+        for a in range(3):
+            ef[i, a] = 0.0
     third = 1.0 / 3.0
-    for f in range(face_ids.shape[0]):
-        for k in range(interior_local.shape[0]):
-            vid = face_ids[f, interior_local[k]]
-            for a in range(3):
-                ef[vid, a] = 0.0
-        for d in range(3):
-            for m in range(line_length.shape[1]):
-                cnt = line_length[d, m]
-                if cnt < 3:
-                    continue
-                for r in range(cnt):
-                    ids[r] = face_ids[f, lines[d, m, r]]
-                for a in range(3):
-                    f1[a] = ef[ids[0], a]
-                    fn[a] = ef[ids[cnt - 1], a]
-                _interpolate_line(p, ids, cnt, f1, fn, exponent, rates, ef, third, True)
+    for k in range(line_start.shape[0] - 1):
+        start, count = line_start[k], line_start[k + 1] - line_start[k]
+        ids = line_ids[start:start + count]
+        for a in range(3):
+            f1[a] = ef[ids[0], a]
+            fn[a] = ef[ids[count - 1], a]
+        _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, third, True)
 
 
-@kernel
+@kernel(fastmath=FAST_ARITHMETIC)
 def normal_force(p, ef, edges, vf):
     """S104 step 5: vf_i = Σ_j (p_i - p_j)/|p_i - p_j| . ef_j over the detailed neighbours j.
     vf > 0: pushed by its surroundings (relief grows); vf < 0: pulled (the surface flattens).
@@ -848,7 +857,7 @@ def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
     return (t1 if abs(t1 - current) < abs(t2 - current) else t2), True
 
 
-@kernel
+@kernel(fastmath=FAST_ARITHMETIC)
 def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
     """S106 step 7: n_i = normalize(α n_deform + (1 - α) n_pnt), α = min(1, Δh_i / h_normal);
     n_deform: area-weighted normals of the deformed detailed mesh.

@@ -22,9 +22,8 @@ def single_face(level, corners):
 def run_elastic(t, p, coarse_force, edge_force, exponent=1.0):
     L1 = t.level + 1
     ef = np.full((t.n_vertices, 3), np.nan)
-    elastic_forces(p, np.asarray(coarse_force, float), np.asarray(edge_force, float), t.edge_ids, t.face_ids, t.lines,
-                   t.line_length, t.interior_local, exponent, np.zeros(L1), np.zeros(3), np.zeros(3),
-                   np.zeros(L1, dtype=np.int32), ef)
+    elastic_forces(p, np.asarray(coarse_force, float), np.asarray(edge_force, float), t.edge_ids, t.line_start,
+                   t.line_ids, exponent, np.zeros(L1), np.zeros(3), np.zeros(3), ef)
     return ef
 
 
