@@ -163,8 +163,9 @@ def save_png(path: str | Path, image: np.ndarray) -> None:
 
 
 def contact_sheet(images: list[np.ndarray], columns: int) -> np.ndarray:
-    """Tile same-sized images into one."""
+    """Tile same-sized images into one, at most `columns` per row (fewer images: one row of them)."""
     h, w, _ = images[0].shape
+    columns = max(1, min(columns, len(images)))
     rows = (len(images) + columns - 1) // columns
     sheet = np.full((rows * h, columns * w, 3), 255, dtype=np.uint8)
     for k, img in enumerate(images):

@@ -3,7 +3,7 @@ import pytest
 from PIL import Image
 
 from services.cli import main
-from services.render import MeshDraw, Renderer, orbit_camera
+from services.render import MeshDraw, Renderer, contact_sheet, orbit_camera
 from skinning.animate import BodyAnimator
 
 
@@ -23,6 +23,17 @@ def test_render_shows_the_body(body):
     assert changed.mean() > 0.05
     assert np.ptp(rows) > 0.6 * 160
     assert abs(cols.mean() - 60) < 6
+
+
+def test_contact_sheet_tiles_without_empty_columns():
+    images = [np.full((4, 3, 3), k, dtype=np.uint8) for k in range(5)]
+    two = contact_sheet(images[:2], columns=4)  # fewer images than columns: one row of them
+    assert two.shape == (4, 6, 3)
+    np.testing.assert_array_equal(two[:, 3:], 1)
+    five = contact_sheet(images, columns=4)
+    assert five.shape == (8, 12, 3)
+    np.testing.assert_array_equal(five[4:, :3], 4)
+    np.testing.assert_array_equal(five[4:, 3:], 255)  # the rest of the last row is blank
 
 
 def test_cli_body_writes_snapshots(tmp_path, capsys):
