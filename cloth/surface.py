@@ -63,6 +63,7 @@ class SurfaceModel:
     edge_rest_coarse: np.ndarray  # (E,) m: straight length of each coarse edge at rest
     d_edges: np.ndarray  # (D, 2) int32 detailed mesh edges
     d_max: np.ndarray  # (D,) m: maximum neighbour distance per detailed edge
+    edge_seg_max: np.ndarray  # (E, L) m: the same for each segment along each coarse edge
     d_edge_start: np.ndarray  # (N + 1,) int64: CSR of each detailed vertex's edges (into d_edges)
     d_edge_ids: np.ndarray  # int32
     k_out_plane: float
@@ -93,7 +94,7 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)
     es, ei = vertex_cells(tess.n_vertices, d_edges)
     return SurfaceModel(tess, settings, cloth, edge_rest, straight, d_edges,
-                        f.max_neighbour_ratio * rest_len, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
+                        f.max_neighbour_ratio * rest_len, f.max_neighbour_ratio * seg, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
                         1.0 - 1.0 / f.max_neighbour_ratio**2)
 
 
@@ -146,6 +147,7 @@ class SurfaceState:
         self.pn_scratch = np.zeros((7, m.tess.cubic.shape[1]))
         self.n_deform = np.zeros((N, 3))
         self.rates = np.zeros(L1)
+        self.edge_heights = np.zeros(L1)  # S106 step 2 scratch: the heights along one coarse edge
         self.f1 = np.zeros(3)
         self.fn = np.zeros(3)
         self.q = np.zeros(3)
@@ -211,8 +213,9 @@ class DetailedSurface:
         # S106: deformation, constraints, positions, shading normals
         deformation_heights(s.vf, s.dh, s.required, m.d_edges, t.n_coarse, m.k_out_plane, dt, s.expected, s.dh_def)
         match_required_length(s.p_smoothed, s.n_pn, s.dh, s.dh_def, s.floor, s.vf, m.k_out_plane, dt, s.ceiling,
-                              t.edge_ids, s.edge_required, m.edge_rest, t.face_ids, t.face_edges, t.interior_local,
-                              st.max_step_scale, st.length_tolerance, st.length_iterations, s.edge_scale)
+                              t.edge_ids, s.edge_required, m.edge_rest, m.edge_seg_max, m.height_allowance, t.face_ids,
+                              t.face_edges, t.interior_local, st.max_step_scale, st.length_tolerance,
+                              st.length_iterations, s.edge_scale, s.edge_heights)
         s.dh += s.dh_def
         apply_constraints(s.p_smoothed, s.n_pn, s.dh, s.floor, s.ceiling, t.face_ids, t.face_edges, s.edge_required,
                           s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,

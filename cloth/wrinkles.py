@@ -593,27 +593,66 @@ def _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s):
 
 
 @njit(cache=True, inline="always")
-def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, e, s):
-    """Detailed arc length along coarse edge e with its interior particles' steps scaled by s."""
-    L1 = edge_ids.shape[1]
-    length = 0.0
-    a = edge_ids[e, 0]
-    ha = dh[a]
-    for m in range(1, L1):
+def _lower_within(p_smoothed, n_pn, i, h, floor_i, qx, qy, qz, seg_max, allowance):
+    """Particle i's height h, lowered (never below floor_i) until it is within its limit of the
+    point q, as S106 step 5 brings the higher end of an over-long edge down: seg_max, or where
+    the reference surface alone is longer, that length with seg_max² - rest² on top
+    (`apply_constraints`' Decision on stretched edges)."""
+    bx = p_smoothed[i, 0] - qx
+    by = p_smoothed[i, 1] - qy
+    bz = p_smoothed[i, 2] - qz
+    bn = bx * n_pn[i, 0] + by * n_pn[i, 1] + bz * n_pn[i, 2]
+    b2 = bx * bx + by * by + bz * bz
+    lim2 = seg_max * seg_max
+    if b2 > lim2:
+        lim2 = b2 + allowance * lim2
+    if b2 + 2.0 * h * bn + h * h <= lim2:  # |p_s + h n - q|²
+        return h
+    disc = bn * bn - b2 + lim2
+    t = -bn + math.sqrt(disc) if disc >= 0.0 else -bn  # the upper root, or the closest approach
+    return max(floor_i, min(h, t))
+
+
+@njit(cache=True, inline="always")
+def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, edge_seg_max, allowance, e,
+                  s, heights):
+    """Detailed arc length along coarse edge e with its interior particles' steps scaled by s,
+    and each one then brought down where it would stand farther than its limit from its
+    neighbour along the edge (the rule of step 5, one pass from each end: where the ends,
+    coarse vertices, stay at their height, a tall step makes a cliff beside them that step 5
+    takes back). heights (L + 1,): written, the heights along the edge."""
+    L = edge_ids.shape[1] - 1
+    for m in range(L + 1):
         b = edge_ids[e, m]
-        hb = dh[b] if m == L1 - 1 else _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, b, s)
-        dx = p_smoothed[b, 0] + hb * n_pn[b, 0] - p_smoothed[a, 0] - ha * n_pn[a, 0]
-        dy = p_smoothed[b, 1] + hb * n_pn[b, 1] - p_smoothed[a, 1] - ha * n_pn[a, 1]
-        dz = p_smoothed[b, 2] + hb * n_pn[b, 2] - p_smoothed[a, 2] - ha * n_pn[a, 2]
+        heights[m] = dh[b] if m == 0 or m == L else _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, b, s)
+    for m in range(1, L):  # from the first end: each particle within reach of the one before
+        a, b = edge_ids[e, m - 1], edge_ids[e, m]
+        if heights[m] > heights[m - 1]:
+            heights[m] = _lower_within(p_smoothed, n_pn, b, heights[m], floor[b],
+                                       p_smoothed[a, 0] + heights[m - 1] * n_pn[a, 0],
+                                       p_smoothed[a, 1] + heights[m - 1] * n_pn[a, 1],
+                                       p_smoothed[a, 2] + heights[m - 1] * n_pn[a, 2], edge_seg_max[e, m - 1],
+                                       allowance)
+    length = 0.0
+    for m in range(L - 1, -1, -1):  # from the other end, measuring as it goes
+        a, b = edge_ids[e, m], edge_ids[e, m + 1]
+        bx = p_smoothed[b, 0] + heights[m + 1] * n_pn[b, 0]
+        by = p_smoothed[b, 1] + heights[m + 1] * n_pn[b, 1]
+        bz = p_smoothed[b, 2] + heights[m + 1] * n_pn[b, 2]
+        if m > 0 and heights[m] > heights[m + 1]:
+            heights[m] = _lower_within(p_smoothed, n_pn, a, heights[m], floor[a], bx, by, bz, edge_seg_max[e, m],
+                                       allowance)
+        dx = p_smoothed[a, 0] + heights[m] * n_pn[a, 0] - bx
+        dy = p_smoothed[a, 1] + heights[m] * n_pn[a, 1] - by
+        dz = p_smoothed[a, 2] + heights[m] * n_pn[a, 2] - bz
         length += math.sqrt(dx * dx + dy * dy + dz * dz)
-        a, ha = b, hb
     return length
 
 
 @kernel
 def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, edge_required,
-                          edge_rest, face_ids, face_edges, interior_local, max_scale, tolerance, iterations,
-                          edge_scale):
+                          edge_rest, edge_seg_max, allowance, face_ids, face_edges, interior_local, max_scale, tolerance,
+                          iterations, edge_scale, heights):
     """S106 step 2, how far (Decision): on each compressed coarse edge (ΔLE_required > 0) the
     steps of steps 1-4 are scaled by one factor s so that the detailed arc length along the
     edge after them is its rest length.
@@ -622,33 +661,56 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ce
     edge between them stood upright; on a gentle wrinkle the surface lengthens by about the
     sine of its slope times that, so the step was short of the deficit. The arc length of the
     stepped surface is measured instead: secant steps on s from s = 0 (S105's L_e) and s = 1
-    (the patent's step) until it is within `tolerance` (a fraction of the rest length) or
-    after `iterations` arc evaluations, each particle's step through the force clamp, the
-    floor and the ceiling as they will apply, s kept in [0, max_scale]. Face interiors take
-    the mean factor of their face's compressed edges; elsewhere the steps are unchanged.
-    edge_scale (E,): written, s per coarse edge (-1: not compressed)."""
+    (the patent's step), false position (Illinois) once a factor is beyond it, until it is
+    within `tolerance` (a fraction of the rest length) or after `iterations` arc evaluations,
+    each particle's step through the force clamp, the floor and the ceiling as they will
+    apply, s kept in [0, max_scale]. Decision: the
+    particles along the edge are then brought down where step 5's maximum neighbour distance
+    will bring them down (edge_seg_max (E, L): d_max of each segment along each coarse edge;
+    allowance: see `apply_constraints`), and the arc measured after that: otherwise, on an
+    edge compressed by a third or more, the step's tall first particle beside a coarse vertex
+    lost most of its height to step 5 and the edge its length (a run clip recovered 0.65-0.7
+    of the deficit); measured this way, s grows until the heights ramp up from both ends.
+    Face interiors take the mean factor of their face's compressed edges; elsewhere the steps
+    are unchanged. edge_scale (E,): written, s per coarse edge (-1: not compressed); heights
+    (L + 1,): scratch."""
     L1 = edge_ids.shape[1]
     for e in range(edge_ids.shape[0]):
         edge_scale[e] = -1.0
         if edge_required[e] <= 0.0:
             continue
         target = edge_rest[e]
-        s0, a0 = 0.0, edge_rest[e] - edge_required[e]
+        # s_lo: a factor known short of the target (0: S105's L_e); s_hi: one known beyond it
+        s_lo, a_lo = 0.0, edge_rest[e] - edge_required[e]
+        s_hi, a_hi = -1.0, 0.0
+        side = 0
         s1 = 1.0
-        a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, e, s1)
+        a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, edge_seg_max,
+                           allowance, e, s1, heights)
         for _ in range(iterations - 1):
-            if abs(a1 - target) <= tolerance * target or a1 == a0:
+            if abs(a1 - target) <= tolerance * target:
                 break
-            s2 = min(max_scale, max(0.0, s1 + (target - a1) * (s1 - s0) / (a1 - a0)))
+            if a1 < target:
+                if s_hi < 0.0:  # not bracketed yet: the secant through the last two factors, ahead
+                    s2 = max_scale if a1 <= a_lo else min(max_scale, s1 + (target - a1) * (s1 - s_lo) / (a1 - a_lo))
+                if side < 0:  # (Illinois: the end kept twice counts half as far off)
+                    a_hi = target + 0.5 * (a_hi - target)
+                s_lo, a_lo, side = s1, a1, -1
+            else:
+                if side > 0:
+                    a_lo = target + 0.5 * (a_lo - target)
+                s_hi, a_hi, side = s1, a1, 1
+            if s_hi >= 0.0:  # bracketed (step 5's cut makes the length flat in places): false position
+                s2 = s_lo + (target - a_lo) * (s_hi - s_lo) / (a_hi - a_lo)
             if s2 == s1:
                 break
-            s0, a0 = s1, a1
             s1 = s2
-            a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, e, s1)
+            a1 = _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, edge_seg_max,
+                               allowance, e, s1, heights)
         edge_scale[e] = s1
-        for m in range(1, L1 - 1):
+        for m in range(1, L1 - 1):  # (heights: those of the last evaluation, at s1)
             i = edge_ids[e, m]
-            dh_def[i] = _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s1) - dh[i]
+            dh_def[i] = heights[m] - dh[i]
     for f in range(face_ids.shape[0]):
         total = 0.0
         count = 0

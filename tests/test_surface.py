@@ -286,8 +286,8 @@ def test_step_scale_gives_a_compressed_edge_back_its_rest_length():
     def run(vf, max_scale=100.0):
         dh_def = step.copy()
         match_required_length(ps, n, np.zeros(9), dh_def, np.zeros(9), np.full(9, vf), 3.0, DT, np.full(9, 0.03),
-                              edge_ids, edge_required, edge_rest, face_ids, face_edges, interior, max_scale, 1e-12, 30,
-                              scale)
+                              edge_ids, edge_required, edge_rest, np.full((3, 6), 1.25 * rest / 6), 0.36, face_ids,
+                              face_edges, interior, max_scale, 1e-12, 30, scale, np.zeros(7))
         return dh_def
 
     dh_def = run(vf=1e3)  # the force clamp (3 m/(N s) x vf x dt = 50 m) does not bind
@@ -301,6 +301,35 @@ def test_step_scale_gives_a_compressed_edge_back_its_rest_length():
     np.testing.assert_allclose(dh_def[[1, 3, 5, 7]], 1e-3, rtol=1e-12)
     dh_def = run(vf=1e3, max_scale=8.0)  # at most eight times the patent's step
     np.testing.assert_allclose(dh_def[[1, 3, 5, 7]], 8e-4, rtol=1e-12)
+
+
+def test_step_scale_counts_what_the_neighbour_distance_takes_back():
+    """S106 step 2 (Decision): a straight coarse edge 40 % short (six segments of 2.4 mm, rest
+    4 mm, d_max 5 mm), the patent's step a plateau of 0.1 mm. Scaled alone, the plateau would
+    stand 6.8 mm high with 7.2 mm first and last segments, which step 5 takes back. Brought
+    down to d_max from their neighbours as step 5 does, the heights ramp up by
+    sqrt(5² - 2.4²) = 4.39 mm from each coarse vertex to a plateau of 8.31 mm, where the arc
+    length is the rest length again and no segment is longer than d_max."""
+    from cloth.wrinkles import match_required_length
+
+    rest = 0.024
+    ps = np.zeros((7, 3))
+    ps[:, 0] = np.linspace(0.0, 0.6 * rest, 7)
+    n = np.tile([0.0, 1.0, 0.0], (7, 1))
+    edge_ids = np.arange(7, dtype=np.int32)[None, :]
+    dh_def = np.array([0.0, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 0.0])
+    scale = np.zeros(1)
+    match_required_length(ps, n, np.zeros(7), dh_def, np.zeros(7), np.full(7, 1e3), 3.0, DT, np.full(7, 0.03),
+                          edge_ids, np.array([0.4 * rest]), np.array([rest]), np.full((1, 6), 0.005), 0.36,
+                          np.zeros((0, 1), dtype=np.int32), np.zeros((0, 3), dtype=np.int32),
+                          np.zeros(0, dtype=np.int32), 100.0, 1e-12, 30, scale, np.zeros(7))
+    rise = np.sqrt(0.005**2 - 0.0024**2)
+    top = rise + np.sqrt(0.0046**2 - 0.0024**2)  # 10 + 2 x 2.4 + 2 x 4.6 = 24 mm
+    np.testing.assert_allclose(dh_def, [0.0, rise, top, top, top, rise, 0.0], atol=1e-9)
+    p = ps + dh_def[:, None] * n
+    seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    assert abs(seg.sum() - rest) < 1e-9 and seg.max() <= 0.005 + 1e-12
+    assert 0.9 * top / 1e-4 < scale[0] < 100.0  # the plateau's factor, short of the bound
 
 @pytest.mark.parametrize("widen", [True, False])
 def test_a_wrinkle_on_a_compressed_edge_widens_into_a_fold(widen):
