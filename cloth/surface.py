@@ -93,8 +93,8 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     f = cloth.fabric
     straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)
     es, ei = vertex_cells(tess.n_vertices, d_edges)
-    return SurfaceModel(tess, settings, cloth, edge_rest, straight, d_edges,
-                        f.max_neighbour_ratio * rest_len, f.max_neighbour_ratio * seg, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
+    return SurfaceModel(tess, settings, cloth, edge_rest, straight, d_edges, f.max_neighbour_ratio * rest_len,
+                        f.max_neighbour_ratio * seg, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
                         1.0 - 1.0 / f.max_neighbour_ratio**2)
 
 

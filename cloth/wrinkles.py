@@ -651,8 +651,8 @@ def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, e
 
 @kernel
 def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, edge_required,
-                          edge_rest, edge_seg_max, allowance, face_ids, face_edges, interior_local, max_scale, tolerance,
-                          iterations, edge_scale, heights):
+                          edge_rest, edge_seg_max, allowance, face_ids, face_edges, interior_local, max_scale,
+                          tolerance, iterations, edge_scale, heights):
     """S106 step 2, how far (Decision): on each compressed coarse edge (ΔLE_required > 0) the
     steps of steps 1-4 are scaled by one factor s so that the detailed arc length along the
     edge after them is its rest length.
@@ -664,13 +664,13 @@ def match_required_length(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ce
     (the patent's step), false position (Illinois) once a factor is beyond it, until it is
     within `tolerance` (a fraction of the rest length) or after `iterations` arc evaluations,
     each particle's step through the force clamp, the floor and the ceiling as they will
-    apply, s kept in [0, max_scale]. Decision: the
-    particles along the edge are then brought down where step 5's maximum neighbour distance
-    will bring them down (edge_seg_max (E, L): d_max of each segment along each coarse edge;
-    allowance: see `apply_constraints`), and the arc measured after that: otherwise, on an
-    edge compressed by a third or more, the step's tall first particle beside a coarse vertex
-    lost most of its height to step 5 and the edge its length (a run clip recovered 0.65-0.7
-    of the deficit); measured this way, s grows until the heights ramp up from both ends.
+    apply, s kept in [0, max_scale]. Decision: the particles along the edge are then brought
+    down where step 5's maximum neighbour distance will bring them down (edge_seg_max (E, L):
+    d_max of each segment along each coarse edge; allowance: see `apply_constraints`), and the
+    arc measured after that: otherwise, on an edge compressed by a third or more, the step's
+    tall first particle beside a coarse vertex lost most of its height to step 5 and the edge
+    its length (a run clip recovered 0.65-0.7 of the deficit); measured this way, s grows
+    until the heights ramp up from both ends.
     Face interiors take the mean factor of their face's compressed edges; elsewhere the steps
     are unchanged. edge_scale (E,): written, s per coarse edge (-1: not compressed); heights
     (L + 1,): scratch."""
