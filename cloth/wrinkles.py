@@ -593,23 +593,21 @@ def _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s):
 
 
 @njit(cache=True, inline="always")
-def _lower_within(p_smoothed, n_pn, i, h, floor_i, qx, qy, qz, seg_max, allowance):
-    """Particle i's height h, lowered (never below floor_i) until it is within its limit of the
-    point q, as S106 step 5 brings the higher end of an over-long edge down: seg_max, or where
-    the reference surface alone is longer, that length with seg_max² - rest² on top
-    (`apply_constraints`' Decision on stretched edges)."""
-    bx = p_smoothed[i, 0] - qx
-    by = p_smoothed[i, 1] - qy
-    bz = p_smoothed[i, 2] - qz
-    bn = bx * n_pn[i, 0] + by * n_pn[i, 1] + bz * n_pn[i, 2]
-    b2 = bx * bx + by * by + bz * bz
+def _lower_within(p_smoothed, n_pn, i, j, h, floor_i, qx, qy, qz, seg_max, allowance):
+    """Particle i's height h, lowered (never below floor_i) until it is within the limit of its
+    neighbour j, standing at q, as S106 step 5 brings the higher end of an over-long edge down
+    (`_limit_edge`): seg_max, or where the reference surface alone parts them farther, that
+    length with seg_max² - rest² on top."""
     lim2 = seg_max * seg_max
-    if b2 > lim2:
-        lim2 = b2 + allowance * lim2
-    if b2 + 2.0 * h * bn + h * h <= lim2:  # |p_s + h n - q|²
+    ref2 = _dist2(p_smoothed, i, j)
+    if ref2 > lim2:
+        lim2 = ref2 + allowance * lim2
+    dx = p_smoothed[i, 0] + h * n_pn[i, 0] - qx
+    dy = p_smoothed[i, 1] + h * n_pn[i, 1] - qy
+    dz = p_smoothed[i, 2] + h * n_pn[i, 2] - qz
+    if dx * dx + dy * dy + dz * dz <= lim2:
         return h
-    disc = bn * bn - b2 + lim2
-    t = -bn + math.sqrt(disc) if disc >= 0.0 else -bn  # the upper root, or the closest approach
+    t = _height_at_distance(p_smoothed, n_pn, i, qx, qy, qz, math.sqrt(lim2), h)[0]
     return max(floor_i, min(h, t))
 
 
@@ -628,7 +626,7 @@ def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, e
     for m in range(1, L):  # from the first end: each particle within reach of the one before
         a, b = edge_ids[e, m - 1], edge_ids[e, m]
         if heights[m] > heights[m - 1]:
-            heights[m] = _lower_within(p_smoothed, n_pn, b, heights[m], floor[b],
+            heights[m] = _lower_within(p_smoothed, n_pn, b, a, heights[m], floor[b],
                                        p_smoothed[a, 0] + heights[m - 1] * n_pn[a, 0],
                                        p_smoothed[a, 1] + heights[m - 1] * n_pn[a, 1],
                                        p_smoothed[a, 2] + heights[m - 1] * n_pn[a, 2], edge_seg_max[e, m - 1],
@@ -640,8 +638,8 @@ def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, e
         by = p_smoothed[b, 1] + heights[m + 1] * n_pn[b, 1]
         bz = p_smoothed[b, 2] + heights[m + 1] * n_pn[b, 2]
         if m > 0 and heights[m] > heights[m + 1]:
-            heights[m] = _lower_within(p_smoothed, n_pn, a, heights[m], floor[a], bx, by, bz, edge_seg_max[e, m],
-                                       allowance)
+            heights[m] = _lower_within(p_smoothed, n_pn, a, b, heights[m], floor[a], bx, by, bz,
+                                       edge_seg_max[e, m], allowance)
         dx = p_smoothed[a, 0] + heights[m] * n_pn[a, 0] - bx
         dy = p_smoothed[a, 1] + heights[m] * n_pn[a, 1] - by
         dz = p_smoothed[a, 2] + heights[m] * n_pn[a, 2] - bz
@@ -851,14 +849,14 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
     lim = math.sqrt(lim2)
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
     if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
-        t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
+        t = _height_at_distance(p_smoothed, n_pn, lo, p[hi, 0], p[hi, 1], p[hi, 2], lim, dh[lo])[0]
         if t > dh[lo] and dh[lo] < ceiling[lo]:  # (a round may have raised lo beyond the bound)
             count = _move(p_smoothed, n_pn, dh, p, lo, min(t, ceiling[lo]), r, moved, stamp, start_h, count)
             fold[lo] = 1
             if _dist2(p, i, j) <= lim * lim * (1.0 + 1e-9):  # the root, up to rounding
                 return count
     # lower hi along its normal: |p_s,hi + t n_hi - p_lo| = lim, the root nearest dh[hi]
-    t, exact = _height_at_distance(p_smoothed, n_pn, hi, p, lo, lim, dh[hi])
+    t, exact = _height_at_distance(p_smoothed, n_pn, hi, p[lo, 0], p[lo, 1], p[lo, 2], lim, dh[hi])
     done = exact and t >= floor[hi]
     if not done:
         t = max(floor[hi], min(t, dh[hi]))
@@ -866,7 +864,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
         count = _move(p_smoothed, n_pn, dh, p, hi, t, r, moved, stamp, start_h, count)
     if done:
         return count
-    t = _height_at_distance(p_smoothed, n_pn, lo, p, hi, lim, dh[lo])[0]
+    t = _height_at_distance(p_smoothed, n_pn, lo, p[hi, 0], p[hi, 1], p[hi, 2], lim, dh[lo])[0]
     if ceiling[lo] < max_height:  # beyond the 3 cm bound if need be, never into a body part above
         t = min(t, ceiling[lo])
     if t > dh[lo]:
@@ -903,13 +901,13 @@ def _move(p_smoothed, n_pn, dh, p, i, h, r, moved, stamp, start_h, count):
 
 
 @njit(cache=True, inline="always")
-def _height_at_distance(p_smoothed, n_pn, i, p, j, lim, current):
-    """The height t of particle i along its normal with |p_s,i + t n_i - p_j| = lim, the root
-    nearest `current`, and True; if none exists (p_j is farther than lim from the whole normal
-    line), the height nearest to p_j (the closest approach), and False."""
-    ax = p_smoothed[i, 0] - p[j, 0]
-    ay = p_smoothed[i, 1] - p[j, 1]
-    az = p_smoothed[i, 2] - p[j, 2]
+def _height_at_distance(p_smoothed, n_pn, i, qx, qy, qz, lim, current):
+    """The height t of particle i along its normal with |p_s,i + t n_i - q| = lim, the root
+    nearest `current`, and True; if none exists (q is farther than lim from the whole normal
+    line), the height nearest to q (the closest approach), and False."""
+    ax = p_smoothed[i, 0] - qx
+    ay = p_smoothed[i, 1] - qy
+    az = p_smoothed[i, 2] - qz
     an = ax * n_pn[i, 0] + ay * n_pn[i, 1] + az * n_pn[i, 2]
     disc = an * an - (ax * ax + ay * ay + az * az) + lim * lim
     if disc < 0.0:
