@@ -197,7 +197,7 @@ class IngestService:
     def __init__(self, bus: zenoh.Session, session: str, body: Body, source, description: dict):
         self.bus, self.session, self.body, self.source = bus, session, body, source
         self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
-        self.animator = BodyAnimator(body, source.skeleton)
+        self.animator = BodyAnimator(body, source.skeleton, normals=False)  # displays shade it themselves
         self.latched = Latched(bus)
         self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible)
         self.publisher = bus.declare_publisher(key(session, "body"), congestion_control=zenoh.CongestionControl.BLOCK,
@@ -208,7 +208,6 @@ class IngestService:
         self._ready = threading.Event()
         self._status = bus.declare_subscriber(key(session, "status", "*"), self._on_status)
         self._verts = np.empty((body.n_visible, 3), np.float32)
-        self._normals = np.empty((body.n_visible, 3), np.float32)
 
     def announce(self) -> None:
         """Latch the session description and the body's topology (once)."""
@@ -225,12 +224,11 @@ class IngestService:
         """Retarget + skin one pose (unless `out`, its BodyFrame, is given) and publish the body."""
         out = self.animator(frame.local_rot, frame.root_position) if out is None else out
         self._verts[:] = out.vertices[: self.body.n_visible]
-        self._normals[:] = out.normals
         st = self.animator.stage_seconds
-        meta = {f"{s}_ms": round(float(st[i]) * 1000, 4) for i, s in enumerate(STAGES)}
+        meta = {f"{s}_ms": round(float(st[i]) * 1000, 4) for i, s in enumerate(STAGES) if s != "normals"}
         meta["ankle_error_mm"] = round(float(out.retarget.ankle_position_error.max()) * 1000, 4)
         msg = Message("body", self.session, frame.index, frame.time,
-                      {"vertices": self._verts, "normals": self._normals, "q": out.retarget.q}, meta,
+                      {"vertices": self._verts, "q": out.retarget.q}, meta,
                       origin_ns=origin_ns)
         self.publisher.put(encode(msg))
         self.frames += 1

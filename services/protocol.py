@@ -35,7 +35,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAGIC = b"TRYN"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# versions this build reads. Version 1 differs only in the body message, which had to carry the
+# skin's vertex normals: half its bytes, read by no service (a display computes them from the
+# latched topology); a version 1 recording still replays.
+READABLE_VERSIONS = (1, 2)
 PREFIX = struct.Struct("<4sHI")
 MAX_HEADER = 1 << 20
 ALIGN = 8
@@ -48,11 +52,15 @@ SCHEMAS: dict[str, dict[str, tuple[tuple[str, ...], tuple]]] = {
     "skeleton": {"parents": (("<i4",), (None,)), "heads": (("<f8", "<f4"), (None, 3)),
                  "tails": (("<f8", "<f4"), (None, 3))},
     "pose": {"local_rotations": (("<f8", "<f4"), (None, 4)), "root_position": (("<f8", "<f4"), (3,))},
-    "body": {"vertices": (("<f4",), (None, 3)), "normals": (("<f4",), (None, 3)), "q": (("<f8",), (None,))},
+    "body": {"vertices": (("<f4",), (None, 3)), "q": (("<f8",), (None,))},
     "garment": {"positions": (("<f4",), (None, 3)), "normals": (("<f4",), (None, 3))},
     "topology": {"triangles": (("<i4",), (None, 3))},
     "stats": {},
     "control": {},
+}
+# Arrays a message may carry, validated like the required ones when present.
+OPTIONAL: dict[str, dict[str, tuple[tuple[str, ...], tuple]]] = {
+    "body": {"normals": (("<f4",), (None, 3))},  # version 1 always had them
 }
 
 
@@ -119,8 +127,9 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
     magic, version, hlen = PREFIX.unpack_from(buf, 0)
     if magic != MAGIC:
         raise MessageError(key, f"bad magic {bytes(magic)!r} (expected {MAGIC!r}): not a tryon message")
-    if version != SCHEMA_VERSION:
-        raise MessageError(key, f"schema version {version} is not supported (this build speaks {SCHEMA_VERSION})")
+    if version not in READABLE_VERSIONS:
+        raise MessageError(key, f"schema version {version} is not supported (this build reads "
+                                f"{', '.join(map(str, READABLE_VERSIONS))})")
     if hlen > MAX_HEADER or PREFIX.size + hlen > len(buf):
         raise MessageError(key, f"header length {hlen} runs past the message ({len(buf)} bytes)")
     try:
@@ -171,10 +180,12 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
         offset += nbytes + _pad(nbytes)
     if offset != len(buf):
         raise MessageError(key, f"{len(buf) - offset} bytes left over after the arrays")
-    for name, (codes, pattern) in SCHEMAS[k].items():
+    for name, (codes, pattern) in (SCHEMAS[k] | OPTIONAL.get(k, {})).items():
         a = arrays.get(name)
         if a is None:
-            raise MessageError(key, f"{k} message lacks array {name!r}")
+            if name in SCHEMAS[k]:
+                raise MessageError(key, f"{k} message lacks array {name!r}")
+            continue
         if a.dtype.str not in codes:
             raise MessageError(key, f"array {name!r} has dtype {a.dtype.str}, expected {' or '.join(codes)}")
         if len(a.shape) != len(pattern) or any(p is not None and p != n for p, n in zip(pattern, a.shape)):
@@ -182,6 +193,9 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
             raise MessageError(key, f"array {name!r} has shape {tuple(a.shape)}, expected {want}")
         if a.dtype.kind == "f" and not np.isfinite(a).all():
             raise MessageError(key, f"array {name!r} holds NaN or infinite values")
+    points = arrays.get("vertices" if k == "body" else "positions")
+    if "normals" in arrays and points is not None and arrays["normals"].shape[0] != points.shape[0]:
+        raise MessageError(key, f"{arrays['normals'].shape[0]} normals for {points.shape[0]} vertices")
     return Message(k, s, frame, float(t), arrays, meta, stamp, origin)
 
 

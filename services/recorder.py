@@ -3,7 +3,7 @@
 MCAP (https://mcap.dev) is the standard container for pub/sub recordings (ROS 2, Foxglove): an
 indexed, chunked, compressed log of timestamped messages on named channels, readable by
 `mcap` tools and Foxglove Studio. One channel per key expression; each MCAP message is the
-tryon message exactly as it was on the bus (message_encoding "tryon/1", schemaless - the
+tryon message exactly as it was on the bus (message_encoding "tryon/2", schemaless - the
 format is self-describing, see services/protocol.py); log_time is when the recorder received
 it, publish_time the sender's stamp_ns.
 
@@ -23,10 +23,11 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from .bus import Latched, Stats, check_session_name, key, parse_key, wait_matching
-from .protocol import SCHEMA_VERSION, MessageError, peek_header, retag
+from .protocol import READABLE_VERSIONS, SCHEMA_VERSION, MessageError, peek_header, retag
 
 log = logging.getLogger("tryon.recorder")
 MESSAGE_ENCODING = f"tryon/{SCHEMA_VERSION}"
+READABLE_ENCODINGS = tuple(f"tryon/{v}" for v in READABLE_VERSIONS)  # older recordings replay too
 LATCHED = ("session", "topology", "skeleton")  # kinds of key served to late joiners
 
 
@@ -99,9 +100,9 @@ def read_recording(path: str | Path, kinds: set[str] | None = None):
         try:
             reader = make_reader(f)
             for _, channel, message in reader.iter_messages(log_time_order=True):
-                if channel.message_encoding != MESSAGE_ENCODING:
+                if channel.message_encoding not in READABLE_ENCODINGS:
                     raise ValueError(f"{path}: channel {channel.topic!r} has encoding "
-                                     f"{channel.message_encoding!r}, expected {MESSAGE_ENCODING!r}")
+                                     f"{channel.message_encoding!r}, expected one of {', '.join(READABLE_ENCODINGS)}")
                 if kinds is not None:
                     try:
                         part = parse_key(channel.topic)[1][0]

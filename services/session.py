@@ -26,7 +26,7 @@ from .ingest import IngestService
 from .protocol import MessageError, decode
 from .recorder import Recorder
 from .spin import LIVE_SPIN
-from .viewer import RecordingSink, ViewerBridge
+from .viewer import RecordingSink, VertexNormals, ViewerBridge
 
 
 class SessionTap:
@@ -65,7 +65,9 @@ class SessionTap:
                 self.last_garment_frame = max(self.last_garment_frame, msg.frame)
             if msg.frame in self.wanted:
                 pos = msg.arrays["vertices" if msg.kind == "body" else "positions"]
-                self.frames.setdefault(msg.frame, {})["/".join(parts)] = (pos.copy(), msg.arrays["normals"].copy())
+                normals = msg.arrays.get("normals")  # the body's: none since schema 2
+                self.frames.setdefault(msg.frame, {})["/".join(parts)] = (
+                    pos.copy(), None if normals is None else normals.copy())
 
     def close(self) -> None:
         for s in self._subs:
@@ -152,6 +154,8 @@ def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: P
                 if ent not in topology:
                     continue
                 color = topology[ent].get("color", (0.7, 0.7, 0.7))
+                if normals is None:
+                    normals = VertexNormals(topology[ent]["triangles"], len(pos))(pos)
                 meshes.append(MeshDraw(pos.astype(np.float64), topology[ent]["triangles"], normals.astype(np.float64),
                                        tuple(color)))
             verts = tap.frames[f]["body"][0]

@@ -18,6 +18,8 @@ import rerun as rr
 import rerun.blueprint as rrb
 import zenoh
 
+from skinning.skin import MeshNormals
+
 from .bus import Stats, fetch_latched, key, parse_key
 from .protocol import MessageError, decode
 
@@ -126,6 +128,29 @@ class EveryFrame:
         return out
 
 
+def triangles_problem(triangles: np.ndarray, n_vertices) -> str | None:
+    """What makes a latched topology unusable for a mesh of n_vertices (None: nothing)."""
+    if not isinstance(n_vertices, int) or isinstance(n_vertices, bool) or n_vertices < 0:
+        return f"meta 'n_vertices' must be an integer >= 0, got {n_vertices!r}"
+    if triangles.size and (triangles.min() < 0 or triangles.max() >= n_vertices):
+        return f"triangle indices run outside 0..{n_vertices - 1}"
+    return None
+
+
+class VertexNormals:
+    """Area-weighted unit vertex normals of a mesh whose message carries none (the body since
+    schema 2: half its bytes saved on the wire), for a display to shade it; buffers kept."""
+
+    def __init__(self, triangles: np.ndarray, n_vertices: int):
+        self._normals = MeshNormals(triangles, n_vertices)
+        self._x = np.empty((n_vertices, 3))
+        self._out = np.empty((n_vertices, 3))
+
+    def __call__(self, positions: np.ndarray) -> np.ndarray:
+        np.copyto(self._x, positions)
+        return self._normals(self._x, self._out)
+
+
 class ViewerBridge:
     SERVICE = "viewer"
 
@@ -163,8 +188,13 @@ class ViewerBridge:
                 continue
             tris = np.array(msg.arrays["triangles"])
             color = msg.meta.get("color", [0.7, 0.7, 0.7])
-            self.topology[ent] = {"triangles": tris, "n_vertices": int(msg.meta.get("n_vertices", tris.max() + 1)),
-                                  "color": tuple(float(c) for c in color[:3])}
+            n = msg.meta.get("n_vertices", int(tris.max()) + 1 if tris.size else 0)
+            problem = triangles_problem(tris, n)
+            if problem:
+                self.stats.reject(MessageError(k, problem))
+                continue
+            self.topology[ent] = {"triangles": tris, "n_vertices": n, "color": tuple(float(c) for c in color[:3]),
+                                  "shading": None}
             self.rec.log(ent, rr.Mesh3D.from_fields(triangle_indices=tris,
                                                     albedo_factor=[int(255 * c) for c in color[:3]] + [255]),
                          static=True)
@@ -198,7 +228,13 @@ class ViewerBridge:
         self.stats.add("received")
         self.rec.set_time("frame", sequence=msg.frame)
         self.rec.set_time("session_time", duration=msg.time)
-        self.rec.log(ent, rr.Mesh3D.from_fields(vertex_positions=pos, vertex_normals=msg.arrays["normals"]))
+        normals = msg.arrays.get("normals")
+        if normals is None:  # the body (schema 2): shaded here, from the latched topology
+            topo = self.topology[ent]
+            if topo["shading"] is None:
+                topo["shading"] = VertexNormals(topo["triangles"], topo["n_vertices"])
+            normals = topo["shading"](pos)
+        self.rec.log(ent, rr.Mesh3D.from_fields(vertex_positions=pos, vertex_normals=normals))
         self.frames_shown[ent] = msg.frame
         if msg.kind == "garment":
             latency = (time.time_ns() - msg.origin_ns) / 1e6

@@ -20,7 +20,7 @@ from .skin import MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices
 @dataclass
 class BodyFrame:
     vertices: np.ndarray  # (n, 3) all skinned vertices (helpers included), metres, world
-    normals: np.ndarray  # (n_visible, 3) unit normals of the visible skin
+    normals: np.ndarray | None  # (n_visible, 3) unit normals of the visible skin (None: not computed)
     joint_rotations: np.ndarray  # (bones, 3, 3) global
     joint_positions: np.ndarray  # (bones, 3) global
     retarget: RetargetFrame | None
@@ -33,7 +33,9 @@ class BodyAnimator:
     """Retarget + skin, one frame at a time. `stage_seconds` holds the last frame's stage times."""
 
     def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
-                 person_floor_y: float = 0.0):
+                 person_floor_y: float = 0.0, normals: bool = True):
+        """normals: compute the skin's vertex normals each frame (False: a service that publishes
+        the body for displays that compute their own; BodyFrame.normals is then None)."""
         self.body = body
         self.character = Character(body.skeleton)
         self.retargeter = None
@@ -50,7 +52,7 @@ class BodyAnimator:
         self.stage_seconds = np.zeros(len(STAGES))
         self.frame = BodyFrame(
             vertices=np.empty_like(body.vertices),
-            normals=np.empty((body.n_visible, 3)),
+            normals=np.empty((body.n_visible, 3)) if normals else None,
             joint_rotations=np.empty((n_bones, 3, 3)),
             joint_positions=np.empty((n_bones, 3)),
             retarget=None,
@@ -75,7 +77,8 @@ class BodyAnimator:
         w = self._weights
         linear_blend_skinning(self.body.vertices, w.start, w.bones, w.weights, self._matrices, f.vertices)
         t1 = time.perf_counter()
-        self._normals(f.vertices, f.normals)
+        if f.normals is not None:
+            self._normals(f.vertices, f.normals)
         self.stage_seconds[1] = t1 - t0
         self.stage_seconds[2] = time.perf_counter() - t1
         return f

@@ -8,7 +8,8 @@ import pytest
 
 from services.bus import check_session_name, key, parse_key
 from services.ingest import matrices_to_quaternions, quaternions_to_matrices
-from services.protocol import MAGIC, PREFIX, SCHEMA_VERSION, Message, MessageError, decode, encode, peek_frame, retag
+from services.protocol import (MAGIC, PREFIX, SCHEMA_VERSION, Message, MessageError, decode, encode, peek_frame,
+                               retag)
 
 KEY = "tryon/s1/body"
 
@@ -72,6 +73,10 @@ def test_malformed_messages_are_rejected_with_key_and_problem(mutate, problem):
      "dtype <f8, expected <f4"),
     ({"vertices": np.full((4, 3), np.nan, np.float32), "normals": np.zeros((4, 3), np.float32), "q": np.zeros(3)},
      "NaN"),
+    ({"vertices": np.zeros((4, 3), np.float32), "normals": np.zeros((4, 2), np.float32), "q": np.zeros(3)},
+     "'normals' has shape (4, 2)"),
+    ({"vertices": np.zeros((4, 3), np.float32), "normals": np.zeros((5, 3), np.float32), "q": np.zeros(3)},
+     "5 normals for 4 vertices"),
 ])
 def test_schema_violations_are_rejected(arrays, problem):
     data = encode(Message("body", "s1", 1, 0.0, arrays))
@@ -113,3 +118,32 @@ def test_pose_quaternions_known_rotation_and_round_trip():
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     r = quaternions_to_matrices(q, np.empty((50, 3, 3)))
     np.testing.assert_allclose(quaternions_to_matrices(matrices_to_quaternions(r), np.empty((50, 3, 3))), r, atol=1e-12)
+
+
+def test_body_normals_are_optional_and_version_1_is_still_read():
+    """Schema 2's body message carries no normals (a display computes them); one with them, as
+    every version 1 body message had, is read and checked as before, so old recordings replay."""
+    m = body_message()
+    bare = Message("body", "s1", 7, 0.125, {"vertices": m.arrays["vertices"], "q": m.arrays["q"]})
+    d = decode(encode(bare), KEY, "s1", "body")
+    assert set(d.arrays) == {"vertices", "q"}
+    v1 = bytearray(encode(m))
+    v1[4:6] = (1).to_bytes(2, "little")
+    d = decode(bytes(v1), KEY, "s1", "body")
+    assert d.arrays["normals"].tobytes() == m.arrays["normals"].tobytes()
+    assert SCHEMA_VERSION == 2
+
+
+def test_a_display_shades_a_mesh_sent_without_normals():
+    """VertexNormals: a tent of two faces of equal area folded along the x axis: each face's
+    normal at its own corner, their normalised mean on the ridge; a topology whose indices run
+    past its vertices is refused."""
+    from services.viewer import VertexNormals, triangles_problem
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 1], [0, 1, -1]], np.float32)  # ridge 0-1
+    tris = np.array([[0, 1, 2], [1, 0, 3]], np.int32)
+    n = VertexNormals(tris, 4)(x)
+    r = 1 / np.sqrt(2)
+    assert np.allclose(n, [[0, -1, 0], [0, -1, 0], [0, -r, r], [0, -r, -r]])
+    assert triangles_problem(tris, 4) is None
+    assert "outside 0..2" in triangles_problem(tris, 3)
+    assert "n_vertices" in triangles_problem(tris, "4")

@@ -195,10 +195,15 @@ def test_late_joining_display_gets_topology_and_frames(hub, body, data, tmp_path
             bridge = ViewerBridge(display, "late", sink).start()
             assert set(bridge.topology) == {"world/body", *(f"world/garment/{g}" for g in GARMENTS)}
             late = Collector(display, key("late", "garment", "*"))
+            bodies = Collector(display, key("late", "body"))
+            wait_until(lambda: bodies.messages, 30, "a body frame at the late display")
+            assert set(bodies.messages[0][1].arrays) == {"vertices", "q"}  # the display shades the skin itself
             wait_until(lambda: len(late.frames(f"garment/{GARMENTS[1]}")) >= 5, 30, "frames at the late display")
             assert min(late.frames(f"garment/{GARMENTS[1]}")) > joined_at
             wait_until(lambda: all(bridge.frames_shown.get(e, -1) > joined_at for e in bridge.topology), 10,
                        "the viewer bridge to show every mesh")
+            shading = bridge.topology["world/body"]["shading"]
+            assert shading is not None and np.allclose(np.linalg.norm(shading._out, axis=1), 1.0)
             bridge.stop()
             rrd = sink.close()
             assert rrd.exists() and rrd.stat().st_size > 0 and bridge.stats.counts["rejected"] == 0
@@ -272,7 +277,6 @@ def test_malformed_messages_are_rejected_counted_and_the_session_goes_on(hub, bo
         t, svc = run_ingest(bus, "bad", body, data, pace="realtime", loop=True, stop=stop)
         wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) >= 5, 60, "the session to run")
         good = encode(Message("body", "bad", 10**6, 0.0, {"vertices": np.zeros((10, 3), np.float32),
-                                                           "normals": np.zeros((10, 3), np.float32),
                                                            "q": np.zeros(3)}))
         bad_payloads = [b"not a tryon message",
                         good[:4] + (99).to_bytes(2, "little") + good[6:],  # wrong schema version

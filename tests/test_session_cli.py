@@ -58,3 +58,27 @@ def test_replay_rejects_a_truncated_recording(tmp_path):
         list(read_recording(src))
     with pytest.raises(FileNotFoundError):
         list(read_recording(tmp_path / "missing.mcap"))
+
+
+def test_a_schema_1_recording_still_replays_and_an_unknown_one_is_refused(tmp_path):
+    """Schema 2 dropped the body's normals; a recording made before (channels "tryon/1", body
+    messages with normals) reads back message for message, one in an unknown encoding does not."""
+    from mcap.writer import Writer
+
+    from services.protocol import Message, encode
+
+    body = Message("body", "old", 3, 0.05, {"vertices": np.ones((4, 3), np.float32),
+                                            "normals": np.ones((4, 3), np.float32), "q": np.zeros(7)})
+    v1 = bytearray(encode(body))
+    v1[4:6] = (1).to_bytes(2, "little")
+    for encoding, name in (("tryon/1", "v1.mcap"), ("tryon/9", "v9.mcap")):
+        with open(tmp_path / name, "wb") as f:
+            w = Writer(f)
+            w.start()
+            ch = w.register_channel("tryon/old/body", encoding, 0)
+            w.add_message(ch, log_time=1, data=bytes(v1), publish_time=1)
+            w.finish()
+    [(k, payload, _)] = list(read_recording(tmp_path / "v1.mcap"))
+    assert k == "tryon/old/body" and decode(payload, k).arrays["normals"].shape == (4, 3)
+    with pytest.raises(ValueError, match="'tryon/9'"):
+        list(read_recording(tmp_path / "v9.mcap"))
