@@ -156,14 +156,15 @@ def main() -> None:
     ap.add_argument("--level", type=int, default=6, help="PN level (0: coarse cloth only)")
     ap.add_argument("--seconds", type=float, default=8.0, help="length of each run in seconds of motion")
     ap.add_argument("--max-sessions", type=int, default=3)
-    ap.add_argument("--pin-cores", metavar="LIST", help="passed to the cloth service (e.g. 0,1)")
+    ap.add_argument("--pin-cores", metavar="LIST", default="auto",
+                    help="passed to the cloth service: auto (its default), none, or cores (e.g. 0,1)")
     args = ap.parse_args()
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     print(f"machine: {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}")
     print(f"outfit {OUTFIT} (two garments), level {args.level or 'coarse only'}, clip {CLIP}; "
           f"cloth service, ingest and this subscriber in separate processes over TCP loopback"
-          f"{'; cloth service threads pinned to cores ' + args.pin_cores if args.pin_cores else ''}\n")
+          f"; cloth service --pin-cores {args.pin_cores}\n")
     print("| cloth service | input | frames | latency p50 ms | p99 ms | max ms | frames without garments | "
           "compute ms/frame |")
     print("|---|---|---|---|---|---|---|---|")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from skinning.data import ENV_VAR, data_dir
 
-from .spin import LIVE_SPIN, check_cpus
+from .spin import LIVE_SPIN, check_cpus, default_cpus
 
 
 def _clips(data: Path, names: list[str] | None) -> list[Path]:
@@ -216,7 +216,9 @@ def cmd_cloth_service(args) -> int:
     if not args.spin_ms >= 0.0:
         raise SystemExit(f"tryon cloth-service: --spin-ms must be 0 or more, got {args.spin_ms}")
     cpus = None
-    if args.pin_cores:
+    if args.pin_cores == "auto":
+        cpus = default_cpus()
+    elif args.pin_cores != "none":
         try:
             cpus = check_cpus(int(c) for c in args.pin_cores.split(","))
         except ValueError as err:  # also a value that is not an integer
@@ -407,9 +409,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--catch-up", action="store_true",
                    help="when behind, simulate every body frame but build and publish the detailed surface only "
                         "for the newest (live displays stay current; output no longer bit-reproducible)")
-    p.add_argument("--pin-cores", metavar="LIST",
+    p.add_argument("--pin-cores", metavar="LIST", default="auto",
                    help="keep the serving thread on the first of these cores and a garment thread on each of the "
-                        "others, e.g. 0,1 (Linux; default: unpinned, one garment thread per core)")
+                        "others, e.g. 0,1; 'auto' (default): the process's cores, where there are two or more "
+                        "and the platform pins threads (Linux); 'none': unpinned, one garment thread per core")
     p.add_argument("--spin-ms", type=float, default=1000.0 * LIVE_SPIN,
                    help="after each frame, poll this long for the next before sleeping (default 20: a 60 Hz "
                         "session keeps the cores awake; an idle core can wake a millisecond late; 0: never poll)")

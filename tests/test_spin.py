@@ -13,7 +13,7 @@ import pytest
 from cloth.collision import BodyMesh, BodyPose
 from cloth.surface import SurfaceSettings
 from services.cloth_job import OUTFITS, OutfitSession, load_outfit_models
-from services.spin import SpinPool, SpinWorker, check_cpus, spin_get
+from services.spin import SpinPool, SpinWorker, check_cpus, default_cpus, spin_get
 from skinning.animate import BodyAnimator
 from skinning.body import body_clothed_faces, body_regions
 from skinning.source import BVHSource
@@ -217,6 +217,19 @@ def test_pool_workers_keep_to_their_cores_and_bad_core_lists_are_refused():
             check_cpus(bad)
     with pytest.raises(ValueError, match="2 workers, 1 cores"):
         SpinPool(2, 0.0, cpus=[cores[0]])
+
+
+def test_a_live_cloth_service_pins_its_threads_to_the_process_cores_by_default(monkeypatch):
+    """default_cpus: every allowed core in order where there are two or more; None (unpinned)
+    with one core, or where the platform cannot pin threads."""
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {3, 1}, raising=False)
+    monkeypatch.setattr(os, "sched_setaffinity", lambda pid, cpus: None, raising=False)
+    assert default_cpus() == [1, 3]
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {2}, raising=False)
+    assert default_cpus() is None
+    monkeypatch.delattr(os, "sched_setaffinity")
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert default_cpus() is None
 
 
 def test_cloth_service_cli_rejects_bad_core_lists():
