@@ -154,8 +154,9 @@ def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: P
                 if ent not in topology:
                     continue
                 color = topology[ent].get("color", (0.7, 0.7, 0.7))
-                if normals is None:
-                    normals = VertexNormals(topology[ent]["triangles"], len(pos))(pos)
+                if normals is None:  # the body's: the viewer bridge's normals for it, when it built them
+                    shading = topology[ent].get("shading") or VertexNormals(topology[ent]["triangles"], len(pos))
+                    normals = shading(pos)
                 meshes.append(MeshDraw(pos.astype(np.float64), topology[ent]["triangles"], normals.astype(np.float64),
                                        tuple(color)))
             verts = tap.frames[f]["body"][0]
