@@ -118,7 +118,7 @@ class SurfaceState:
         self.part_seeds = np.zeros((n, MAX_PART_SEEDS), dtype=np.int32)  # S103: other body parts near each
         self.seed_reach = np.zeros((n, MAX_PART_SEEDS))  # coarse particle (other_part_seeds)
         self.seed_count = np.zeros(n, dtype=np.int32)
-        self.parts = np.zeros((3 * (MAX_PART_SEEDS + 1), 2), dtype=np.int32)  # S103 scratch
+        self.parts = np.zeros((3 * (MAX_PART_SEEDS + 1), 3), dtype=np.int32)  # S103 scratch
         self.reach = np.zeros(3 * (MAX_PART_SEEDS + 1))
         self.part, self.part_vertex, self.part_d2 = part_scratch()  # other_part_seeds scratch
         self.floor = np.zeros(N)  # S106: the lowest and highest heights S103 allows
