@@ -143,13 +143,16 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
         if r == walked:
             g = e
             continue
-        if dc0 < 0.0:
+        if dc0 < 0.0:  # (each corner has its nearest vertex among the seeds: all three are set)
             for j in range(n_parts):
+                slot = parts[j, 2]
+                if (dc0 if slot == 0 else (dc1 if slot == 1 else dc2)) >= 0.0:
+                    continue  # (a corner with several seeds: its distance once)
                 c = parts[j, 1]
                 dc = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
-                if parts[j, 2] == 0:
+                if slot == 0:
                     dc0 = dc
-                elif parts[j, 2] == 1:
+                elif slot == 1:
                     dc1 = dc
                 else:
                     dc2 = dc
@@ -625,10 +628,7 @@ def _lower_within(p_smoothed, n_pn, i, j, h, floor_i, qx, qy, qz, seg_max, allow
     neighbour j, standing at q, as S106 step 5 brings the higher end of an over-long edge down
     (`_limit_edge`): seg_max, or where the reference surface alone parts them farther, that
     length with seg_max² - rest² on top."""
-    lim2 = seg_max * seg_max
-    ref2 = _dist2(p_smoothed, i, j)
-    if ref2 > lim2:
-        lim2 = ref2 + allowance * lim2
+    lim2 = _limit2(p_smoothed, i, j, seg_max, allowance)
     dx = p_smoothed[i, 0] + h * n_pn[i, 0] - qx
     dy = p_smoothed[i, 1] + h * n_pn[i, 1] - qy
     dz = p_smoothed[i, 2] + h * n_pn[i, 2] - qz
@@ -851,6 +851,16 @@ def _dist2(p, i, j):
 
 
 @njit(cache=True, inline="always")
+def _limit2(p_smoothed, i, j, d_max, allowance):
+    """S106 step 5's squared limit on the distance of neighbours i and j: d_max², or (Decision)
+    where the reference surface alone parts them beyond d_max, as far as on the edge at rest
+    beyond that (d_max² - rest² = allowance d_max²)."""
+    lim2 = d_max * d_max
+    ref2 = _dist2(p_smoothed, i, j)
+    return ref2 + allowance * lim2 if ref2 > lim2 else lim2
+
+
+@njit(cache=True, inline="always")
 def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved, stamp, start_h,
                 fold, max_height, p):
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than its limit
@@ -862,17 +872,12 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
     can shorten is not, or every later round would revisit it for nothing); returns the new
     length of that list."""
     i, j = d_edges[e, 0], d_edges[e, 1]
-    lim2 = d_max[e] * d_max[e]
     d2 = _dist2(p, i, j)
+    if d2 <= d_max[e] * d_max[e]:
+        return count  # (most edges: the limit's reference length is not needed)
+    lim2 = _limit2(p_smoothed, i, j, d_max[e], allowance)
     if d2 <= lim2:
         return count
-    # Decision: where the reference surface alone parts the ends beyond d_max, the heights may
-    # part them as far as on the edge at rest (d_max² - rest² = allowance d_max² beyond it)
-    ref2 = _dist2(p_smoothed, i, j)
-    if ref2 > lim2:
-        lim2 = ref2 + allowance * lim2
-        if d2 <= lim2:
-            return count
     lim = math.sqrt(lim2)
     hi, lo = (i, j) if dh[i] >= dh[j] else (j, i)
     if fold[hi] == 1 and fold[lo] == 0:  # widen the fold: the lower end rises with it
