@@ -13,44 +13,79 @@ from .jit import kernel
 
 
 def spring_table(si, sj, rest, k_stretch, k_compress, c_stretch, c_compress):
-    """Pack springs for the force kernel: pairs (s, 2) int32 and params (s, 5) =
-    (rest length, k_stretch - k_compress, k_compress, c_stretch - c_compress, c_compress).
+    """Pack springs for the force kernel: pairs (s, 2) int32 and params (5, s) = rows (rest
+    length, k_stretch - k_compress, k_compress, c_stretch - c_compress, c_compress).
 
-    One row per spring keeps a spring's data on one cache line; about a third faster than
-    seven separate arrays."""
+    A row per parameter, so that `spring_magnitudes` reads each one in sequence and vectorises."""
     pairs = np.ascontiguousarray(np.stack([si, sj], axis=1), dtype=np.int32)
     params = np.ascontiguousarray(np.stack([rest, np.subtract(k_stretch, k_compress), k_compress,
-                                            np.subtract(c_stretch, c_compress), c_compress], axis=1),
-                                  dtype=np.float64)
+                                            np.subtract(c_stretch, c_compress), c_compress]), dtype=np.float64)
     return pairs, params
 
 
-@kernel(fastmath=True)
-def spring_forces(x, v, pairs, params, force):
-    """Add every spring's force to `force` (S101 springs).
+def spring_scratch(n_springs: int) -> np.ndarray:
+    """The (6, s) scratch of `spring_forces`: each spring's end-to-end vector, squared length,
+    relative velocity along it, force magnitude."""
+    return np.zeros((6, n_springs))
 
-    f_i = -k (|q_i - q_j| - L_ij) (q_i - q_j)/|q_i - q_j|, with k = k_stretch when the spring is
-    longer than rest and k_compress when shorter (the patent's two stiffnesses), plus damping
-    along the spring on the relative velocity, with the same stretch/compress split.
-    pairs, params: see `spring_table`."""
+
+@kernel(fastmath=True)
+def spring_geometry(x, v, pairs, work):
+    """Per spring: work[0:3] = q_i - q_j, work[3] = |q_i - q_j|², work[4] = (v_i - v_j)·(q_i - q_j).
+
+    The loads by particle index (vector gathers were no faster than scalar loads here), kept
+    apart from the arithmetic, which vectorises."""
     for s in range(pairs.shape[0]):
         i = pairs[s, 0]
         j = pairs[s, 1]
         dx = x[i, 0] - x[j, 0]
         dy = x[i, 1] - x[j, 1]
         dz = x[i, 2] - x[j, 2]
-        l2 = dx * dx + dy * dy + dz * dz
-        inv = 1.0 / math.sqrt(l2 + 1e-30)  # coincident ends: no direction, no force
-        ext = l2 * inv - params[s, 0]
+        work[0, s] = dx
+        work[1, s] = dy
+        work[2, s] = dz
+        work[3, s] = dx * dx + dy * dy + dz * dz
+        work[4, s] = (v[i, 0] - v[j, 0]) * dx + (v[i, 1] - v[j, 1]) * dy + (v[i, 2] - v[j, 2]) * dz
+
+
+@kernel(fastmath=True)
+def spring_magnitudes(params, work):
+    """work[5] = the force along q_i - q_j per unit of it, from work[3:5] (S101 springs):
+    -k (|q_i - q_j| - L_ij) / |q_i - q_j|, k = k_stretch when longer than rest and k_compress
+    when shorter, plus damping on the relative velocity along the spring with the same split.
+
+    Sequential rows only: the loop vectorises, and the square root and the division, which
+    take the scalar loop most of its time, run several springs at once."""
+    for s in range(work.shape[1]):
+        inv = 1.0 / math.sqrt(work[3, s] + 1e-30)  # coincident ends: no direction, no force
+        ext = work[3, s] * inv - params[0, s]
         # branch-free choice: near rest the sign of ext is a coin toss the CPU cannot predict
         stretched = 1.0 if ext > 0.0 else 0.0
-        k = params[s, 2] + stretched * params[s, 1]
-        c = params[s, 4] + stretched * params[s, 3]
-        rel = ((v[i, 0] - v[j, 0]) * dx + (v[i, 1] - v[j, 1]) * dy + (v[i, 2] - v[j, 2]) * dz) * inv
-        mag = (-k * ext - c * rel) * inv  # times the unnormalised direction (dx, dy, dz)
-        fx = mag * dx
-        fy = mag * dy
-        fz = mag * dz
+        k = params[2, s] + stretched * params[1, s]
+        c = params[4, s] + stretched * params[3, s]
+        rel = work[4, s] * inv
+        work[5, s] = (-k * ext - c * rel) * inv
+
+
+@kernel(fastmath=True)
+def spring_forces(x, v, pairs, params, work, force):
+    """Add every spring's force to `force` (S101 springs).
+
+    f_i = -k (|q_i - q_j| - L_ij) (q_i - q_j)/|q_i - q_j|, with k = k_stretch when the spring is
+    longer than rest and k_compress when shorter (the patent's two stiffnesses), plus damping
+    along the spring on the relative velocity, with the same stretch/compress split.
+    pairs, params: see `spring_table`; work: (6, s) scratch (`spring_scratch`). Three passes:
+    gather, vectorised arithmetic, scatter (a fifth less time than one loop doing all three:
+    13.7 → 10.7 µs for 1,809 springs on the AMD EPYC)."""
+    spring_geometry(x, v, pairs, work)
+    spring_magnitudes(params, work)
+    for s in range(pairs.shape[0]):
+        i = pairs[s, 0]
+        j = pairs[s, 1]
+        m = work[5, s]
+        fx = m * work[0, s]
+        fy = m * work[1, s]
+        fz = m * work[2, s]
         force[i, 0] += fx
         force[i, 1] += fy
         force[i, 2] += fz
@@ -60,7 +95,7 @@ def spring_forces(x, v, pairs, params, force):
 
 
 @kernel
-def accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, out):
+def accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, out):
     """a = (springs + air drag + gravity) / m.
 
     Air drag acts on the velocity across the cloth: f = -drag_i (v·n_i) n_i, drag_i = air_drag ·
@@ -71,7 +106,7 @@ def accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, out):
         out[i, 0] = -d * normals[i, 0]
         out[i, 1] = -d * normals[i, 1]
         out[i, 2] = -d * normals[i, 2]
-    spring_forces(x, v, pairs, params, out)
+    spring_forces(x, v, pairs, params, spring_work, out)
     for i in range(x.shape[0]):
         w = inv_mass[i]
         out[i, 0] *= w
@@ -87,24 +122,25 @@ def _axpy(out, base, h, d):
 
 
 @kernel
-def rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, work):
+def rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work):
     """One classical 4th-order Runge-Kutta step of dx/dt = v, dv/dt = a(x, v) (S101 integrator).
 
-    work: (9, n, 3) scratch: a1..a4, v2..v4, and two position buffers."""
+    spring_work: see `spring_forces`; work: (9, n, 3) scratch: a1..a4, v2..v4, and two position
+    buffers."""
     a1, a2, a3, a4 = work[0], work[1], work[2], work[3]
     v2, v3, v4 = work[4], work[5], work[6]
     xt = work[7]
     h = 0.5 * dt
-    accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, a1)
+    accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a1)
     _axpy(xt, x, h, v)
     _axpy(v2, v, h, a1)
-    accelerations(xt, v2, inv_mass, drag, normals, gravity_y, pairs, params, a2)
+    accelerations(xt, v2, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a2)
     _axpy(xt, x, h, v2)
     _axpy(v3, v, h, a2)
-    accelerations(xt, v3, inv_mass, drag, normals, gravity_y, pairs, params, a3)
+    accelerations(xt, v3, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a3)
     _axpy(xt, x, dt, v3)
     _axpy(v4, v, dt, a3)
-    accelerations(xt, v4, inv_mass, drag, normals, gravity_y, pairs, params, a4)
+    accelerations(xt, v4, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a4)
     s = dt / 6.0
     for i in range(x.shape[0]):
         for k in range(3):

@@ -22,7 +22,7 @@ import numpy as np
 from .coarsen import coarsen
 from .collision import (FACE_TREE_STACK, BodyMesh, BodyPose, attach_to_body, collide_particles,
                         face_normals, follow_body, part_scratch, resolve_contacts)
-from .dynamics import limit_stretch, rk4_substep
+from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment
 from .geometry import nearest_vertices, region_masks, vertex_normals
@@ -32,13 +32,13 @@ from .model import ClothModel, SimSettings, build_cloth_model
 
 @kernel
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj,
-                      rest, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start, nbr_ids, tris,
-                      tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed, face_n, tested_at,
-                      clear):
+                      rest, spring_work, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start,
+                      nbr_ids, tris, tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed,
+                      face_n, tested_at, clear):
     """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
     call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
-        rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, work)
+        rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
             collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
                               masks, nearest, thickness, friction, contact, fixed, face_n, tested_at, clear)
@@ -150,7 +150,7 @@ class ClothStats:
 class ClothState:
     """Everything that changes per frame, preallocated."""
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, n_springs: int):
         self.x = np.zeros((n, 3))  # positions, m
         self.v = np.zeros((n, 3))  # velocities, m/s
         self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
@@ -176,13 +176,14 @@ class ClothState:
         self.normals = np.zeros((n, 3))  # particle normals of this frame (air drag)
         self.bad = np.zeros(n, dtype=np.uint8)
         self.work = np.zeros((9, n, 3))
+        self.spring_work = spring_scratch(n_springs)
 
 
 class ClothSim:
     def __init__(self, model: ClothModel, body: BodyMesh, body_vertices: np.ndarray):
         self.model = model
         self.body = body
-        self.state = ClothState(model.n_particles)
+        self.state = ClothState(model.n_particles, len(model.spring_i))
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
         self.own_pose = BodyPose(body, model.settings.nearest_face_radius > 0)  # used when no shared pose is given
@@ -236,7 +237,8 @@ class ClothSim:
             t_int = t_col = 0.0
             for k in range(n_sub):  # the same order as simulate_substeps, timed per stage
                 t0 = time.perf_counter()
-                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_pairs, m.spring_params, s.work)
+                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_pairs, m.spring_params,
+                            s.spring_work, s.work)
                 t1 = time.perf_counter()
                 if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
                     collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
@@ -252,8 +254,8 @@ class ClothSim:
             self.stage_seconds[1] = t_col
         else:
             simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_pairs,
-                              m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.work, m.n_structural,
-                              f.max_strain, st.limit_passes, body_x, s.carrier,
+                              m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.spring_work, s.work,
+                              m.n_structural, f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
                               m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, face_n,
                               s.tested_at, s.clear)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import BodyMesh, VertexGrid, part_scratch
-from .dynamics import spring_forces
+from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
@@ -141,6 +141,7 @@ class SurfaceState:
         self.coarse_normals = np.zeros((n, 3))
         self.coarse_force = np.zeros((n, 3))
         self.zero_v = np.zeros((n, 3))
+        self.spring_work = spring_scratch(len(m.cloth.spring_i))
         self.edge_force = np.zeros((E, 2, 3))
         self.ctrl = np.zeros((T, 10, 3))
         self.nctrl = np.zeros((T, 6, 3))
@@ -199,7 +200,7 @@ class DetailedSurface:
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0
-        spring_forces(x, s.zero_v, c.spring_pairs, c.spring_params, s.coarse_force)
+        spring_forces(x, s.zero_v, c.spring_pairs, c.spring_params, s.spring_work, s.coarse_force)
         np.negative(s.coarse_force, out=s.coarse_force)
         coarse_edge_forces(x, t.coarse_edges, m.edge_rest_coarse, c.fabric.stretch_stiffness,
                            c.fabric.compression_stiffness, s.edge_force)

@@ -8,7 +8,7 @@ import pytest
 
 from cloth.collision import (FACE_TREE_STACK, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
                              collide_particles, face_normals, follow_body, resolve_contacts, tree_nearest_face)
-from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_table, stable_time_step
+from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_scratch, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 from cloth.model import SimSettings
 from cloth.sim import mark_moved
@@ -30,8 +30,9 @@ def run_rk4(x, v, inv_mass, spring_args, dt, steps, gravity=0.0, drag=None, norm
     drag = np.zeros(n) if drag is None else drag
     normals = np.zeros((n, 3)) if normals is None else normals
     work = np.zeros((9, n, 3))
+    spring_work = spring_scratch(len(spring_args[0]))
     for _ in range(steps):
-        rk4_substep(x, v, dt, inv_mass, drag, normals, -gravity, *spring_args, work)
+        rk4_substep(x, v, dt, inv_mass, drag, normals, -gravity, *spring_args, spring_work, work)
 
 
 def test_hanging_spring_settles_at_analytic_extension():
@@ -55,7 +56,7 @@ def test_stretch_and_compression_forces_have_the_configured_ratio():
     forces = []
     for x in (x_long, x_short):
         f = np.zeros_like(x)
-        spring_forces(x, np.zeros_like(x), *args, f)
+        spring_forces(x, np.zeros_like(x), *args, spring_scratch(1), f)
         forces.append(f)
     f_long, f_short = forces
     assert f_long[1, 0] == pytest.approx(-ks * d)  # pulled back towards particle 0
