@@ -1,9 +1,26 @@
-"""numba kernels of the retargeting hot path (the Jacobians themselves come from Pinocchio)."""
+"""numba kernels of the retargeting hot path (the Jacobians themselves come from Pinocchio).
+
+They allocate nothing: their scratch comes from the caller (`IKScratch`), built once."""
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
+
+
+class IKScratch:
+    """Preallocated scratch of the kernels below, for joints of up to n_dof degrees of freedom
+    and m error rows (one leg: 6 rows)."""
+
+    def __init__(self, n_dof: int, m: int = 6):
+        self.rel = np.empty((3, 3))  # copy_rotations, pose_error, lowest_sole_point
+        self.vec = np.empty(3)  # lowest_sole_point
+        self.jw = np.empty((m, n_dof))  # dls_step
+        self.normal = np.empty((m, m))  # dls_step: J_w J_w^T + lam I
+        self.low = np.empty((m, m))  # solve_spd: its Cholesky factor
+        self.rhs = np.empty(m)
+        self.y = np.empty(m)
+        self.z = np.empty(m)  # solve_spd: forward substitution
 
 
 @njit(cache=True, nogil=True)
@@ -23,10 +40,10 @@ def mat3_tmul(a, b, out):
 
 
 @njit(cache=True, nogil=True)
-def copy_rotations(person_global, person_index, align, parents, char_global, char_local):
+def copy_rotations(person_global, person_index, align, parents, char_global, char_local, rel):
     """Character bone rotations from the person's: G_b = R_person_b A_b (bones the person lacks keep
-    their aligned rest rotation relative to the parent); local L_b = G_parent^T G_b."""
-    rel = np.empty((3, 3))
+    their aligned rest rotation relative to the parent); local L_b = G_parent^T G_b.
+    rel: (3, 3) scratch."""
     for b in range(parents.shape[0]):
         p = parents[b]
         pb = person_index[b]
@@ -44,8 +61,8 @@ def copy_rotations(person_global, person_index, align, parents, char_global, cha
 
 
 @njit(cache=True, nogil=True)
-def rotation_log(r, out):
-    """Axis-angle vector of a rotation matrix (log map), robust near 0 and pi."""
+def rotation_log(r, out, at):
+    """Axis-angle vector of a rotation matrix (log map), robust near 0 and pi, into out[at:at + 3]."""
     c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
     c = min(1.0, max(-1.0, c))
     theta = np.arccos(c)
@@ -65,31 +82,26 @@ def rotation_log(r, out):
             ay = -ay
         if vz < 0:
             az = -az
-        out[0] = ax * theta
-        out[1] = ay * theta
-        out[2] = az * theta
+        out[at] = ax * theta
+        out[at + 1] = ay * theta
+        out[at + 2] = az * theta
         return
     else:
         f = 0.5 * theta / np.sin(theta)
-    out[0] = f * vx
-    out[1] = f * vy
-    out[2] = f * vz
+    out[at] = f * vx
+    out[at + 1] = f * vy
+    out[at + 2] = f * vz
 
 
 @njit(cache=True, nogil=True)
-def pose_error(target_rot, target_pos, rot, pos, out):
-    """6-vector [target_pos - pos, log(target_rot rot^T)] in world axes."""
+def pose_error(target_rot, target_pos, rot, pos, out, rel):
+    """6-vector [target_pos - pos, log(target_rot rot^T)] in world axes. rel: (3, 3) scratch."""
     for a in range(3):
         out[a] = target_pos[a] - pos[a]
-    rel = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
             rel[i, j] = target_rot[i, 0] * rot[j, 0] + target_rot[i, 1] * rot[j, 1] + target_rot[i, 2] * rot[j, 2]
-    tmp = np.empty(3)
-    rotation_log(rel, tmp)
-    out[3] = tmp[0]
-    out[4] = tmp[1]
-    out[5] = tmp[2]
+    rotation_log(rel, out, 3)
 
 
 @njit(cache=True, nogil=True)
@@ -101,10 +113,10 @@ def weighted_cost(error, weights):
 
 
 @njit(cache=True, nogil=True)
-def solve_spd(a, b, out):
-    """Solve a x = b for a small symmetric positive definite a (Cholesky, no pivoting)."""
+def solve_spd(a, b, out, low, y):
+    """Solve a x = b for a small symmetric positive definite a (Cholesky, no pivoting).
+    low (n, n), y (n,): scratch (the lower triangle of low is written before it is read)."""
     n = a.shape[0]
-    low = np.zeros((n, n))
     for i in range(n):
         for j in range(i + 1):
             s = a[i, j]
@@ -114,7 +126,6 @@ def solve_spd(a, b, out):
                 low[i, i] = np.sqrt(max(s, 1e-300))
             else:
                 low[i, j] = s / low[j, j]
-    y = np.empty(n)
     for i in range(n):
         s = b[i]
         for k in range(i):
@@ -128,18 +139,17 @@ def solve_spd(a, b, out):
 
 
 @njit(cache=True, nogil=True)
-def dls_step(jac, error, weights, lam, posture, posture_gain, max_step, out):
+def dls_step(jac, error, weights, lam, posture, posture_gain, max_step, out, jw, a, low, rhs, y, z):
     """Damped least-squares step with a null-space pull towards a posture.
 
     J_w = W J, e_w = W e, J+ = J_w^T (J_w J_w^T + lam I)^-1;
     dq = J+ e_w + k (posture - J+ J_w posture), scaled so no component exceeds max_step.
+    jw (m, n), a, low (m, m), rhs, y, z (m,): scratch (`IKScratch`).
     """
     m, n = jac.shape
-    jw = np.empty((m, n))
     for i in range(m):
         for j in range(n):
             jw[i, j] = jac[i, j] * weights[i]
-    a = np.zeros((m, m))
     for i in range(m):
         for k in range(m):
             s = 0.0
@@ -148,14 +158,12 @@ def dls_step(jac, error, weights, lam, posture, posture_gain, max_step, out):
             a[i, k] = s
         a[i, i] += lam
     # right-hand side: e_w - k J_w posture, so dq = J+ (e_w - k J_w p) + k p
-    rhs = np.empty(m)
     for i in range(m):
         s = 0.0
         for j in range(n):
             s += jw[i, j] * posture[j]
         rhs[i] = error[i] * weights[i] - posture_gain * s
-    y = np.empty(m)
-    solve_spd(a, rhs, y)
+    solve_spd(a, rhs, y, low, z)
     biggest = 0.0
     for j in range(n):
         s = posture_gain * posture[j]
@@ -169,12 +177,11 @@ def dls_step(jac, error, weights, lam, posture, posture_gain, max_step, out):
 
 
 @njit(cache=True, nogil=True)
-def lowest_sole_point(points, on_toe, foot_rot, foot_pos, foot_head, toe_local, toe_head):
+def lowest_sole_point(points, on_toe, foot_rot, foot_pos, foot_head, toe_local, toe_head, toe_rot, toe_pos):
     """Lowest world height of the sole points when the foot joint is at (foot_rot, foot_pos) and the
-    toe joint rotates by toe_local relative to the foot (points are rest positions)."""
-    toe_rot = np.empty((3, 3))
+    toe joint rotates by toe_local relative to the foot (points are rest positions).
+    toe_rot (3, 3), toe_pos (3,): scratch."""
     mat3_mul(foot_rot, toe_local, toe_rot)
-    toe_pos = np.empty(3)
     for a in range(3):
         toe_pos[a] = foot_pos[a]
         for m in range(3):

@@ -42,6 +42,8 @@ def channels_to_local(values, chan_joint, chan_kind, unit, rot_out, pos_out):
     Rotation channels compose in the order the file lists them (R = R_first R_second ...),
     whatever that order is. chan_kind: 0..2 = X/Y/Z position, 3..5 = X/Y/Z rotation.
     rot_out (n, 3, 3) is overwritten; pos_out (3,) receives position channels times unit.
+    Each rotation is applied in place: R @ R_axis mixes only R's two columns across the axis
+    (the same sums as the full product, whose other terms are exact zeros), nothing allocated.
     """
     n = rot_out.shape[0]
     for j in range(n):
@@ -49,22 +51,24 @@ def channels_to_local(values, chan_joint, chan_kind, unit, rot_out, pos_out):
             for b in range(3):
                 rot_out[j, a, b] = 1.0 if a == b else 0.0
     pos_out[:] = 0.0
-    r = np.empty((3, 3))
-    tmp = np.empty((3, 3))
     for c in range(values.shape[0]):
         j = chan_joint[c]
         k = chan_kind[c]
         if k < 3:
             pos_out[k] = values[c] * unit
         else:
-            axis_rotation(k - 3, values[c], r)
+            # R_axis (see axis_rotation): [p, p] = [q, q] = cos, [p, q] = -sin, [q, p] = sin,
+            # with p, q the two axes after this one in cyclic order
+            p = (k - 2) % 3
+            q = (k - 1) % 3
+            angle = np.deg2rad(values[c])
+            co = np.cos(angle)
+            si = np.sin(angle)
             for a in range(3):
-                for b in range(3):
-                    s = 0.0
-                    for m in range(3):
-                        s += rot_out[j, a, m] * r[m, b]
-                    tmp[a, b] = s
-            rot_out[j] = tmp
+                rp = rot_out[j, a, p]
+                rq = rot_out[j, a, q]
+                rot_out[j, a, p] = rp * co + rq * si
+                rot_out[j, a, q] = rq * co - rp * si
 
 
 @njit(cache=True, nogil=True)

@@ -30,7 +30,7 @@ import numpy as np
 import pinocchio as pin
 
 from .character import Character
-from .ik_kernels import copy_rotations, dls_step, lowest_sole_point, pose_error, weighted_cost
+from .ik_kernels import IKScratch, copy_rotations, dls_step, lowest_sole_point, pose_error, weighted_cost
 from .kinematics import forward_kinematics, rotation_between
 from .skeleton import LEGS, Skeleton
 
@@ -146,6 +146,7 @@ class Retargeter:
                                   self.ik.rotation_weight], dtype=float)
         self._step = np.empty(9)
         self._jac = np.empty((2, 6, 9))
+        self._scratch = IKScratch(9)
         self._err = np.empty((2, 6))
         self._err_try = np.empty((2, 6))
         self.target_rot = np.empty((2, 3, 3))
@@ -167,7 +168,7 @@ class Retargeter:
                            self._person_rot, self._person_pos)
         cs = self.character.skeleton
         copy_rotations(self._person_rot, self.person_index, self.align, cs.parents, self._char_global,
-                       self._char_local)
+                       self._char_local, self._scratch.rel)
         for knee in self._knees:  # only the IK's posture prior; the solved knee follows the targets
             self._char_local[knee] = self._char_local[knee] @ self._knee_bias
         # place the root so that the hip-joint centre lands on the mapped person's hip centre
@@ -189,7 +190,8 @@ class Retargeter:
             if self.soles is not None:
                 points, on_toe = self.soles[k]
                 lowest = lowest_sole_point(points, on_toe, self.target_rot[k], self.target_pos[k], cs.heads[foot],
-                                           self._char_local[leg["toe"]], cs.heads[leg["toe"]])
+                                           self._char_local[leg["toe"]], cs.heads[leg["toe"]], self._scratch.rel,
+                                           self._scratch.vec)
                 if lowest < 0.0:
                     self._lift[k] = -lowest
                     self.target_pos[k, 1] -= lowest
@@ -199,7 +201,8 @@ class Retargeter:
         pin.computeJointJacobians(self.character.model, self.data, q)
         for k, leg in enumerate(self.legs):
             oMi = self.data.oMi[leg["jid"]]
-            pose_error(self.target_rot[k], self.target_pos[k], oMi.rotation, oMi.translation, out[k])
+            pose_error(self.target_rot[k], self.target_pos[k], oMi.rotation, oMi.translation, out[k],
+                       self._scratch.rel)
 
     def _jacobian(self, k: int) -> None:
         leg = self.legs[k]
@@ -229,8 +232,9 @@ class Retargeter:
             dv[:] = 0.0
             for k, leg in enumerate(self.legs):
                 if active[k]:
+                    sc = self._scratch
                     dls_step(self._jac[k], err[k], w, lam[k], posture[leg["cols"]], ik.posture_gain,
-                             ik.max_step, self._step)
+                             ik.max_step, self._step, sc.jw, sc.normal, sc.low, sc.rhs, sc.y, sc.z)
                     dv[leg["cols"]] = self._step
             q_try[:] = pin.integrate(model, q, dv)
             self._errors(q_try, err_try)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from skinning.bvh import BVHError, BVHReader, read_bvh, local_pose
-from skinning.kinematics import forward_kinematics
+from skinning.kinematics import axis_rotation, channels_to_local, forward_kinematics
 from skinning.skeleton import CMU_BONES
 from skinning.source import BVHSource
 
@@ -209,6 +209,26 @@ def test_rotation_order_is_respected(tmp_path):
     rz = np.array([[0, -1, 0], [1, 0, 0], [0, 0, 1]])
     np.testing.assert_allclose(rot[header.skeleton.index("LeftUpLeg")], rx @ ry, atol=1e-12)
     np.testing.assert_allclose(rot[header.skeleton.index("LeftLeg")], rz @ rx, atol=1e-12)
+
+
+def test_channels_compose_as_the_product_of_axis_rotations():
+    # every order of the three rotation channels, random angles: the in-place composition is
+    # the product R_first R_second R_third of the axis rotations, to the last bit
+    rng = np.random.default_rng(3)
+    orders = [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]
+    chan_joint = np.repeat(np.arange(len(orders)), 3).astype(np.int64)
+    chan_kind = np.array([3 + a for order in orders for a in order], dtype=np.int64)
+    values = rng.uniform(-180.0, 180.0, len(chan_kind))
+    rot, pos = np.empty((len(orders), 3, 3)), np.empty(3)
+    channels_to_local(values, chan_joint, chan_kind, 1.0, rot, pos)
+    r = np.empty((3, 3))
+    for j, order in enumerate(orders):
+        expected = np.eye(3)
+        for c, axis in enumerate(order):
+            axis_rotation(axis, values[3 * j + c], r)
+            expected = expected @ r
+        np.testing.assert_allclose(rot[j], expected, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(rot[j] @ rot[j].T, np.eye(3), atol=1e-14)
 
 
 def test_forward_kinematics_against_offsets(tmp_path):
