@@ -230,9 +230,9 @@ class Retargeter:
             posture = pin.difference(model, q, self._q_prior)
             dv = self._dv
             dv[:] = 0.0
+            sc = self._scratch
             for k, leg in enumerate(self.legs):
                 if active[k]:
-                    sc = self._scratch
                     dls_step(self._jac[k], err[k], w, lam[k], posture[leg["cols"]], ik.posture_gain,
                              ik.max_step, self._step, sc.jw, sc.normal, sc.low, sc.rhs, sc.y, sc.z)
                     dv[leg["cols"]] = self._step

@@ -213,7 +213,8 @@ def test_rotation_order_is_respected(tmp_path):
 
 def test_channels_compose_as_the_product_of_axis_rotations():
     # every order of the three rotation channels, random angles: the in-place composition is
-    # the product R_first R_second R_third of the axis rotations, to the last bit
+    # the product R_first R_second R_third of the axis rotations (to rounding: numpy's matrix
+    # product may sum in another order), and a rotation
     rng = np.random.default_rng(3)
     orders = [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]
     chan_joint = np.repeat(np.arange(len(orders)), 3).astype(np.int64)
