@@ -171,7 +171,7 @@ def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | 
         raise ValueError(f"{garment.name}: degenerate coarse mesh (zero-length spring or zero-area particle)")
     inv_mass = 1.0 / mass
     si, sj = pairs[:, 0].copy(), pairs[:, 1].copy()
-    dt = stable_time_step(verts, inv_mass, si, sj, ks)
+    dt = stable_time_step(verts, inv_mass, si, sj, ks, fabric.max_strain, fabric.damping_ratio)
     substeps = settings.substeps or max(1, math.ceil(1.0 / settings.frame_rate / dt))
     tris, _ = triangulate(faces, verts)
     pairs_packed, params_packed = spring_table(si, sj, rest, ks, kc, cs, cc)

@@ -8,6 +8,7 @@ import pytest
 
 from cloth.collision import (FACE_TREE_STACK, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
                              collide_particles, face_normals, follow_body, resolve_contacts, tree_nearest_face)
+from cloth import dynamics
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_scratch, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 from cloth.model import SimSettings
@@ -91,17 +92,65 @@ def test_rk4_is_fourth_order_on_a_linear_oscillator():
 
 
 def test_stable_time_step_matches_a_single_spring():
-    # one free particle on a held spring: omega = sqrt(k/m), RK4 limit 2.8/omega, margin 0.9
+    # one free particle on a held spring: omega = sqrt(k/m); undamped, RK4's limit is 2√2/omega
     x = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
     k, m = 30.0, 0.01
     dt = stable_time_step(x, np.array([0.0, 1.0 / m]), np.array([0], np.int32), np.array([1], np.int32),
                           np.array([k]))
-    assert dt == pytest.approx(0.9 * 2.8 / math.sqrt(k / m), rel=1e-3)
+    assert dt == pytest.approx(0.99 * 2.0 * math.sqrt(2.0) / math.sqrt(k / m), rel=1e-9)
+
+
+def test_stable_time_step_counts_the_tension_across_springs():
+    """A free particle on two held springs, along x (k1) and y (k2), both under tension at
+    twice the strain limit: K = k1 (xxᵀ + g (I - xxᵀ)) + k2 (yyᵀ + g (I - yyᵀ)), g = 2ε / (1 + 2ε),
+    so ω_max² = (k1 + g k2) / m for k1 > k2 (along x); a heavier damping ratio than 0.3
+    shortens the step to its own stability radius."""
+    x = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.0]])
+    k1, k2, m, eps = 30.0, 10.0, 0.01, 0.05
+    inv_mass = np.array([1.0 / m, 0.0, 0.0])
+    args = (x, inv_mass, np.array([0, 0], np.int32), np.array([1, 2], np.int32), np.array([k1, k2]))
+    g = dynamics.TENSION_STRAIN_ALLOWANCE * eps / (1.0 + dynamics.TENSION_STRAIN_ALLOWANCE * eps)
+    omega = math.sqrt((k1 + g * k2) / m)
+    assert dynamics.stiffness_eigenvalue(*args, dynamics.TENSION_STRAIN_ALLOWANCE * eps) == pytest.approx(
+        omega ** 2, rel=1e-12)
+    assert stable_time_step(*args, eps, 0.15) == pytest.approx(0.99 * 2.0 * math.sqrt(2.0) / omega, rel=1e-9)
+    assert stable_time_step(*args, eps, 0.5) == pytest.approx(0.99 * dynamics.rk4_stability_radius(0.5) / omega)
+    assert dynamics.rk4_stability_radius(0.5) < 2.7
+
+
+def test_gershgorin_bounds_the_exact_eigenvalue(monkeypatch):
+    """Past EXACT_EIGEN_PARTICLES the bound is Gershgorin's: exact for two equal free masses on
+    a spring (ω² = 2k/m), never below the exact eigenvalue on a random sheet."""
+    two = (np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]]), np.array([50.0, 50.0]), np.array([0], np.int32),
+           np.array([1], np.int32), np.array([30.0]))
+    rng = np.random.default_rng(3)
+    grid = np.stack(np.meshgrid(np.arange(6.0), np.arange(6.0), indexing="ij"), -1).reshape(-1, 2) * 0.05
+    pts = np.column_stack([grid, rng.normal(0.0, 0.01, len(grid))])
+    pairs = np.array([(i, j) for i in range(36) for j in range(i + 1, 36)
+                      if np.linalg.norm(grid[i] - grid[j]) < 0.08], np.int32)
+    sheet = (pts, rng.uniform(20.0, 80.0, 36), pairs[:, 0].copy(), pairs[:, 1].copy(), rng.uniform(10.0, 60.0, len(pairs)))
+    exact = [dynamics.stiffness_eigenvalue(*case, 0.1) for case in (two, sheet)]
+    monkeypatch.setattr(dynamics, "EXACT_EIGEN_PARTICLES", 0)
+    bound = [dynamics.stiffness_eigenvalue(*case, 0.1) for case in (two, sheet)]
+    assert exact[0] == pytest.approx(2 * 30.0 * 50.0) and bound[0] == pytest.approx(exact[0])
+    assert exact[1] < bound[1] < 2.5 * exact[1]
+
+
+def test_rk4_stability_radius_is_where_the_amplification_reaches_one():
+    # undamped: the imaginary axis, |R(iy)|² = 1 - y⁶/72 + y⁸/576 = 1 at y = 2√2
+    assert dynamics.rk4_stability_radius(0.0) == pytest.approx(2.0 * math.sqrt(2.0), rel=1e-9)
+    # critically damped: the real axis, R(-r) = 1 at the real root of r³ - 4r² + 12r - 24
+    real = [r.real for r in np.roots([1.0, -4.0, 12.0, -24.0]) if abs(r.imag) < 1e-9]
+    assert dynamics.rk4_stability_radius(1.0) == pytest.approx(real[0], rel=1e-9)
+    for zeta in (0.1, 0.15, 0.2, 0.5):
+        r = dynamics.rk4_stability_radius(zeta)
+        z = r * complex(-zeta, math.sqrt(1 - zeta * zeta))
+        assert abs(1 + z + z * z / 2 + z ** 3 / 6 + z ** 4 / 24) == pytest.approx(1.0, abs=1e-9)
 
 
 def spring_amplitude_after(dt_omega: float, zeta: float, steps: int = 400) -> float:
-    """A particle on a held spring (the fabrics' damping ratio zeta), started 1 cm long and
-    stepped at omega dt = dt_omega: its phase-space amplitude after `steps` RK4 steps."""
+    """A particle on a held spring (damping ratio zeta), started 1 cm long and stepped at
+    omega dt = dt_omega: its phase-space amplitude after `steps` RK4 steps."""
     m, k, rest, a = 0.01, 30.0, 0.1, 0.01
     x = np.array([[0.0, 0.0, 0.0], [rest + a, 0.0, 0.0]])
     v = np.zeros_like(x)
@@ -111,15 +160,19 @@ def spring_amplitude_after(dt_omega: float, zeta: float, steps: int = 400) -> fl
     return math.hypot(x[1, 0] - rest, v[1, 0] / w)
 
 
-def test_rk4_is_stable_at_the_margin_and_not_past_its_limit():
-    """The margin's claim on one spring, at the presets' damping (0.15): at the step
-    `stable_time_step` gives (omega dt = 0.9 x 2.8) the oscillation decays; past RK4's limit
-    for that damping (2.96) it grows. Undamped, RK4's own dissipation still takes it down at
-    2.52, while at 2.9 (past 2.83) it grows."""
-    assert spring_amplitude_after(0.9 * 2.8, 0.15) < 0.01 * 1e-3
+def test_rk4_is_stable_at_the_step_and_not_past_its_limit():
+    """The step's claim on one spring. At the presets' damping (0.15) and at the step
+    `stable_time_step` gives (omega dt = 0.99 x 2√2 = 2.80) the oscillation decays; past RK4's
+    limit for that damping (2.96) it grows. Undamped, RK4's own dissipation still takes it down
+    at 2.80, while at 2.9 (past 2√2) it grows. Heavily damped (0.5) it decays at 0.99 of that
+    damping's radius (2.60) and grows at 2.7."""
+    step = 0.99 * 2.0 * math.sqrt(2.0)
+    assert spring_amplitude_after(step, 0.15) < 0.01 * 1e-3
     assert spring_amplitude_after(3.05, 0.15) > 0.01 * 10
-    assert spring_amplitude_after(0.9 * 2.8, 0.0) <= 0.01
+    assert spring_amplitude_after(step, 0.0) < 0.01 * 1e-3
     assert spring_amplitude_after(2.9, 0.0) > 0.01 * 1.5
+    assert spring_amplitude_after(0.99 * dynamics.rk4_stability_radius(0.5), 0.5) < 0.01 * 1e-3
+    assert spring_amplitude_after(2.7, 0.5) > 0.01 * 3  # (that ray runs close along the region's edge: slow)
 
 
 def uv_sphere(radius=0.5, n_lat=24, n_lon=48):
