@@ -196,7 +196,7 @@ def limit_stretch(x, v, inv_mass, si, sj, rest, n_springs, max_strain):
 # The step's bound takes every spring under tension at this multiple of its fabric's strain
 # limit: the limit is enforced after each substep, so within one a spring can pass it.
 TENSION_STRAIN_ALLOWANCE = 2.0
-# A dense eigenvalue solve up to this many particles (0.04 s at 320, about 1 s at 1000);
+# A dense eigenvalue solve up to this many particles (0.05 s at 320, about 1 s at 1000);
 # above it Gershgorin's bound, which can only ask for more substeps.
 EXACT_EIGEN_PARTICLES = 1200
 
