@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .geometry import closest_point_triangle
+from .geometry import closest_point_triangle, nearest_vertices
 from .jit import kernel
 from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
 
@@ -144,9 +144,18 @@ SKIP_CLEARANCE = 2.0
 
 @kernel
 def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks,
-                      nearest, thickness, friction, contact, fixed, face_n, tested_at, clear):
+                      nearest, part_nearest, thickness, friction, contact, fixed, face_n, tested_at, clear):
     """S101 collision: update each particle's nearest body vertex by a walk; if the particle is
     behind every face around it (closer than `thickness`), move it onto the surface plus thickness.
+
+    A particle near several body parts (part_nearest: a seed vertex per part; the parts of its
+    region mask, `part_seeds`, and those that came to it since, `track_parts`) walks in each
+    part separately and is tested against the ring of each part's nearest vertex: one walk over
+    them all stops at a local minimum on the part it started on (a shirt's hem in the crease
+    between belly and a thigh swinging up into it: the nearest belly vertex is nearer than all
+    its neighbours while the hem sinks centimetres into the thigh), and a walk in the mask's
+    parts never sees an arm that hangs against a blouse's side. It is pushed out of the part it
+    is least deep in, and `nearest` is the nearest vertex of its mask's parts.
 
     Velocity relative to the body (body_vel: the body's velocity at the particle not already
     carried by body following) loses its inward normal part, and Coulomb friction removes up to
@@ -168,11 +177,38 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
             if clear[i] - moved > SKIP_CLEARANCE * thickness:
                 contact[i] = 0
                 continue
-        vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
-        nearest[i] = vtx
-        d, t = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
+        n_parts = 0
+        for k in range(part_nearest.shape[1]):
+            n_parts += part_nearest[i, k] >= 0
+        if n_parts < 2:
+            vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest[i], regions, masks[i])
+            nearest[i] = vtx
+            d, t = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
+            clear[i] = d if t >= 0 else -np.inf
+        else:
+            # each part's walk and ring; the push from the part the particle is least deep in
+            best = np.inf
+            d = -np.inf  # the push: its plane distance, face and ring vertex
+            t = -1
+            push_vtx = -1
+            clear[i] = np.inf
+            for k in range(part_nearest.shape[1]):
+                if part_nearest[i, k] < 0:
+                    continue
+                u = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, part_nearest[i, k], regions, 1 << k)
+                part_nearest[i, k] = u
+                du = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
+                if du < best and (masks[i] >> k) & 1:  # a part the particle follows (see track_parts)
+                    best = du
+                    nearest[i] = u
+                dk, tk = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, u, face_n)
+                clear[i] = min(clear[i], dk) if tk >= 0 else -np.inf
+                # a part that came to the particle (not in its mask) pushes only from near its surface:
+                # deeper behind its faces the skinned parts intersect (a belly folded over a thigh)
+                if tk >= 0 and dk < thickness and dk > d and ((masks[i] >> k) & 1 or dk > -MAX_OTHER_PART_DEPTH):
+                    d, t, push_vtx = dk, tk, u
+            vtx = push_vtx if t >= 0 else nearest[i]
         tested_at[i, 0], tested_at[i, 1], tested_at[i, 2] = px, py, pz
-        clear[i] = d if t >= 0 else -np.inf
         if d >= thickness or fixed[i] or t < 0:
             contact[i] = 0
             continue
@@ -211,6 +247,65 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
         v[i, 0] = body_vel[i, 0] + rx
         v[i, 1] = body_vel[i, 1] + ry
         v[i, 2] = body_vel[i, 2] + rz
+
+
+PART_SLOTS = 8  # part_nearest's columns: one per region bit (regions are uint8 bit masks)
+
+
+def part_seeds(points: np.ndarray, body_x: np.ndarray, regions: np.ndarray, masks: np.ndarray,
+               out: np.ndarray | None = None, rows: np.ndarray | None = None) -> np.ndarray:
+    """part_nearest for `collide_particles`: (n, PART_SLOTS) int32, column k the nearest vertex
+    of region bit 1 << k for a particle whose mask has two or more parts of the body, else -1
+    (brute force: setup and recovery only). rows: fill only these rows of out."""
+    rows = np.arange(len(points)) if rows is None else np.asarray(rows)
+    if out is None:
+        out = np.full((len(points), PART_SLOTS), -1, dtype=np.int32)
+    out[rows] = -1
+    present = np.bitwise_or.reduce(regions) if len(regions) else 0
+    parts = masks[rows] & present
+    several = rows[(parts & (parts - 1)) != 0]  # more than one bit
+    pts = np.ascontiguousarray(points[several], dtype=np.float64)
+    for k in range(PART_SLOTS):
+        bit = 1 << k
+        has = (masks[several] & bit) != 0
+        if not (present & bit) or not has.any():
+            continue
+        seed = np.zeros(int(has.sum()), dtype=np.int32)
+        nearest_vertices(pts[has], body_x, seed, regions, np.full(len(seed), bit, dtype=np.uint8))
+        out[several[has], k] = seed
+    return out
+
+
+@kernel
+def track_parts(x, body_x, regions, masks, nearest, nearest_any, part_nearest, drop):
+    """Add to a particle's collision parts (part_nearest, see `collide_particles`) the body part
+    of its nearest vertex over the whole body (nearest_any, from the contact pass) when that
+    part is not in its region mask, and drop such a part again once its tracked vertex is
+    farther than `drop` from the particle. The substep collisions then see an arm that came
+    to rest against a blouse's side, and push the cloth out of it the way it came, where the
+    contact pass at the end of a frame finds it centimetres inside and puts it out of the
+    arm's nearest side, the front one frame, the back the next. The following keeps to the
+    mask's parts (`nearest`)."""
+    d2max = drop * drop
+    for i in range(x.shape[0]):
+        px, py, pz = x[i, 0], x[i, 1], x[i, 2]
+        for k in range(part_nearest.shape[1]):
+            u = part_nearest[i, k]
+            if u >= 0 and not (masks[i] >> k) & 1:
+                if (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2 > d2max:
+                    part_nearest[i, k] = -1
+        u = nearest_any[i]
+        r = regions[u]
+        if r & masks[i]:
+            continue
+        for k in range(part_nearest.shape[1]):
+            if (r >> k) & 1 and part_nearest[i, k] < 0:
+                part_nearest[i, k] = u
+                # the mask's parts need their seeds too (a particle near one part has none yet)
+                own = regions[nearest[i]]
+                for kk in range(part_nearest.shape[1]):
+                    if (own >> kk) & 1 and (masks[i] >> kk) & 1 and part_nearest[i, kk] < 0:
+                        part_nearest[i, kk] = nearest[i]
 
 
 @kernel
@@ -262,13 +357,21 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
 
 @kernel
 def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, carrier, inv_dt, near, far,
-                followed, face_n):
+                followed, face_n, follow_w, smoothing):
     """S101 body following, before a step, after the body moved (with the Decision's distance blend).
 
     The fully-followed position keeps the particle's face, barycentric coordinates and height;
     a particle within `near` of the body takes it, one beyond `far` keeps its own, and between
     the two the move is blended linearly (weight w). Gripped particles (fixed[i] != 0: a
     waistband) always follow fully.
+
+    The weight a particle is moved with eases towards that blend: w = w_last + smoothing *
+    (blend - w_last) (follow_w: w_last, written; negative: none yet, the blend is taken as it
+    is). Taken at once, the blend is a switch at frame rate: a particle left behind by a body
+    moving away from it (a sleeve behind the swinging forearm) is farther out next frame and
+    followed less, lags more, and is pulled back in by its neighbours, where it is followed
+    fully again; a two-frame flutter of 5-8 cm on the elegant outfit's blouse and sleeves at
+    walking pace.
 
     Following is a transport: the body's motion reaches the particle through this move, not
     through its velocity, which stays the particle's own motion relative to the carried frame
@@ -280,6 +383,9 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
         t = face[i]
         h = height[i]
         w = 1.0 if (h <= near or fixed[i]) else (0.0 if h >= far else (far - h) / (far - near))
+        if follow_w[i] >= 0.0 and not fixed[i]:
+            w = follow_w[i] + smoothing * (w - follow_w[i])
+        follow_w[i] = w
         for k in range(3):
             a = (bary[i, 0] * body_x[tris[t, 0], k] + bary[i, 1] * body_x[tris[t, 1], k]
                  + bary[i, 2] * body_x[tris[t, 2], k])

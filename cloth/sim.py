@@ -14,14 +14,15 @@ more for the particles that moved, and the new relative coordinates.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from .coarsen import coarsen
-from .collision import (FACE_TREE_STACK, BodyMesh, BodyPose, attach_to_body, collide_particles,
-                        face_normals, follow_body, part_scratch, resolve_contacts)
+from .collision import (FACE_TREE_STACK, PART_SLOTS, BodyMesh, BodyPose, attach_to_body, collide_particles,
+                        face_normals, follow_body, part_scratch, part_seeds, resolve_contacts, track_parts)
 from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment
@@ -33,15 +34,16 @@ from .model import ClothModel, SimSettings, build_cloth_model
 @kernel
 def simulate_substeps(n_sub, collide_every, dt, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj,
                       rest, spring_work, work, n_structural, max_strain, limit_passes, body_x, body_vel, nbr_start,
-                      nbr_ids, tris, tri_start, tri_ids, regions, masks, nearest, thickness, friction, contact, fixed,
-                      face_n, tested_at, clear):
+                      nbr_ids, tris, tri_start, tri_ids, regions, masks, nearest, part_nearest, thickness, friction,
+                      contact, fixed, face_n, tested_at, clear):
     """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
     call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
         rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
             collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
-                              masks, nearest, thickness, friction, contact, fixed, face_n, tested_at, clear)
+                              masks, nearest, part_nearest, thickness, friction, contact, fixed, face_n, tested_at,
+                              clear)
         # one Gauss-Seidel pass per substep, more on the last: the frame's output is what must hold
         for _ in range(1 if k < n_sub - 1 else limit_passes):
             limit_stretch(x, v, inv_mass, si, sj, rest, n_structural, max_strain)
@@ -106,6 +108,7 @@ def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh
     v = np.zeros_like(x)
     nearest = np.empty(len(x), dtype=np.int32)
     nearest_vertices(x, body_x, nearest, body.regions, masks)
+    part_nearest = part_seeds(x, body_x, body.regions, masks)
     contact = np.zeros(len(x), dtype=np.uint8)
     free = np.zeros(len(x), dtype=np.uint8)
     face_n = face_normals(body_x, body.triangles)
@@ -113,8 +116,8 @@ def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh
     clear = np.full(len(x), -np.inf)
     for _ in range(iterations):
         collide_particles(x, v, body_x, v, body.nbr_start, body.nbr_ids, body.triangles, body.tri_start,
-                          body.tri_ids, body.regions, masks, nearest, thickness, 0.0, contact, free, face_n, tested_at,
-                          clear)
+                          body.tri_ids, body.regions, masks, nearest, part_nearest, thickness, 0.0, contact, free, face_n,
+                          tested_at, clear)
     return x
 
 
@@ -154,6 +157,7 @@ class ClothState:
         self.x = np.zeros((n, 3))  # positions, m
         self.v = np.zeros((n, 3))  # velocities, m/s
         self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
+        self.part_nearest = np.full((n, PART_SLOTS), -1, dtype=np.int32)  # and in each of them (see part_seeds)
         self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
         self.q = np.zeros(3)  # contact pass scratch, and for the body parts near a particle:
         self.stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # the face tree's traversal
@@ -169,6 +173,7 @@ class ClothState:
         self.anchor = np.zeros((n, 3))  # the attachment point on the body
         self.body_vel = np.zeros((n, 3))  # body velocity at the attachment point, m/s
         self.carrier = np.zeros((n, 3))  # part of it not transported by body following, m/s
+        self.follow_w = np.full(n, -1.0)  # the body following's weight last frame (-1: none yet)
         self.followed = np.zeros((n, 3))  # fully body-following positions (recovery targets)
         self.contact = np.zeros(n, dtype=np.uint8)  # in contact after the last collision
         self.tested_at = np.zeros((n, 3))  # substep collision: where each particle was last tested,
@@ -204,7 +209,9 @@ class ClothSim:
         s.v[:] = 0.0
         s.body_vel[:] = 0.0
         s.carrier[:] = 0.0
+        s.follow_w[:] = -1.0
         nearest_vertices(s.x, body_x, s.nearest, b.regions, m.region_mask)
+        part_seeds(s.x, body_x, b.regions, m.region_mask, s.part_nearest)
         nearest_vertices(s.x, body_x, s.nearest_any, b.regions, np.full(m.n_particles, 255, dtype=np.uint8))
         free = np.zeros_like(m.grip)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, free, s.face, s.bary,
@@ -227,7 +234,8 @@ class ClothSim:
         self.pose = body_pose
         body_x, face_n = body_pose.x, body_pose.face_n
         follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
-                    1.0 / dt, st.follow_near, st.follow_far, s.followed, face_n)
+                    1.0 / dt, st.follow_near, st.follow_far, s.followed, face_n, s.follow_w,
+                    -math.expm1(-dt / st.follow_easing) if st.follow_easing > 0 else 1.0)
         vertex_normals(s.x, m.triangles, s.normals)  # for air drag
         s.clear[:] = -np.inf  # the body moved: every particle is tested at the first collision
         n_sub = m.substeps_for(dt)
@@ -242,8 +250,8 @@ class ClothSim:
                 t1 = time.perf_counter()
                 if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
                     collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
-                                      b.tri_ids, b.regions, m.region_mask, s.nearest, f.thickness, f.friction,
-                                      s.contact, m.grip, face_n, s.tested_at, s.clear)
+                                      b.tri_ids, b.regions, m.region_mask, s.nearest, s.part_nearest, f.thickness,
+                                      f.friction, s.contact, m.grip, face_n, s.tested_at, s.clear)
                 t2 = time.perf_counter()
                 for _ in range(1 if k < n_sub - 1 else st.limit_passes):
                     limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
@@ -257,8 +265,8 @@ class ClothSim:
                               m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.spring_work, s.work,
                               m.n_structural, f.max_strain, st.limit_passes, body_x, s.carrier,
                               b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
-                              m.region_mask, s.nearest, f.thickness, f.friction, s.contact, m.grip, face_n,
-                              s.tested_at, s.clear)
+                              m.region_mask, s.nearest, s.part_nearest, f.thickness, f.friction, s.contact, m.grip,
+                              face_n, s.tested_at, s.clear)
         # recovery before the contact pass: a reset particle's body-following place can lie in
         # another body part, and what leaves the step has been through the contact pass
         n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
@@ -272,7 +280,9 @@ class ClothSim:
             nearest_vertices(s.x[idx], body_x, near, b.regions, m.region_mask[idx])
             s.nearest[idx] = near
             s.nearest_any[idx] = near
+            part_seeds(s.x, body_x, b.regions, m.region_mask, s.part_nearest, idx)
         self.settle_contacts(body_pose)
+        track_parts(s.x, body_x, b.regions, m.region_mask, s.nearest, s.nearest_any, s.part_nearest, REGION_RADIUS)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
                        s.height, s.anchor, face_n)
         self.stats.frames += 1

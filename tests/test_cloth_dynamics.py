@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from cloth.collision import (FACE_TREE_STACK, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
+from cloth.collision import (FACE_TREE_STACK, PART_SLOTS, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
                              collide_particles, face_normals, follow_body, resolve_contacts, tree_nearest_face)
 from cloth import dynamics
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_scratch, spring_table, stable_time_step
@@ -234,6 +234,11 @@ def box(half=0.3, n=8):
     return np.array(verts), np.array(tris, dtype=np.int32)
 
 
+def no_parts(n):
+    """part_nearest for particles near one body part only (collide_particles walks from nearest)."""
+    return np.full((n, PART_SLOTS), -1, np.int32)
+
+
 def collide_once(points, verts, tris, thickness):
     mesh = BodyMesh.build(tris, len(verts))
     x = np.array(points, dtype=float)
@@ -243,7 +248,7 @@ def collide_once(points, verts, tris, thickness):
     masks = np.full(len(x), 255, dtype=np.uint8)
     free = np.zeros(len(x), dtype=np.uint8)
     collide_particles(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
-                      mesh.tri_ids, mesh.regions, masks, nearest, thickness, 0.5, contact, free,
+                      mesh.tri_ids, mesh.regions, masks, nearest, no_parts(len(x)), thickness, 0.5, contact, free,
                       face_normals(verts, tris), np.zeros_like(x), np.full(len(x), -np.inf))
     return x, contact
 
@@ -261,7 +266,7 @@ def test_collision_skips_a_particle_far_in_front_of_the_faces_of_its_last_test()
     contact = np.zeros(1, np.uint8)
     tested_at, clear = np.zeros_like(x), np.full(1, -np.inf)
     args = (verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start, mesh.tri_ids,
-            mesh.regions, np.full(1, 255, np.uint8), nearest, 0.003, 0.0, contact, np.zeros(1, np.uint8),
+            mesh.regions, np.full(1, 255, np.uint8), nearest, no_parts(1), 0.003, 0.0, contact, np.zeros(1, np.uint8),
             face_normals(verts, tris), tested_at, clear)
 
     def collide():
@@ -316,8 +321,9 @@ def test_contact_stops_the_inward_velocity_and_friction_slows_the_slide(friction
     v = np.array([[2.0, -1.0, 0.0]])
     contact = np.zeros(1, np.uint8)
     collide_particles(x, v, verts, np.array([body_vel]), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
-                      mesh.tri_ids, mesh.regions, np.full(1, 255, np.uint8), np.zeros(1, np.int32), 0.003, friction,
-                      contact, np.zeros(1, np.uint8), face_normals(verts, tris), np.zeros_like(x), np.full(1, -np.inf))
+                      mesh.tri_ids, mesh.regions, np.full(1, 255, np.uint8), np.zeros(1, np.int32), no_parts(1), 0.003,
+                      friction, contact, np.zeros(1, np.uint8), face_normals(verts, tris), np.zeros_like(x),
+                      np.full(1, -np.inf))
     assert contact[0] == 1
     np.testing.assert_allclose(x[0], [0.075, 0.303, 0.0], atol=1e-12)
     np.testing.assert_allclose(v[0], expected, atol=1e-12)
@@ -642,8 +648,9 @@ def test_body_following_moves_an_attached_particle_rigidly():
     body_vel, carrier, followed = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
     x0 = x.copy()
     dt = 1 / 60
+    follow_w = np.full(n, -1.0)  # no weight last frame: the blend is taken as it is
     follow_body(x, moved, mesh.triangles, free, face, bary, height, anchor, body_vel, carrier, 1 / dt,
-                0.01, 0.04, followed, face_normals(moved, tris))
+                0.01, 0.04, followed, face_normals(moved, tris), follow_w, 0.5)
     rigid = x0 @ R.T + t
     np.testing.assert_allclose(followed, rigid, atol=1e-12)  # relative coordinates are preserved
     np.testing.assert_allclose(x[0], rigid[0], atol=1e-12)  # within `near`: follows fully
@@ -652,6 +659,39 @@ def test_body_following_moves_an_attached_particle_rigidly():
     np.testing.assert_allclose(x[2], x0[2])  # beyond `far`: free cloth keeps its place
     np.testing.assert_allclose(carrier[0], 0.0)
     np.testing.assert_allclose(carrier[2], body_vel[2])
+    np.testing.assert_allclose(follow_w, [1.0, w, 0.0])
+
+
+def test_body_following_weight_eases_towards_the_distance_blend():
+    """A particle 2 cm above a box (blend weight 2/3 between near 1 cm and far 4 cm) that was
+    followed fully last frame is followed with 1 + s (2/3 - 1) this frame, s the easing; with
+    the body translated by t each frame its weight approaches 2/3 geometrically, (1 - s)^k."""
+    verts, tris = box(0.3)
+    mesh = BodyMesh.build(tris, len(verts))
+    x = np.array([[0.05, 0.32, 0.1]])
+    nearest = np.zeros(1, dtype=np.int32)
+    from cloth.geometry import nearest_vertices
+
+    nearest_vertices(x, verts, nearest, mesh.regions, np.full(1, 255, np.uint8))
+    face, bary, height, anchor = np.zeros(1, np.int32), np.zeros((1, 3)), np.zeros(1), np.zeros((1, 3))
+    free = np.zeros(1, np.uint8)
+    attach_to_body(x, verts, mesh.triangles, mesh.tri_start, mesh.tri_ids, nearest, free, face, bary, height, anchor,
+                   face_normals(verts, tris))
+    follow_w = np.ones(1)
+    blend, s = 2.0 / 3.0, 0.4
+    t = np.array([0.01, 0.0, 0.0])
+    scratch = np.zeros((1, 3)), np.zeros((1, 3))  # body_vel, carrier
+    for k in range(1, 6):
+        moved = verts + k * t
+        x0 = x.copy()
+        follow_body(x, moved, mesh.triangles, free, face, bary, height, anchor, *scratch, 60.0, 0.01, 0.04,
+                    np.zeros((1, 3)), face_normals(moved, tris), follow_w, s)
+        w = blend + (1 - blend) * (1 - s) ** k
+        assert follow_w[0] == pytest.approx(w, abs=1e-12)
+        np.testing.assert_allclose(x[0], x0[0] + w * t, atol=1e-12)  # the box moved by t: w of it
+        attach_to_body(x, moved, mesh.triangles, mesh.tri_start, mesh.tri_ids, nearest, free, face, bary, height,
+                       anchor, face_normals(moved, tris))
+        assert height[0] == pytest.approx(0.02, abs=1e-12)  # moved along the face: the same height
 
 
 def test_fabric_presets_and_errors(tmp_path):
@@ -853,3 +893,87 @@ def test_nearest_face_query_off_keeps_no_face_tree():
         results.append(x.copy())
     np.testing.assert_allclose(results[0][:, 1], 0.303, atol=1e-12)
     np.testing.assert_array_equal(results[0], results[1])
+
+
+def two_boxes(gap=0.05, half=0.1):
+    """Two separate boxes side by side along x (parts 1 and 2), as one body: box A centred at
+    the origin, box B at x = 2 half + gap; returns verts, tris, regions, B's lowest x."""
+    va, ta = box(half, 4)
+    vb = va + [2 * half + gap, 0.0, 0.0]
+    verts = np.vstack([va, vb])
+    tris = np.vstack([ta, ta + len(va)]).astype(np.int32)
+    regions = np.r_[np.full(len(va), 1), np.full(len(vb), 2)].astype(np.uint8)
+    return verts, tris, regions, half + gap
+
+
+def collide_two_parts(x, mask, part_nearest, nearest, verts, tris, regions, thickness=0.003):
+    mesh = BodyMesh.build(tris, len(verts), regions)
+    x = np.array(x, dtype=float)
+    v = np.zeros_like(x)
+    contact = np.zeros(len(x), np.uint8)
+    collide_particles(x, v, verts, np.zeros_like(x), mesh.nbr_start, mesh.nbr_ids, mesh.triangles, mesh.tri_start,
+                      mesh.tri_ids, mesh.regions, np.array(mask, np.uint8), nearest, part_nearest, thickness, 0.0,
+                      contact, np.zeros(len(x), np.uint8), face_normals(verts, tris), np.zeros_like(x),
+                      np.full(len(x), -np.inf))
+    return x, contact
+
+
+def test_collision_walks_each_part_of_a_particle_near_two():
+    """Box B's face at x = 0.15, a particle 1 cm inside it whose nearest vertex is on box A.
+    One walk over both parts cannot leave A (the boxes share no edge) and finds A's ring, which
+    the particle is outside of: not pushed. With a seed in each part (part_seeds) it walks each,
+    is found inside B and put at B's face plus thickness; `nearest` is B's vertex, the nearer."""
+    from cloth.collision import part_seeds
+    verts, tris, regions, bx = two_boxes()
+    p = [[bx + 0.01, 0.0, 0.0]]
+    a_vertex = int(np.argmin(np.linalg.norm(verts[:len(verts) // 2] - [0.1, 0.0, 0.0], axis=1)))
+    x, contact = collide_two_parts(p, [3], no_parts(1), np.array([a_vertex], np.int32), verts, tris, regions)
+    assert contact[0] == 0 and x[0, 0] == bx + 0.01
+    seeds = part_seeds(np.array(p), verts, regions, np.array([3], np.uint8))
+    assert regions[seeds[0, 0]] == 1 and regions[seeds[0, 1]] == 2 and (seeds[0, 2:] == -1).all()
+    seeds[0, 1] = int(np.argmax(verts[:, 0]))  # B's far side: the walk must find its way
+    nearest = np.array([a_vertex], np.int32)
+    x, contact = collide_two_parts(p, [3], seeds, nearest, verts, tris, regions)
+    assert contact[0] == 1
+    np.testing.assert_allclose(x[0], [bx - 0.003, 0.0, 0.0], atol=1e-12)
+    assert regions[nearest[0]] == 2 and verts[nearest[0], 0] == pytest.approx(bx)
+    # one part only: the seeds are not used (-1), the walk from nearest as before
+    assert (part_seeds(np.array(p), verts, regions, np.array([1], np.uint8)) == -1).all()
+
+
+@pytest.mark.parametrize("depth, pushed", [(0.005, True), (0.02, False)])
+def test_a_part_outside_the_mask_pushes_only_from_near_its_surface(depth, pushed):
+    """A particle that follows box A (mask 1) with box B tracked for collision (track_parts):
+    5 mm inside B it is put out of B; 2 cm inside (deeper than MAX_OTHER_PART_DEPTH, where
+    skinned parts intersect) it is left. `nearest` stays on A, the part it follows."""
+    from cloth.collision import MAX_OTHER_PART_DEPTH
+    assert 0.005 < MAX_OTHER_PART_DEPTH < 0.02
+    verts, tris, regions, bx = two_boxes()
+    p = [[bx + depth, 0.0, 0.0]]
+    seeds = no_parts(1)
+    seeds[0, 0] = int(np.argmin(np.linalg.norm(verts[:len(verts) // 2] - [0.1, 0.0, 0.0], axis=1)))
+    seeds[0, 1] = int(np.argmin(np.linalg.norm(verts - [bx, 0.0, 0.0], axis=1)))
+    nearest = np.array([seeds[0, 0]], np.int32)
+    x, contact = collide_two_parts(p, [1], seeds, nearest, verts, tris, regions)
+    assert contact[0] == pushed
+    np.testing.assert_allclose(x[0, 0], bx - 0.003 if pushed else bx + depth, atol=1e-12)
+    assert regions[nearest[0]] == 1
+
+
+def test_track_parts_adds_the_part_the_contact_pass_found_and_drops_it_when_far():
+    """mask 1 (box A): nearest_any on B adds B (and A's seed, from nearest); nearest_any on A
+    adds nothing; once B's tracked vertex is farther than `drop`, B is dropped, A's seed kept."""
+    from cloth.collision import track_parts
+    verts, tris, regions, bx = two_boxes()
+    a_v = int(np.argmin(np.linalg.norm(verts - [0.1, 0.0, 0.0], axis=1)))
+    b_v = int(np.argmin(np.linalg.norm(verts - [bx, 0.0, 0.0], axis=1)))
+    x = np.array([[0.125, 0.0, 0.0]])
+    seeds = no_parts(1)
+    args = (verts, regions, np.array([1], np.uint8), np.array([a_v], np.int32))
+    track_parts(x, *args, np.array([a_v], np.int32), seeds, 0.06)
+    assert (seeds == -1).all()
+    track_parts(x, *args, np.array([b_v], np.int32), seeds, 0.06)
+    assert seeds[0, 0] == a_v and seeds[0, 1] == b_v and (seeds[0, 2:] == -1).all()
+    x[0] = [-0.05, 0.0, 0.0]  # 0.2 m from B's vertex
+    track_parts(x, *args, np.array([a_v], np.int32), seeds, 0.06)
+    assert seeds[0, 0] == a_v and seeds[0, 1] == -1
