@@ -116,8 +116,8 @@ def resolve_intersections(points: np.ndarray, body_x: np.ndarray, body: BodyMesh
     clear = np.full(len(x), -np.inf)
     for _ in range(iterations):
         collide_particles(x, v, body_x, v, body.nbr_start, body.nbr_ids, body.triangles, body.tri_start,
-                          body.tri_ids, body.regions, masks, nearest, part_nearest, thickness, 0.0, contact, free, face_n,
-                          tested_at, clear)
+                          body.tri_ids, body.regions, masks, nearest, part_nearest, thickness, 0.0, contact, free,
+                          face_n, tested_at, clear)
     return x
 
 
