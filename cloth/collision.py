@@ -298,14 +298,16 @@ def track_parts(x, body_x, regions, masks, nearest, nearest_any, part_nearest, d
         r = regions[u]
         if r & masks[i]:
             continue
+        added = False
         for k in range(part_nearest.shape[1]):
             if (r >> k) & 1 and part_nearest[i, k] < 0:
                 part_nearest[i, k] = u
-                # the mask's parts need their seeds too (a particle near one part has none yet)
-                own = regions[nearest[i]]
-                for kk in range(part_nearest.shape[1]):
-                    if (own >> kk) & 1 and (masks[i] >> kk) & 1 and part_nearest[i, kk] < 0:
-                        part_nearest[i, kk] = nearest[i]
+                added = True
+        if added:  # the mask's parts need their seeds too (a particle near one part has none yet)
+            own = regions[nearest[i]] & masks[i]
+            for k in range(part_nearest.shape[1]):
+                if (own >> k) & 1 and part_nearest[i, k] < 0:
+                    part_nearest[i, k] = nearest[i]
 
 
 @kernel

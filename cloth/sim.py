@@ -9,7 +9,8 @@ A frame: body following (relative coordinates to the nearest face, distance-blen
 speed, runaway stretch → reset to the body-following positions, counted), the contact pass
 over the whole body (then a slide pass: strain limiting with the placed particles free and the
 contact pass again), strain limiting with the placed particles held, the contact pass once
-more for the particles that moved, and the new relative coordinates.
+more for the particles that moved, the body parts each particle's substep collisions track
+(`track_parts`), and the new relative coordinates.
 """
 
 from __future__ import annotations
