@@ -205,6 +205,39 @@ def pair_into_quads(vertices: np.ndarray, triangles: np.ndarray, max_cos: float 
     return np.asarray(faces, dtype=np.int32).reshape(-1, 4)
 
 
+ORDER_CELL = 0.02  # m: the grid of `spatial_order`'s Morton keys, about half a coarse edge
+
+
+def morton_order(points: np.ndarray, cell: float = ORDER_CELL) -> np.ndarray:
+    """Indices that sort points along a Morton (Z-order) curve over a grid of `cell`: points
+    near in space come near in the order (ties keep their order)."""
+    q = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
+    q = np.minimum(q, (1 << 20) - 1)
+    key = np.zeros(len(points), dtype=np.int64)
+    for bit in range(20):
+        for axis in range(3):
+            key |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return np.argsort(key, kind="stable")
+
+
+def spatial_order(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The same mesh with its vertices and faces numbered along a Morton curve.
+
+    The per-particle body lookups (the collision's walks, the contact pass, the surface's
+    penetration test) touch the body around each particle in turn; particles near each other
+    read the same body vertices, faces and tree nodes, so in this order most of them are still
+    in cache. The authored order put consecutive particles 10-34 cm apart (the jeans alternate
+    legs), this one 4-6 cm."""
+    order = morton_order(vertices)
+    new_index = np.empty(len(order), dtype=np.int64)
+    new_index[order] = np.arange(len(order))
+    faces = np.where(faces >= 0, new_index[np.maximum(faces, 0)], -1).astype(faces.dtype)
+    real = faces >= 0
+    centre = (np.where(real[..., None], vertices[order][np.maximum(faces, 0)], 0.0).sum(axis=1)
+              / real.sum(axis=1, keepdims=True))
+    return vertices[order], faces[morton_order(centre)]
+
+
 def coarsen(vertices: np.ndarray, faces: np.ndarray, target_particles: int = 360,
             min_loop: int = 8) -> CoarseMesh:
     """Coarse model of a garment mesh (tri/quad faces, -1 padded) with about `target_particles` particles."""
@@ -217,6 +250,7 @@ def coarsen(vertices: np.ndarray, faces: np.ndarray, target_particles: int = 360
     coarse_v = col.pos[keep]
     coarse_t = remap[col.tris[col.alive_tri]]
     quads = pair_into_quads(coarse_v, coarse_t)
+    coarse_v, quads = spatial_order(coarse_v, quads)
     coarse_tris, _ = triangulate(quads, coarse_v)
     fine_tri = np.empty(len(vertices), dtype=np.int32)
     fine_bary = np.empty((len(vertices), 3))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cloth.coarsen import coarsen
+from cloth.coarsen import coarsen, morton_order, spatial_order
 from cloth.garment import GarmentError, fit_mhclo, load_garment_file, load_outfit, read_mhclo
 from cloth.topology import boundary_loops, orient_faces, polygon_edges, triangulate
 
@@ -79,6 +79,30 @@ def test_coarse_models_are_quad_dominant_and_keep_every_boundary(outfits):
             mapped = np.einsum("nk,nkd->nd", c.fine_bary, c.vertices[tris[c.fine_triangle]])
             # 4 cm coarse edges on curved cloth: chord deviation of a centimetre or two
             assert np.percentile(np.linalg.norm(mapped - g.vertices, axis=1), 95) < 0.02
+
+
+def test_morton_order_follows_the_z_curve_and_spatial_order_keeps_the_mesh():
+    """A 2 x 2 block of cells, x bit first: (0,0), (1,0), (0,1), (1,1); then the next block
+    along x. spatial_order renumbers a shuffled 4 x 4 sheet: the same faces as corner positions
+    (same winding), vertices and faces in Z order, consecutive vertices neighbours."""
+    c = 0.02
+    pts = np.array([[1, 1, 0], [2, 0, 0], [0, 1, 0], [1, 0, 0], [0, 0, 0]], float) * c + 0.005
+    np.testing.assert_array_equal(morton_order(pts, c), [4, 3, 2, 0, 1])
+    rng = np.random.default_rng(3)
+    grid = np.array([[i, j, 0.0] for j in range(4) for i in range(4)]) * c
+    quads = np.array([[j * 4 + i, j * 4 + i + 1, j * 4 + i + 5, j * 4 + i + 4] for j in range(3) for i in range(3)])
+    perm = rng.permutation(16)  # shuffled numbering: vertex perm[k] is grid point k
+    verts = np.empty_like(grid)
+    verts[perm] = grid
+    faces = perm[quads]
+    faces[4, 3] = -1  # one triangle
+    v2, f2 = spatial_order(verts, faces)
+    as_points = lambda v, f: sorted(tuple(map(tuple, np.round(v[row[row >= 0]] / c).astype(int))) for row in f)
+    assert as_points(v2, f2) == as_points(verts, faces)
+    np.testing.assert_array_equal(morton_order(v2, c), np.arange(16))
+    assert np.all(np.linalg.norm(np.diff(v2[:4], axis=0), axis=1) <= c * np.sqrt(2) + 1e-12)
+    centres = np.array([v2[row[row >= 0]].mean(axis=0) for row in f2])
+    np.testing.assert_array_equal(morton_order(centres, c), np.arange(9))
 
 
 def test_any_trimesh_mesh_is_accepted(tmp_path):
