@@ -229,13 +229,14 @@ def spatial_order(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     cache. The authored order put consecutive particles 10-34 cm apart (the jeans alternate
     legs), this one 4-6 cm (the first contact pass 4-5 % faster; docs/history.md)."""
     order = morton_order(vertices)
+    vertices = vertices[order]
     new_index = np.empty(len(order), dtype=np.int64)
     new_index[order] = np.arange(len(order))
     faces = np.where(faces >= 0, new_index[np.maximum(faces, 0)], -1).astype(faces.dtype)
     real = faces >= 0
-    centre = (np.where(real[..., None], vertices[order][np.maximum(faces, 0)], 0.0).sum(axis=1)
+    centre = (np.where(real[..., None], vertices[np.maximum(faces, 0)], 0.0).sum(axis=1)
               / real.sum(axis=1, keepdims=True))
-    return vertices[order], faces[morton_order(centre)]
+    return vertices, faces[morton_order(centre)]
 
 
 def coarsen(vertices: np.ndarray, faces: np.ndarray, target_particles: int = 360,
