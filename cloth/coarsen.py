@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import nearest_triangles
+from .geometry import morton_order, nearest_triangles
 from .topology import boundary_loops, triangulate
 
 
@@ -208,18 +208,6 @@ def pair_into_quads(vertices: np.ndarray, triangles: np.ndarray, max_cos: float 
 ORDER_CELL = 0.02  # m: the grid of `spatial_order`'s Morton keys, about half a coarse edge
 
 
-def morton_order(points: np.ndarray, cell: float = ORDER_CELL) -> np.ndarray:
-    """Indices that sort points along a Morton (Z-order) curve over a grid of `cell`: points
-    near in space come near in the order (ties keep their order)."""
-    q = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
-    q = np.minimum(q, (1 << 20) - 1)
-    key = np.zeros(len(points), dtype=np.int64)
-    for bit in range(20):
-        for axis in range(3):
-            key |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
-    return np.argsort(key, kind="stable")
-
-
 def spatial_order(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The same mesh with its vertices and faces numbered along a Morton curve.
 
@@ -228,7 +216,7 @@ def spatial_order(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     read some of the same body vertices, faces and tree nodes, which this order finds still in
     cache. The authored order put consecutive particles 10-34 cm apart (the jeans alternate
     legs), this one 4-6 cm (the first contact pass 4-5 % faster; docs/history.md)."""
-    order = morton_order(vertices)
+    order = morton_order(vertices, ORDER_CELL)
     vertices = vertices[order]
     new_index = np.empty(len(order), dtype=np.int64)
     new_index[order] = np.arange(len(order))
@@ -236,7 +224,7 @@ def spatial_order(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, 
     real = faces >= 0
     centre = (np.where(real[..., None], vertices[np.maximum(faces, 0)], 0.0).sum(axis=1)
               / real.sum(axis=1, keepdims=True))
-    return vertices, faces[morton_order(centre)]
+    return vertices, faces[morton_order(centre, ORDER_CELL)]
 
 
 def coarsen(vertices: np.ndarray, faces: np.ndarray, target_particles: int = 360,

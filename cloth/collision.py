@@ -17,9 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .geometry import closest_point_triangle, nearest_vertices
+from .geometry import closest_point_triangle, morton_order, nearest_vertices
 from .jit import kernel
 from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
+
+BODY_ORDER_CELL = 0.01  # m: the grid of the body's Morton order (BodyMesh.build), a few body edges
 
 
 @dataclass(frozen=True)
@@ -35,17 +37,39 @@ class BodyMesh:
     regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each leg)
     tri_nbrs: np.ndarray  # (m, 3) int32: the triangle across each edge (see topology.triangle_neighbours)
     clothed_faces: np.ndarray  # (m,) bool: the faces clothes can touch (see build)
+    # (n,) int64 or None: internal vertex k is the caller's vertex vertex_order[k] (see build)
+    vertex_order: np.ndarray | None = None
 
     @classmethod
     def build(cls, triangles: np.ndarray, n_vertices: int, regions: np.ndarray | None = None,
-              clothed_faces: np.ndarray | None = None) -> "BodyMesh":
+              clothed_faces: np.ndarray | None = None, rest_vertices: np.ndarray | None = None) -> "BodyMesh":
         """regions: a bit per vertex naming its body part. A particle's nearest-vertex walk stays in
         the parts it lay near at rest, so an arm swinging past the torso cannot carry a shirt's
         side away, nor one leg the other trouser leg. None: one region.
         clothed_faces: (m,) bool, the faces a garment can touch; only those go into the contact
         pass's face tree (`FaceTree`). The head, hands and toes are two thirds of a MakeHuman
-        body's triangles, and boxes full of them would be searched for nothing. None: every face."""
+        body's triangles, and boxes full of them would be searched for nothing. None: every face.
+        rest_vertices: (>= n, 3), the body at rest; given, the vertices and faces are numbered
+        along a Morton curve inside (`vertex_order`), so that a particle's lookups touch
+        neighbouring memory (S101 2-5 % faster on the MakeHuman body, docs/history.md). Callers
+        still pass body vertices in their own order (`BodyPose`, `prepare_cloth`, `ClothSim`
+        convert them with `internal`); the mesh's own arrays and `BodyPose.x` are in the inner one."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
+        vertex_order = None
+        if rest_vertices is not None:
+            rest = np.asarray(rest_vertices, dtype=np.float64)[:n_vertices]
+            if rest.shape != (n_vertices, 3):
+                raise ValueError(f"rest_vertices must be (>= {n_vertices}, 3)")
+            vertex_order = morton_order(rest, BODY_ORDER_CELL)
+            new_index = np.empty(n_vertices, dtype=np.int64)
+            new_index[vertex_order] = np.arange(n_vertices)
+            triangles = new_index[triangles].astype(np.int32)
+            face_order = morton_order(rest[vertex_order][triangles].mean(axis=1), BODY_ORDER_CELL)
+            triangles = np.ascontiguousarray(triangles[face_order])
+            if regions is not None:
+                regions = np.asarray(regions)[vertex_order]
+            if clothed_faces is not None:
+                clothed_faces = np.asarray(clothed_faces)[face_order]
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
         ts, ti = vertex_cells(n_vertices, triangles)
@@ -59,7 +83,24 @@ class BodyMesh:
         clothed_faces = np.asarray(clothed_faces, dtype=bool)
         if clothed_faces.shape != (len(triangles),):
             raise ValueError(f"clothed_faces must be ({len(triangles)},) bool")
-        return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles), clothed_faces)
+        return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles), clothed_faces,
+                   vertex_order)
+
+    def internal(self, vertices: np.ndarray) -> np.ndarray:
+        """(n, 3) float64: the caller's body vertices (>= n_vertices rows, the first n the body) in
+        this mesh's vertex order (a copy when reordered)."""
+        x = np.asarray(vertices, dtype=np.float64)[: self.n_vertices]
+        return np.ascontiguousarray(x if self.vertex_order is None else x[self.vertex_order])
+
+
+@kernel
+def gather_rows(src, rows, out):
+    """out[k] = src[rows[k]] (3 columns): the body's vertices in the mesh's order, every pose."""
+    for k in range(rows.shape[0]):
+        r = rows[k]
+        out[k, 0] = src[r, 0]
+        out[k, 1] = src[r, 1]
+        out[k, 2] = src[r, 2]
 
 
 @kernel
@@ -797,7 +838,10 @@ class BodyPose:
         """The vertices and face normals of this pose; the grid and tree are stale until
         `update_queries()`."""
         self._queries.clear()
-        self.x[:] = body_vertices[: self.body.n_vertices]
+        if self.body.vertex_order is None:
+            self.x[:] = body_vertices[: self.body.n_vertices]
+        else:
+            gather_rows(np.asarray(body_vertices), self.body.vertex_order, self.x)
         body_face_normals(self.x, self.body.triangles, self.face_n)
 
     def update_queries(self) -> None:

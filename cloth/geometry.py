@@ -144,3 +144,15 @@ def vertex_normals(x, triangles, out):
             out[i, 0] /= norm
             out[i, 1] /= norm
             out[i, 2] /= norm
+
+
+def morton_order(points: np.ndarray, cell: float) -> np.ndarray:
+    """Indices that sort points along a Morton (Z-order) curve over a grid of `cell`: points
+    near in space come near in the order (ties keep their order)."""
+    q = np.floor((points - points.min(axis=0)) / cell).astype(np.int64)
+    q = np.minimum(q, (1 << 20) - 1)
+    key = np.zeros(len(points), dtype=np.int64)
+    for bit in range(20):
+        for axis in range(3):
+            key |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
+    return np.argsort(key, kind="stable")

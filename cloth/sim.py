@@ -131,7 +131,7 @@ def prepare_cloth(garment: Garment, fabric: Fabric, body_rest: np.ndarray, body:
     is simulated."""
     settings = settings or SimSettings()
     coarse = coarsen(garment.vertices, garment.faces, settings.target_particles)
-    body_x = np.ascontiguousarray(body_rest[: body.n_vertices], dtype=np.float64)
+    body_x = body.internal(body_rest)
     masks = particle_regions(coarse.vertices, body_x, body)
     resolved = resolve_intersections(coarse.vertices, body_x, body, fabric.thickness, masks)
     model = build_cloth_model(garment, fabric, settings, resolved, coarse)

@@ -167,6 +167,7 @@ class DetailedSurface:
         """One frame of S102-S106 from the coarse positions x (n, 3); returns (positions, normals)
         of the detailed mesh (views of the state arrays, valid until the next step).
 
+        body_x: the body's vertices in the body mesh's order (`BodyPose.x`, see BodyMesh.build);
         coarse_nearest: each coarse particle's nearest body vertex (the S103 walk seeds);
         face_n: the body's face normals for this pose (see collision.body_face_normals);
         grid: the body's vertex grid for this pose, through which S103 finds the other body

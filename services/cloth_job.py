@@ -230,7 +230,8 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
     wanted = set(snapshot_frames or [])
     with BVHSource(clip, every=every, max_frames=max_frames) as source:
         animator = BodyAnimator(body, source.skeleton)
-        body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
+        body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body),
+                                   body.vertices)
         outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)
         # garments one after the other: the per-garment stage timings stay those of one core
         session = OutfitSession(body, animator, body_mesh, outfit, surface, threads=1)

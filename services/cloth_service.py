@@ -225,7 +225,8 @@ class ClothService:
         self._last_work = 0.0  # monotonic time the serving thread last handled a message
         self.idle_seconds = idle_seconds
         self.animator = BodyAnimator(body)
-        self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
+        self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body),
+                                        body.vertices)
         self.sessions: dict[str, GarmentSession] = {}
         self.failed: dict[str, str] = {}  # session -> why it cannot be served
         self.ended: dict[str, int] = {}  # session -> stamp_ns of its end message

@@ -844,9 +844,10 @@ def test_resolve_contacts_tests_only_the_active_particles():
     assert placed[0] == 0.0 and np.isnan(placed[1])
 
 
-def quad_on_box(settings):
+def quad_on_box(settings, ordered=False):
     """One 4 cm cotton quad (max strain 5 %, thickness 3 mm), stretched 30 % along x, 2 mm
-    inside the top face (y = 0.3) of a box, at rest: (sim, positions)."""
+    inside the top face (y = 0.3) of a box, at rest: (sim, positions). ordered: the box's
+    mesh numbered along a Morton curve inside (BodyMesh.build's rest_vertices)."""
     from cloth.coarsen import CoarseMesh
     from cloth.garment import Garment
     from cloth.model import build_cloth_model
@@ -858,7 +859,7 @@ def quad_on_box(settings):
     model = build_cloth_model(garment, fabric("cotton"), settings, rest,
                               CoarseMesh(rest, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
     verts, tris = box(0.3)
-    sim = ClothSim(model, BodyMesh.build(tris, len(verts)), verts)
+    sim = ClothSim(model, BodyMesh.build(tris, len(verts), rest_vertices=verts if ordered else None), verts)
     assert (model.fabric.max_strain, model.fabric.thickness) == (0.05, 0.003)
     x = sim.state.x
     x[:] = [[-0.026, 0.298, 0.0], [-0.026, 0.298, 0.04], [0.026, 0.298, 0.04], [0.026, 0.298, 0.0]]
@@ -866,14 +867,16 @@ def quad_on_box(settings):
     return sim, x
 
 
+@pytest.mark.parametrize("ordered", [False, True])
 @pytest.mark.parametrize("slide_passes", [0, 1])
-def test_slide_pass_lets_placed_particles_slide_back_to_the_strain_limit(slide_passes):
+def test_slide_pass_lets_placed_particles_slide_back_to_the_strain_limit(slide_passes, ordered):
     """The quad of `quad_on_box`: the contact pass places all four on the face plus thickness
     (y = 0.303). Held there (slide_passes = 0), the stretched edges stay 5.2 cm long. The slide
     pass frees them for one strain-limiting pass: each x edge, its two ends of equal mass,
     shortens about its midpoint to exactly 1.05 × 4 cm along the face, the z edges (at rest)
-    are untouched, and the second contact pass finds them all outside."""
-    sim, x = quad_on_box(SimSettings(slide_passes=slide_passes))
+    are untouched, and the second contact pass finds them all outside. The same with the box
+    numbered in Morton order inside (the caller still passes its own vertices)."""
+    sim, x = quad_on_box(SimSettings(slide_passes=slide_passes), ordered)
     sim.settle_contacts(sim.pose)
     np.testing.assert_allclose(x[:, 1], 0.303, atol=1e-12)
     half = 0.026 if slide_passes == 0 else 0.021
@@ -893,6 +896,58 @@ def test_nearest_face_query_off_keeps_no_face_tree():
         results.append(x.copy())
     np.testing.assert_allclose(results[0][:, 1], 0.303, atol=1e-12)
     np.testing.assert_array_equal(results[0], results[1])
+
+
+def canonical_triangles(v, t):
+    """A mesh's triangles as sorted corner-position triples, each rotated to start at its
+    smallest corner (winding kept): equal for the same surface under any numbering."""
+    out = []
+    for row in np.round(v[t] * 1e6).astype(np.int64):
+        corners = [tuple(c) for c in row]
+        k = corners.index(min(corners))
+        out.append(tuple(corners[k:] + corners[:k]))
+    return sorted(out)
+
+
+def test_a_body_numbered_in_morton_order_inside_answers_in_the_callers_terms():
+    """A box numbered at random (vertices and faces shuffled), two regions (x < 0, x >= 0), the
+    top faces clothed. Built with its rest vertices, the mesh renumbers both along a Morton
+    curve: the same triangles,
+    windings, regions and clothed faces as positions; `internal` and a `BodyPose` update from
+    the caller's vertices give them in the inner order, and the face normals match the
+    caller's own faces'."""
+    from cloth.collision import BODY_ORDER_CELL
+    from cloth.geometry import morton_order
+
+    verts, tris = box(0.3, 6)
+    rng = np.random.default_rng(5)
+    perm = rng.permutation(len(verts))  # caller's vertex perm[k] is box vertex k
+    v = np.empty_like(verts)
+    v[perm] = verts
+    t = perm[tris][rng.permutation(len(tris))].astype(np.int32)
+    regions = np.where(v[:, 0] < 0, 1, 2).astype(np.uint8)
+    clothed = v[t][:, :, 1].min(axis=1) > 0.29
+    mesh = BodyMesh.build(t, len(v), regions, clothed, rest_vertices=v)
+    order = mesh.vertex_order
+    np.testing.assert_array_equal(np.sort(order), np.arange(len(v)))
+    inner = mesh.internal(v)
+    np.testing.assert_array_equal(inner, v[order])
+    np.testing.assert_array_equal(morton_order(inner, BODY_ORDER_CELL), np.arange(len(v)))
+    assert canonical_triangles(inner, mesh.triangles) == canonical_triangles(v, t)
+    assert canonical_triangles(inner, mesh.triangles[mesh.clothed_faces]) == canonical_triangles(v, t[clothed])
+    np.testing.assert_array_equal(mesh.regions, regions[order])
+    moved = v @ rotation([0.0, 1.0, 0.0], 0.3).T + [0.1, 0.2, 0.0]
+    pose = BodyPose(mesh)
+    pose.update(moved)
+    np.testing.assert_array_equal(pose.x, moved[order])
+    mine = face_normals(moved, t)
+    theirs = pose.face_n
+    key = {tri: k for k, tri in enumerate(map(tuple, np.sort(order[mesh.triangles], axis=1)))}
+    match = np.array([key[tuple(row)] for row in np.sort(t, axis=1)])
+    np.testing.assert_allclose(theirs[match], mine, atol=1e-15)
+    plain = BodyMesh.build(t, len(v), regions, clothed)
+    assert plain.vertex_order is None
+    np.testing.assert_array_equal(plain.internal(v), v)
 
 
 def two_boxes(gap=0.05, half=0.1):

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from cloth.coarsen import coarsen, morton_order, spatial_order
+from cloth.coarsen import coarsen, spatial_order
+from cloth.geometry import morton_order
 from cloth.garment import GarmentError, fit_mhclo, load_garment_file, load_outfit, read_mhclo
 from cloth.topology import boundary_loops, orient_faces, polygon_edges, triangulate
 
