@@ -1,9 +1,15 @@
 """An independent signed distance to a triangle mesh, for the acceptance tests.
 
 It shares no code with cloth/: exact closest points on triangles (Ericson, Real-Time
-Collision Detection 5.1.5), found through a uniform grid rebuilt for every body pose, with
-the sign from angle-weighted pseudo-normals (Bærentzen & Aanæs 2005), which is exact for a
-closed, outward-oriented mesh. Negative inside.
+Collision Detection 5.1.5), found through a uniform grid rebuilt for every body pose. Negative
+inside, where inside is a winding number of one or more: the signed count of the surface's
+crossings on a ray straight up from the point (`winding_numbers`). A skinned body intersects
+itself (a thigh raised into the belly, an arm's shoulder cap into the chest), and there the
+sign of the nearest face's angle-weighted pseudo-normal (Bærentzen & Aanæs 2005), exact only
+for a surface that does not, says "outside" for a point 2-3 cm deep in the thigh whose
+nearest face is the belly's skin buried inside it (`pseudo_normal_sign=True` keeps that sign,
+to compare). The distance inside is to the nearest face of any sheet: a lower bound of how
+far the point is from getting out.
 """
 
 from __future__ import annotations
@@ -220,6 +226,91 @@ def _query(points, x, tris, tri_edges, edge_faces, vt_start, vt_ids, cell, start
         out[s] = math.sqrt(best) if side >= 0.0 else -math.sqrt(best)
 
 
+@njit(cache=True)
+def _build_columns(x, tris, cell, start, ids):
+    """Bucket every triangle into the hashed vertical columns (x, z cells) its bounding box
+    overlaps (CSR: start, ids); returns the number of entries (nothing filled past len(ids))."""
+    mask = start.shape[0] - 2
+    counts = np.zeros(start.shape[0] - 1, dtype=np.int64)
+    for fill in (False, True):
+        if fill:
+            total = counts.sum()
+            if total > ids.shape[0]:
+                return total
+            start[0] = 0
+            for c in range(counts.shape[0]):
+                start[c + 1] = start[c] + counts[c]
+            counts[:] = 0
+        for t in range(tris.shape[0]):
+            i0, i1 = _cell_range(x, tris[t], cell, 0)
+            k0, k1 = _cell_range(x, tris[t], cell, 2)
+            for i in range(i0, i1 + 1):
+                for k in range(k0, k1 + 1):
+                    c = _hash(i, 0, k, mask)
+                    if fill:
+                        ids[start[c] + counts[c]] = t
+                    counts[c] += 1
+    return counts.sum()
+
+
+@njit(cache=True, inline="always")
+def _edge(x, u, v, px, pz):
+    """Twice the signed area of (u, v, p) in the x-z plane, computed from the lower vertex
+    index, so that the two faces on an edge get exactly opposite values."""
+    lo, hi = min(u, v), max(u, v)
+    w = (x[hi, 0] - x[lo, 0]) * (pz - x[lo, 2]) - (x[hi, 2] - x[lo, 2]) * (px - x[lo, 0])
+    return w if u == lo else -w
+
+
+@njit(cache=True, inline="always")
+def _owns(x, u, v, flip):
+    """Top-left rule: which of the two faces on an edge counts a point exactly on it (the edge
+    u -> v as the face, turned counter-clockwise in x-z, runs along it)."""
+    dx = x[v, 0] - x[u, 0]
+    dz = x[v, 2] - x[u, 2]
+    if flip:
+        dx, dz = -dx, -dz
+    return dz > 0.0 or (dz == 0.0 and dx < 0.0)
+
+
+@njit(cache=True)
+def _winding(points, x, tris, cell, start, ids, seen, out):
+    """out[s]: the surface's crossings on the ray from points[s] towards +y, +1 where it leaves
+    through a face (normal y > 0), -1 where it enters: the winding number of a closed mesh.
+    seen (n_tris,) int64, -1: a face whose box spans two cells of one hash bucket is there
+    twice, and counted once."""
+    mask = start.shape[0] - 2
+    seen[:] = -1
+    for s in range(points.shape[0]):
+        px, py, pz = points[s, 0], points[s, 1], points[s, 2]
+        c = _hash(int(math.floor(px / cell)), 0, int(math.floor(pz / cell)), mask)
+        w = 0
+        for e in range(start[c], start[c + 1]):
+            t = ids[e]
+            if seen[t] == s:
+                continue
+            seen[t] = s
+            a, b, d = tris[t, 0], tris[t, 1], tris[t, 2]
+            area = (x[b, 0] - x[a, 0]) * (x[d, 2] - x[a, 2]) - (x[b, 2] - x[a, 2]) * (x[d, 0] - x[a, 0])
+            if area == 0.0:
+                continue  # seen edge-on from below: its neighbours count the crossing
+            flip = area < 0.0
+            wa = _edge(x, b, d, px, pz)  # opposite a
+            wb = _edge(x, d, a, px, pz)
+            wc = _edge(x, a, b, px, pz)
+            if flip:
+                wa, wb, wc = -wa, -wb, -wc
+            if wa < 0.0 or wb < 0.0 or wc < 0.0:
+                continue
+            if (wa == 0.0 and not _owns(x, b, d, flip)) or (wb == 0.0 and not _owns(x, d, a, flip)) \
+                    or (wc == 0.0 and not _owns(x, a, b, flip)):
+                continue
+            hit_y = (wa * x[a, 1] + wb * x[b, 1] + wc * x[d, 1]) / (wa + wb + wc)
+            if hit_y > py:
+                w += 1 if flip else -1  # clockwise in (x, z): its normal points up, the ray leaves
+        out[s] = w
+
+
 class SignedDistance:
     """Signed distance to a triangle mesh of fixed topology whose vertices move per frame.
 
@@ -227,7 +318,8 @@ class SignedDistance:
         d = sd(vertices, points)     # (k,) m, negative inside
     """
 
-    def __init__(self, triangles: np.ndarray, n_vertices: int, cell: float = 0.01, table_bits: int = 17):
+    def __init__(self, triangles: np.ndarray, n_vertices: int, cell: float = 0.01, table_bits: int = 17,
+                 pseudo_normal_sign: bool = False):
         self.tris = np.ascontiguousarray(triangles, dtype=np.int64)
         e = np.sort(np.stack([self.tris[:, [0, 1]], self.tris[:, [1, 2]], self.tris[:, [2, 0]]], axis=1), axis=2)
         uniq, inverse = np.unique(e.reshape(-1, 2), axis=0, return_inverse=True)
@@ -245,6 +337,25 @@ class SignedDistance:
         self.start = np.zeros((1 << table_bits) + 1, dtype=np.int64)
         self.ids = np.zeros(len(self.tris) * 8, dtype=np.int64)
         self.centre = np.zeros((len(self.tris), 4))  # bounding sphere per triangle: centre, radius
+        self.pseudo_normal_sign = pseudo_normal_sign
+        self.column_cell = 2.0 * cell
+        self.column_start = np.zeros((1 << table_bits) + 1, dtype=np.int64)
+        self.column_ids = np.zeros(len(self.tris) * 4, dtype=np.int64)
+        self.column_seen = np.zeros(len(self.tris), dtype=np.int64)
+
+    def winding_numbers(self, vertices: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(k,) int64: how many times the closed surface wraps each point (0 outside, 1 inside,
+        2 where two intersecting parts of it overlap)."""
+        x = np.ascontiguousarray(vertices[: self.n_vertices], dtype=np.float64)
+        while True:
+            used = _build_columns(x, self.tris, self.column_cell, self.column_start, self.column_ids)
+            if used <= len(self.column_ids):
+                break
+            self.column_ids = np.zeros(int(used), dtype=np.int64)
+        out = np.zeros(len(points), dtype=np.int64)
+        _winding(np.ascontiguousarray(points, dtype=np.float64), x, self.tris, self.column_cell, self.column_start,
+                 self.column_ids, self.column_seen, out)
+        return out
 
     def __call__(self, vertices: np.ndarray, points: np.ndarray) -> np.ndarray:
         x = np.ascontiguousarray(vertices[: self.n_vertices], dtype=np.float64)
@@ -257,4 +368,6 @@ class SignedDistance:
         out = np.empty(len(points))
         _query(np.ascontiguousarray(points, dtype=np.float64), x, self.tris, self.tri_edges, self.edge_faces,
                self.vt_start, self.vt_ids, self.cell, self.start, self.ids, self.centre, out)
-        return out
+        if self.pseudo_normal_sign:
+            return out
+        return np.where(self.winding_numbers(vertices, points) > 0, -np.abs(out), np.abs(out))
