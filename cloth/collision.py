@@ -51,10 +51,20 @@ class BodyMesh:
         body's triangles, and boxes full of them would be searched for nothing. None: every face.
         rest_vertices: (>= n, 3), the body at rest; given, the vertices and faces are numbered
         along a Morton curve inside (`vertex_order`), so that a particle's lookups touch
-        neighbouring memory (S101 2-5 % faster on the MakeHuman body, docs/history.md). Callers
+        neighbouring memory (S101 1-5 % faster on the MakeHuman body, docs/history.md). Callers
         still pass body vertices in their own order (`BodyPose`, `prepare_cloth`, `ClothSim`
         convert them with `internal`); the mesh's own arrays and `BodyPose.x` are in the inner one."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
+        if regions is None:
+            regions = np.ones(n_vertices, dtype=np.uint8)
+        regions = np.ascontiguousarray(regions, dtype=np.uint8)
+        if regions.shape != (n_vertices,) or np.any(regions == 0):
+            raise ValueError(f"regions must be ({n_vertices},) uint8 with a bit set for every vertex")
+        if clothed_faces is None:
+            clothed_faces = np.ones(len(triangles), dtype=bool)
+        clothed_faces = np.asarray(clothed_faces, dtype=bool)
+        if clothed_faces.shape != (len(triangles),):
+            raise ValueError(f"clothed_faces must be ({len(triangles)},) bool")
         vertex_order = None
         if rest_vertices is not None:
             rest = np.asarray(rest_vertices, dtype=np.float64)[:n_vertices]
@@ -66,23 +76,11 @@ class BodyMesh:
             triangles = new_index[triangles].astype(np.int32)
             face_order = morton_order(rest[vertex_order][triangles].mean(axis=1), BODY_ORDER_CELL)
             triangles = np.ascontiguousarray(triangles[face_order])
-            if regions is not None:
-                regions = np.asarray(regions)[vertex_order]
-            if clothed_faces is not None:
-                clothed_faces = np.asarray(clothed_faces)[face_order]
+            regions = np.ascontiguousarray(regions[vertex_order])
+            clothed_faces = clothed_faces[face_order]
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
         ts, ti = vertex_cells(n_vertices, triangles)
-        if regions is None:
-            regions = np.ones(n_vertices, dtype=np.uint8)
-        regions = np.ascontiguousarray(regions, dtype=np.uint8)
-        if regions.shape != (n_vertices,) or np.any(regions == 0):
-            raise ValueError(f"regions must be ({n_vertices},) uint8 with a bit set for every vertex")
-        if clothed_faces is None:
-            clothed_faces = np.ones(len(triangles), dtype=bool)
-        clothed_faces = np.asarray(clothed_faces, dtype=bool)
-        if clothed_faces.shape != (len(triangles),):
-            raise ValueError(f"clothed_faces must be ({len(triangles)},) bool")
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles), clothed_faces,
                    vertex_order)
 
@@ -841,7 +839,10 @@ class BodyPose:
         if self.body.vertex_order is None:
             self.x[:] = body_vertices[: self.body.n_vertices]
         else:
-            gather_rows(np.asarray(body_vertices), self.body.vertex_order, self.x)
+            body_vertices = np.asarray(body_vertices)
+            if body_vertices.ndim != 2 or body_vertices.shape[0] < self.body.n_vertices or body_vertices.shape[1] != 3:
+                raise ValueError(f"body vertices must be (>= {self.body.n_vertices}, 3), got {body_vertices.shape}")
+            gather_rows(body_vertices, self.body.vertex_order, self.x)
         body_face_normals(self.x, self.body.triangles, self.face_n)
 
     def update_queries(self) -> None:

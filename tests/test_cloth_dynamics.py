@@ -940,6 +940,8 @@ def test_a_body_numbered_in_morton_order_inside_answers_in_the_callers_terms():
     pose = BodyPose(mesh)
     pose.update(moved)
     np.testing.assert_array_equal(pose.x, moved[order])
+    with pytest.raises(ValueError, match="body vertices must be"):
+        pose.update(moved[:-1])  # one vertex short: the gather would read past the end
     mine = face_normals(moved, t)
     theirs = pose.face_n
     key = {tri: k for k, tri in enumerate(map(tuple, np.sort(order[mesh.triangles], axis=1)))}
