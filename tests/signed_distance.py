@@ -126,9 +126,10 @@ def _cell_range(x, tri, cell, axis):
 
 
 @njit(cache=True)
-def _build_grid(x, tris, cell, start, ids):
+def _build_grid(x, tris, cell, start, ids, columns=False):
     """Bucket every triangle into the hashed cells its bounding box overlaps (CSR: start, ids).
     A small hash table stays in cache; cells that share a bucket only add candidates.
+    columns: the cells are vertical columns (x, z; j = 0), for `_winding`'s rays.
     Returns the number of entries; when it exceeds len(ids), nothing is filled."""
     mask = start.shape[0] - 2
     counts = np.zeros(start.shape[0] - 1, dtype=np.int64)
@@ -143,7 +144,7 @@ def _build_grid(x, tris, cell, start, ids):
             counts[:] = 0
         for t in range(tris.shape[0]):
             i0, i1 = _cell_range(x, tris[t], cell, 0)
-            j0, j1 = _cell_range(x, tris[t], cell, 1)
+            j0, j1 = (0, 0) if columns else _cell_range(x, tris[t], cell, 1)
             k0, k1 = _cell_range(x, tris[t], cell, 2)
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
@@ -224,33 +225,6 @@ def _query(points, x, tris, tri_edges, edge_faces, vt_start, vt_ids, cell, start
         _pseudo_normal(x, tris, best_t, best_kind, best_k, tri_edges, edge_faces, vt_start, vt_ids, n)
         side = _dot(p[0] - best_q[0], p[1] - best_q[1], p[2] - best_q[2], n[0], n[1], n[2])
         out[s] = math.sqrt(best) if side >= 0.0 else -math.sqrt(best)
-
-
-@njit(cache=True)
-def _build_columns(x, tris, cell, start, ids):
-    """Bucket every triangle into the hashed vertical columns (x, z cells) its bounding box
-    overlaps (CSR: start, ids); returns the number of entries (nothing filled past len(ids))."""
-    mask = start.shape[0] - 2
-    counts = np.zeros(start.shape[0] - 1, dtype=np.int64)
-    for fill in (False, True):
-        if fill:
-            total = counts.sum()
-            if total > ids.shape[0]:
-                return total
-            start[0] = 0
-            for c in range(counts.shape[0]):
-                start[c + 1] = start[c] + counts[c]
-            counts[:] = 0
-        for t in range(tris.shape[0]):
-            i0, i1 = _cell_range(x, tris[t], cell, 0)
-            k0, k1 = _cell_range(x, tris[t], cell, 2)
-            for i in range(i0, i1 + 1):
-                for k in range(k0, k1 + 1):
-                    c = _hash(i, 0, k, mask)
-                    if fill:
-                        ids[start[c] + counts[c]] = t
-                    counts[c] += 1
-    return counts.sum()
 
 
 @njit(cache=True, inline="always")
@@ -348,7 +322,7 @@ class SignedDistance:
         2 where two intersecting parts of it overlap)."""
         x = np.ascontiguousarray(vertices[: self.n_vertices], dtype=np.float64)
         while True:
-            used = _build_columns(x, self.tris, self.column_cell, self.column_start, self.column_ids)
+            used = _build_grid(x, self.tris, self.column_cell, self.column_start, self.column_ids, True)
             if used <= len(self.column_ids):
                 break
             self.column_ids = np.zeros(int(used), dtype=np.int64)
