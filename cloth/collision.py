@@ -20,6 +20,7 @@ from numba import njit
 from .geometry import closest_point_triangle, morton_order, nearest_vertices
 from .jit import kernel
 from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
+from .winding import WindingGrid, closed_faces, ray_crossing, winding_number
 
 BODY_ORDER_CELL = 0.01  # m: the grid of the body's Morton order (BodyMesh.build), a few body edges
 
@@ -37,6 +38,7 @@ class BodyMesh:
     regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each leg)
     tri_nbrs: np.ndarray  # (m, 3) int32: the triangle across each edge (see topology.triangle_neighbours)
     clothed_faces: np.ndarray  # (m,) bool: the faces clothes can touch (see build)
+    winding_faces: np.ndarray  # (k, 3) int32: the clothed faces, their holes capped (`winding.closed_faces`)
     # (n,) int64 or None: internal vertex k is the caller's vertex vertex_order[k] (see build)
     vertex_order: np.ndarray | None = None
 
@@ -82,7 +84,7 @@ class BodyMesh:
         ns, ni = vertex_neighbours(n_vertices, edges)
         ts, ti = vertex_cells(n_vertices, triangles)
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles), clothed_faces,
-                   vertex_order)
+                   closed_faces(triangles, clothed_faces), vertex_order)
 
     def internal(self, vertices: np.ndarray) -> np.ndarray:
         """(n, 3) float64: the caller's body vertices (>= n_vertices rows, the first n the body) in
@@ -661,6 +663,8 @@ NO_FACE_TREE = (np.zeros((1, 6)), np.full((1, 2), -1, np.int32), np.zeros(1, np.
                 np.zeros(0, np.int32), np.full(1, -1, np.int32), np.full(0, -1, np.int32))  # FaceTree.arrays(), no faces
 FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most this deep, less two)
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
+UNION_REACH = 0.08  # m: how far along each axis `leave_body_union` looks for the way out
+UNION_HITS = 32  # the most faces one of its rays may cross within reach
 
 
 @kernel
@@ -806,24 +810,149 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
                 break  # as far out as this place allows: a test would push it back into one side
 
 
+@njit(cache=True, inline="always")
+def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child, first, count, order, stack, hit_t,
+                  hit_s, hit_f):
+    """How far along the ray from p along axis (0-2) towards sign (+-1) a point wrapped `wind`
+    times by the body first gets out (its winding number falls to 0), and the face it leaves
+    through: the tree's faces the ray crosses within reach, in order along it, each -1 where the
+    ray leaves through it, +1 where it enters. (inf, -1): not within reach (or more crossings
+    than hit_t holds).
+    stack: the tree's traversal scratch; hit_t (k,) float64, hit_s, hit_f (k,) int32: scratch."""
+    u = (axis + 1) % 3
+    v = (axis + 2) % 3
+    p = (px, py, pz)
+    pu, pv, pw = p[u], p[v], p[axis]
+    lo_w = pw - reach if sign < 0 else pw
+    hi_w = pw + reach if sign > 0 else pw
+    n = 0
+    top = 0
+    stack[0] = 0
+    while top >= 0:
+        node = stack[top]
+        top -= 1
+        if box[node, u] > pu or box[node, 3 + u] < pu or box[node, v] > pv or box[node, 3 + v] < pv \
+                or box[node, axis] > hi_w or box[node, 3 + axis] < lo_w:
+            continue
+        if child[node, 0] >= 0:
+            stack[top + 1] = child[node, 1]
+            stack[top + 2] = child[node, 0]
+            top += 2
+            continue
+        for e in range(first[node], first[node] + count[node]):
+            h, s = ray_crossing(body_x, tris, order[e], pu, pv, u, v, axis)
+            t = (h - pw) * sign
+            if s == 0 or t <= 0.0 or t > reach:
+                continue
+            if n == hit_t.shape[0]:
+                return np.inf, -1
+            k = n  # insertion: the hits in order along the ray
+            while k > 0 and hit_t[k - 1] > t:
+                hit_t[k] = hit_t[k - 1]
+                hit_s[k] = hit_s[k - 1]
+                hit_f[k] = hit_f[k - 1]
+                k -= 1
+            hit_t[k] = t
+            hit_s[k] = s if sign > 0 else -s
+            hit_f[k] = order[e]
+            n += 1
+    for k in range(n):
+        wind -= hit_s[k]
+        if wind <= 0:
+            return hit_t[k], hit_f[k]
+    return np.inf, -1
+
+
+@kernel
+def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, tris, box, child, first, count, order,
+                     stack, hit_t, hit_s, hit_f, thickness, active, placed_inv_mass):
+    """Put out every active particle that is inside the body as a whole (its winding number,
+    `winding.winding_number`), where the contact pass's ring tests cannot see it: behind a
+    face of one body part that lies buried in another (a thigh pressed into the belly by the
+    skinning, the shoulder cap into the chest, the calf into the thigh behind a bent knee),
+    the nearest face is the buried one, and it faces the particle. The way out: of the six
+    axis directions, the one on which the body ends nearest (within UNION_REACH), or the normal
+    of the face it ends at, if that face's plane is nearer; the particle goes thickness beyond
+    it, if what lies there is outside the body, and its velocity into the body (relative to the
+    body's, body_vel) along that direction is removed.
+    face_n: the pose's face normals (`body_face_normals`); wfaces, wlo, wstart, wids: the pose's
+    `WindingGrid` (BodyMesh.winding_faces and its arrays); box ... order: the pose's `FaceTree`
+    (its clothed faces), stack its scratch; hit_t, hit_s, hit_f: scratch of `tree_ray_exit`.
+    placed_inv_mass: 0 written for each particle moved. Returns the number moved."""
+    moved = 0
+    for i in range(x.shape[0]):
+        if not active[i]:
+            continue
+        px, py, pz = x[i, 0], x[i, 1], x[i, 2]
+        wind = winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids)
+        if wind <= 0:
+            continue
+        best = np.inf
+        bx = by = bz = 0.0  # the unit direction out
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                t, f = tree_ray_exit(px, py, pz, axis, sign, wind, UNION_REACH, body_x, tris, box, child, first,
+                                     count, order, stack, hit_t, hit_s, hit_f)
+                if t == np.inf:
+                    continue
+                # the exit face's plane is the nearer way out where the ray meets it at a slant
+                nx, ny, nz = face_n[f, 0], face_n[f, 1], face_n[f, 2]
+                a = tris[f, 0]
+                plane = (body_x[a, 0] - px) * nx + (body_x[a, 1] - py) * ny + (body_x[a, 2] - pz) * nz
+                for slanted in (True, False):
+                    if slanted:
+                        if plane <= 0.0 or plane >= t or plane >= best:
+                            continue
+                        dist, dx, dy, dz = plane, nx, ny, nz
+                    else:
+                        if t >= best:
+                            continue
+                        dist = t
+                        dx = sign if axis == 0 else 0.0
+                        dy = sign if axis == 1 else 0.0
+                        dz = sign if axis == 2 else 0.0
+                    step = dist + thickness
+                    if winding_number(px + step * dx, py + step * dy, pz + step * dz, body_x, wfaces, wlo, wstart,
+                                      wids) == 0:
+                        best, bx, by, bz = dist, dx, dy, dz
+        if best == np.inf:
+            continue
+        step = best + thickness
+        x[i, 0] = px + step * bx
+        x[i, 1] = py + step * by
+        x[i, 2] = pz + step * bz
+        vn = (v[i, 0] - body_vel[i, 0]) * bx + (v[i, 1] - body_vel[i, 1]) * by + (v[i, 2] - body_vel[i, 2]) * bz
+        if vn < 0.0:
+            v[i, 0] -= vn * bx
+            v[i, 1] -= vn * by
+            v[i, 2] -= vn * bz
+        placed_inv_mass[i] = 0.0
+        moved += 1
+    return moved
+
+
 class BodyPose:
     """What every garment reads from one body pose, computed once per pose and shared: the
-    vertices (float64, contiguous), the face normals, the vertex grid and the face tree (of
-    the faces clothes can touch, `BodyMesh.clothed_faces`).
+    vertices (float64, contiguous), the face normals, the vertex grid, the face tree (of the
+    faces clothes can touch, `BodyMesh.clothed_faces`) and the winding grid (the body as a
+    whole: `leave_body_union`).
 
     `update()` computes all of it. A caller that steps garments on several threads can split it:
     `update_surface()` (vertices, face normals: what a step needs from its start), then
-    `update_queries()` (grid, face tree: needed only by the contact passes at the end of S101)
+    `update_queries()` (grids, face tree: needed only by the contact passes at the end of S101)
     while the garments start; `ClothSim` calls `wait_queries()` before its contact passes."""
 
-    def __init__(self, body: BodyMesh, face_tree: bool = True):
+    def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False):
         """face_tree: keep the face tree (the contact pass's nearest-face query; False when every
-        garment on the body has it off, `SimSettings.nearest_face_radius`)."""
+        garment on the body has it off, `SimSettings.nearest_face_radius`). winding: keep the
+        winding grid (`leave_body_union`, when a garment on the body has
+        `SimSettings.union_passes`)."""
         self.body = body
         self.x = np.zeros((body.n_vertices, 3))  # m
         self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
         self.grid = VertexGrid(body.n_vertices)
         self.faces = FaceTree(body.triangles, np.flatnonzero(body.clothed_faces), body.regions) if face_tree else None
+        self.winding = WindingGrid(body.winding_faces, body.n_vertices) if winding else None
         self._queries = threading.Event()  # set: grid and tree are this pose's
         self._queries_failed = False
 
@@ -846,10 +975,13 @@ class BodyPose:
         body_face_normals(self.x, self.body.triangles, self.face_n)
 
     def update_queries(self) -> None:
-        """The vertex grid and the face tree's boxes for the pose `update_surface()` set."""
+        """The vertex grid, the winding grid and the face tree's boxes for the pose
+        `update_surface()` set."""
         self._queries_failed = True
         try:
             self.grid.update(self.x, self.body.regions)
+            if self.winding is not None:
+                self.winding.update(self.x)
             if self.faces is not None:
                 self.faces.update(self.x)
             self._queries_failed = False

@@ -47,6 +47,15 @@ class SimSettings:
     # belly, an arm's fold at the armpit) a particle can lie 2-6 cm inside with the nearest
     # vertex's ring, on the far side or on the torso beyond, saying "outside" by up to 7 cm
     nearest_face_radius: float = 0.08
+    # which contact stages run `collision.leave_body_union` (out of the body as a whole, where a
+    # face buried in another part hides the inside from the ring tests; needs the face tree):
+    # 0 none, 1 after the last contact pass, 2 also before the contact strain-limiting passes.
+    # Off: where skinning sinks an arm 2-8 cm into the torso the particles come back inside every
+    # frame (the following and the substep collisions read the buried faces) and each push out
+    # stretches the cloth (acceptance with 2: frames with a particle > 1 mm inside 5,232 -> 1,312
+    # over the 18 rows, rows within 1 mm 1 -> 7, but rows with strain p99 <= 10 % 12 -> 7 and
+    # single edges stretched up to 8x; docs/history.md)
+    union_passes: int = 0
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
 
 

@@ -22,8 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .coarsen import coarsen
-from .collision import (FACE_TREE_STACK, PART_SLOTS, BodyMesh, BodyPose, attach_to_body, collide_particles,
-                        face_normals, follow_body, part_scratch, part_seeds, resolve_contacts, track_parts)
+from .collision import (FACE_TREE_STACK, PART_SLOTS, UNION_HITS, BodyMesh, BodyPose, attach_to_body,
+                        collide_particles, face_normals, follow_body, leave_body_union, part_scratch, part_seeds,
+                        resolve_contacts, track_parts)
 from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment
@@ -148,6 +149,7 @@ class ClothStats:
     frames: int = 0
     reset_particles: int = 0  # particles reset by the instability recovery, summed over frames
     reset_frames: int = 0  # frames in which any particle was reset
+    union_pushes: int = 0  # particles put out of the body as a whole (leave_body_union), summed over frames
     last_substeps: int = 0
 
 
@@ -162,6 +164,9 @@ class ClothState:
         self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
         self.q = np.zeros(3)  # contact pass scratch, and for the body parts near a particle:
         self.stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # the face tree's traversal
+        self.hit_t = np.zeros(UNION_HITS)  # the rays of leave_body_union
+        self.hit_s = np.zeros(UNION_HITS, dtype=np.int32)
+        self.hit_f = np.zeros(UNION_HITS, dtype=np.int32)
         self.part, self.part_vertex, self.part_d2 = part_scratch()
         self.placed_inv_mass = np.zeros(n)  # inverse masses with 0 for the particles the contact pass placed
         self.held_from = np.zeros((n, 3))  # positions before the strain-limiting passes with those held
@@ -192,7 +197,8 @@ class ClothSim:
         self.state = ClothState(model.n_particles, len(model.spring_i))
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
-        self.own_pose = BodyPose(body, model.settings.nearest_face_radius > 0)  # used when no shared pose is given
+        st = model.settings
+        self.own_pose = BodyPose(body, st.nearest_face_radius > 0, st.union_passes > 0)  # when no shared pose is given
         self.pose = self.own_pose  # the body pose of the last step, for the detailed surface stage
         self.reset(body_vertices)
 
@@ -313,6 +319,8 @@ class ClothSim:
             np.bitwise_or(s.recheck, s.unsettled, out=s.recheck)
             s.placed_inv_mass[:] = m.inv_mass
             self._contact_pass(pose, s.recheck)
+        if st.union_passes >= 2:
+            self._union_pass(pose)
         # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
         s.held_from[:] = s.x
         for _ in range(st.contact_limit_passes):
@@ -323,6 +331,21 @@ class ClothSim:
             # what moved far enough to have reached the body is tested once more
             mark_moved(s.x, s.held_from, FINAL_RECHECK * f.thickness, s.recheck)
             self._contact_pass(pose, s.recheck)
+        if st.union_passes >= 1:
+            self._union_pass(pose)  # last: what the ring tests above cannot see
+
+    def _union_pass(self, pose: BodyPose) -> None:
+        """`leave_body_union`: out of the body as a whole, for particles the ring tests of the
+        contact pass read as outside (needs the face tree and the winding grid; marks the placed
+        particles)."""
+        if pose.faces is None or pose.winding is None:
+            raise ValueError("SimSettings.union_passes needs a body pose with the face tree and the winding grid "
+                             "(nearest_face_radius > 0; BodyPose(..., winding=True))")
+        s, b = self.state, self.body
+        self.stats.union_pushes += leave_body_union(
+            s.x, s.v, s.carrier, pose.x, pose.face_n, b.winding_faces, *pose.winding.arrays(), b.triangles,
+            *pose.faces.arrays()[:5], s.stack, s.hit_t, s.hit_s, s.hit_f, self.model.fabric.thickness, s.all_particles,
+            s.placed_inv_mass)
 
     def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
         """`resolve_contacts` against the whole body in this pose for the active particles (all

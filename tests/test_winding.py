@@ -1,0 +1,149 @@
+"""The body's inside test as a whole (cloth.winding) and the push out of it (leave_body_union)."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from cloth.collision import (FACE_TREE_STACK, UNION_HITS, UNION_REACH, BodyMesh, BodyPose, FaceTree, face_normals,
+                             leave_body_union)
+from cloth.fabric import fabric
+from cloth.topology import boundary_loops
+from cloth.winding import WindingGrid, closed_faces, winding_numbers
+from tests.test_cloth_dynamics import box
+from tests.test_signed_distance import solid_angle_winding
+
+
+def overlapping_boxes():
+    """Two 40 cm boxes as one closed surface that cuts through itself (a thigh pressed into the
+    belly): A around the origin, B shifted by (0.3, 0.1, 0)."""
+    a = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    b = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    b.apply_translation((0.3, 0.1, 0.0))
+    return np.vstack([a.vertices, b.vertices]), np.vstack([a.faces, b.faces + len(a.vertices)]).astype(np.int32)
+
+
+def windings(vertices, faces, points, **grid):
+    g = WindingGrid(faces, len(vertices), **grid)
+    g.update(np.ascontiguousarray(vertices, dtype=np.float64))
+    out = np.zeros(len(points), dtype=np.int64)
+    winding_numbers(np.ascontiguousarray(points, dtype=np.float64), vertices, g.tris, *g.arrays(), out)
+    return out
+
+
+def test_winding_number_counts_overlapping_boxes_like_the_solid_angle():
+    """0 outside, 1 in one box, 2 in both; equal to the brute-force solid-angle winding number at
+    random points and at points exactly on the edges between two faces as the rays (+z) see
+    them: the diagonals of the boxes' square faces, where each crossing is counted once. With
+    too few columns allowed for the cell asked, the grid widens its columns and stays exact."""
+    v, f = overlapping_boxes()
+    pts = np.array([[-0.15, 0.0, 0.0], [0.15, 0.05, 0.0], [0.45, 0.1, 0.0], [0.0, 0.5, 0.0], [-0.3, 0.0, 0.0]])
+    np.testing.assert_array_equal(windings(v, f, pts, cell=0.05), [1, 2, 1, 0, 0])
+    rng = np.random.default_rng(7)
+    rand = rng.uniform([-0.3, -0.3, -0.3], [0.6, 0.4, 0.3], (300, 3))
+    want = np.round(solid_angle_winding(v, f, rand))
+    np.testing.assert_array_equal(windings(v, f, rand, cell=0.05), want)
+    np.testing.assert_array_equal(windings(v, f, rand, cell=0.05, max_columns=16), want)
+    diag = np.array([[cx + t, cy + s * t, z] for cx, cy in ((0.0, 0.0), (0.3, 0.1)) for t in (-0.15, -0.05, 0.0, 0.15)
+                     for s in (-1.0, 1.0) for z in (-0.25, 0.0, 0.15)])
+    np.testing.assert_array_equal(windings(v, f, diag, cell=0.05), np.round(solid_angle_winding(v, f, diag)))
+
+
+def test_closed_faces_caps_the_holes_of_the_faces_kept():
+    """A box with its top face (two triangles) left out, as the body without its head: the fan
+    closes the hole, the surface has no boundary left, and the winding number inside and
+    outside is the whole box's."""
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    top = box.triangles_center[:, 1] > 0.19
+    assert top.sum() == 2
+    faces = closed_faces(box.faces, ~top)
+    assert len(faces) == len(box.faces) and boundary_loops(faces) == []
+    pts = np.array([[0.0, 0.1, 0.0], [0.05, 0.15, -0.1], [0.0, 0.3, 0.0], [0.3, 0.0, 0.0]])
+    np.testing.assert_array_equal(windings(box.vertices, faces, pts, cell=0.05), [1, 1, 0, 0])
+    np.testing.assert_array_equal(closed_faces(box.faces), box.faces)
+
+
+def push_out(vertices, faces, points, velocities, thickness=0.005):
+    x = np.array(points, dtype=np.float64)
+    v = np.array(velocities, dtype=np.float64)
+    body_x = np.ascontiguousarray(vertices, dtype=np.float64)
+    grid = WindingGrid(faces, len(body_x), cell=0.05)
+    grid.update(body_x)
+    tree = FaceTree(faces, np.arange(len(faces)), np.ones(len(body_x), dtype=np.uint8))
+    tree.update(body_x)
+    placed = np.ones(len(x))
+    moved = leave_body_union(x, v, np.zeros_like(v), body_x, face_normals(body_x, faces), grid.tris, *grid.arrays(),
+                             faces, *tree.arrays()[:5], np.zeros(FACE_TREE_STACK, np.int32), np.zeros(UNION_HITS),
+                             np.zeros(UNION_HITS, np.int32), np.zeros(UNION_HITS, np.int32), thickness,
+                             np.ones(len(x), np.uint8), placed)
+    return x, v, placed, moved
+
+
+def test_leave_body_union_puts_a_particle_out_where_the_nearest_face_is_buried():
+    """In box A, 5 cm in front of B's face x = 0.1 (buried in A and facing the particle: the ring
+    test reads "outside") and 7 cm below A's top: the nearest way out of the union is up, to
+    y = 0.2, and the particle lands thickness above it, its downward velocity removed and its
+    sideways one kept. A particle outside both boxes, and one in both whose every way out is
+    beyond UNION_REACH, stay where they are."""
+    v, f = overlapping_boxes()
+    assert UNION_REACH < 0.1
+    pts = [[0.05, 0.13, 0.0], [-0.3, 0.0, 0.0], [0.2, 0.0, 0.0]]
+    vel = [[0.3, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0]]
+    x, vel_out, placed, moved = push_out(v, f, pts, vel, thickness=0.005)
+    assert moved == 1
+    np.testing.assert_allclose(x[0], [0.05, 0.205, 0.0], atol=1e-12)
+    np.testing.assert_allclose(vel_out[0], [0.3, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(x[1:], pts[1:])
+    np.testing.assert_array_equal(placed, [0.0, 1.0, 1.0])
+    assert windings(v, f, x[:1], cell=0.05)[0] == 0
+
+
+def test_leave_body_union_takes_the_exit_face_normal_where_the_axes_meet_it_at_a_slant():
+    """A box turned 30 degrees about z: from a point 2 cm inside its +x face, the axis rays
+    leave 2.31 (along x) and 4 cm (along y) away, but the face's plane is 2 cm along its
+    normal; the particle goes there, thickness beyond."""
+    box = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    c, s = np.cos(np.pi / 6), np.sin(np.pi / 6)
+    rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    verts = box.vertices @ rot.T
+    n = rot @ np.array([1.0, 0.0, 0.0])
+    p = 0.18 * n
+    x, _, _, moved = push_out(verts, box.faces.astype(np.int32), [p], [[0.0, 0.0, 0.0]], thickness=0.005)
+    assert moved == 1
+    np.testing.assert_allclose(x[0], 0.205 * n, atol=1e-12)
+
+
+@pytest.mark.parametrize("union_passes", [0, 1])
+def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes):
+    """A 2 cm cotton quad at rest inside box A of the overlapping boxes (finely meshed), 5 cm in
+    front of B's buried face x = 0.1 and 7 cm below A's top: the contact pass's ring tests read
+    it as outside and leave it. With SimSettings.union_passes it ends thickness (3 mm) above
+    A's top, every corner counted once; without, it stays. A shared body pose without the
+    winding grid is refused with a message."""
+    from cloth.coarsen import CoarseMesh
+    from cloth.garment import Garment
+    from cloth.model import SimSettings, build_cloth_model
+    from cloth.sim import ClothSim
+
+    va, ta = box(0.2, 8)
+    verts = np.vstack([va, va + [0.3, 0.1, 0.0]])
+    tris = np.vstack([ta, ta + len(va)]).astype(np.int32)
+    rest = np.array([[0.04, 0.13, -0.01], [0.04, 0.13, 0.01], [0.06, 0.13, 0.01], [0.06, 0.13, -0.01]])
+    quad = np.array([[0, 1, 2, 3]], np.int32)
+    model = build_cloth_model(Garment("quad", rest, quad, np.arange(4)), fabric("cotton"),
+                              SimSettings(union_passes=union_passes), rest,
+                              CoarseMesh(rest, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
+    mesh = BodyMesh.build(tris, len(verts))
+    sim = ClothSim(model, mesh, verts)
+    sim.state.x[:] = rest
+    sim.state.v[:] = 0.0
+    sim.settle_contacts(sim.pose)
+    want = rest.copy()
+    if union_passes:
+        want[:, 1] = 0.2 + model.fabric.thickness
+    np.testing.assert_allclose(sim.state.x, want, atol=1e-12)
+    assert sim.stats.union_pushes == 4 * union_passes
+    if union_passes:
+        bare = BodyPose(mesh)
+        bare.update(verts)
+        with pytest.raises(ValueError, match="union_passes needs a body pose"):
+            sim.settle_contacts(bare)
