@@ -899,22 +899,17 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
                 nx, ny, nz = face_n[f, 0], face_n[f, 1], face_n[f, 2]
                 a = tris[f, 0]
                 plane = (body_x[a, 0] - px) * nx + (body_x[a, 1] - py) * ny + (body_x[a, 2] - pz) * nz
-                for slanted in (True, False):
-                    if slanted:
-                        if plane <= 0.0 or plane >= t or plane >= best:
-                            continue
-                        dist, dx, dy, dz = plane, nx, ny, nz
-                    else:
-                        if t >= best:
-                            continue
-                        dist = t
-                        dx = sign if axis == 0 else 0.0
-                        dy = sign if axis == 1 else 0.0
-                        dz = sign if axis == 2 else 0.0
-                    step = dist + thickness
-                    if winding_number(px + step * dx, py + step * dy, pz + step * dz, body_x, wfaces, wlo, wstart,
-                                      wids) == 0:
-                        best, bx, by, bz = dist, dx, dy, dz
+                if 0.0 < plane < min(t, best) and winding_number(
+                        px + (plane + thickness) * nx, py + (plane + thickness) * ny, pz + (plane + thickness) * nz,
+                        body_x, wfaces, wlo, wstart, wids) == 0:
+                    best, bx, by, bz = plane, nx, ny, nz
+                    continue  # nearer than the ray's own way out
+                ax = sign if axis == 0 else 0.0
+                ay = sign if axis == 1 else 0.0
+                az = sign if axis == 2 else 0.0
+                if t < best and winding_number(px + (t + thickness) * ax, py + (t + thickness) * ay,
+                                               pz + (t + thickness) * az, body_x, wfaces, wlo, wstart, wids) == 0:
+                    best, bx, by, bz = t, ax, ay, az
         if best == np.inf:
             continue
         step = best + thickness
