@@ -9,6 +9,7 @@ import numpy as np
 
 from skinning.animate import STAGES, BodyAnimator
 from skinning.body import Body
+from skinning.retarget import IKSettings
 from skinning.source import BVHSource
 
 # Frames worth looking at in the shipped clips (data README, "Useful frame ranges").
@@ -36,6 +37,7 @@ class ClipReport:
     ankle_rotation_error: np.ndarray | None = None  # (frames, 2) rad
     floor_lift: np.ndarray | None = None  # (frames, 2) m
     lowest_sole: np.ndarray | None = None  # (frames,) m, lowest foot vertex height
+    arm_turn: np.ndarray | None = None  # (frames, 2) rad the arms were turned out for clearance
     nan_frames: int = 0
     snapshots: list[tuple[int, np.ndarray, np.ndarray]] = field(default_factory=list)  # (frame, verts, normals)
 
@@ -46,7 +48,8 @@ class ClipReport:
         return (f"{self.name}: {self.frames} frames | median ms/frame: {stages} | ankle error mm: "
                 f"median {np.median(pe):.3f} p99 {np.percentile(pe, 99):.2f} max {pe.max():.2f} | "
                 f"ankle rot deg p99 {np.percentile(re, 99):.2f} | lowest sole {self.lowest_sole.min() * 1000:.1f} mm"
-                f" | NaN frames {self.nan_frames}")
+                f" | arm turn deg median {np.rad2deg(np.median(self.arm_turn)):.1f} max "
+                f"{np.rad2deg(self.arm_turn.max()):.1f} | NaN frames {self.nan_frames}")
 
 
 def foot_vertices(body: Body) -> np.ndarray:
@@ -59,15 +62,15 @@ def foot_vertices(body: Body) -> np.ndarray:
 
 
 def run_clip(body: Body, path: str | Path, every: int = 1, snapshot_frames: list[int] | None = None,
-             max_frames: int | None = None) -> ClipReport:
+             max_frames: int | None = None, ik: IKSettings | None = None) -> ClipReport:
     path = Path(path)
     report = ClipReport(path.stem)
     wanted = set(snapshot_frames or [])
     feet = foot_vertices(body)
     stage_ms = {s: [] for s in STAGES}
-    pos_err, rot_err, lift, lowest = [], [], [], []
+    pos_err, rot_err, lift, lowest, arm = [], [], [], [], []
     with BVHSource(path, every=every, max_frames=max_frames) as source:
-        animator = BodyAnimator(body, source.skeleton)
+        animator = BodyAnimator(body, source.skeleton, ik=ik)
         for frame in source:
             out = animator(frame.local_rot, frame.root_position)
             for s, sec in zip(STAGES, animator.stage_seconds):
@@ -76,6 +79,7 @@ def run_clip(body: Body, path: str | Path, every: int = 1, snapshot_frames: list
             pos_err.append(r.ankle_position_error.copy())
             rot_err.append(r.ankle_rotation_error.copy())
             lift.append(r.floor_lift.copy())
+            arm.append(r.arm_turn)
             lowest.append(out.vertices[feet, 1].min())
             if not (np.isfinite(out.vertices).all() and np.isfinite(out.normals).all()):
                 report.nan_frames += 1
@@ -87,6 +91,7 @@ def run_clip(body: Body, path: str | Path, every: int = 1, snapshot_frames: list
     report.ankle_rotation_error = np.array(rot_err).reshape(-1, 2)
     report.floor_lift = np.array(lift).reshape(-1, 2)
     report.lowest_sole = np.array(lowest)
+    report.arm_turn = np.array(arm).reshape(-1, 2)
     return report
 
 

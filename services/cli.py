@@ -32,6 +32,22 @@ def _clips(data: Path, names: list[str] | None) -> list[Path]:
     return out
 
 
+def _arm_argument(p) -> None:
+    p.add_argument("--arm-clearance", type=float, default=None, metavar="DEG",
+                   help="smallest angle between a hanging arm and the torso's axis; the copied arms are turned out "
+                        "to it so they do not pass through a broader character (default 10; 0: copy exactly)")
+
+
+def _ik(args):
+    from skinning.retarget import IKSettings
+
+    if args.arm_clearance is None:
+        return IKSettings()
+    if not 0.0 <= args.arm_clearance < 90.0:
+        raise SystemExit(f"tryon: --arm-clearance must be in [0, 90) degrees, got {args.arm_clearance}")
+    return IKSettings(arm_clearance_deg=args.arm_clearance)
+
+
 def _frame_list(text: str) -> list[int]:
     try:
         frames = [int(f) for f in text.split(",") if f.strip()]
@@ -59,6 +75,7 @@ def cmd_body(args) -> int:
 
     from .body_job import render_snapshots, run_clip, showcase_frames
 
+    ik = _ik(args)
     data, out_dir, renderer = _start(args)
     t0 = time.perf_counter()
     body = load_body(data)
@@ -66,7 +83,8 @@ def cmd_body(args) -> int:
           f"{len(body.skeleton.names)} bones, loaded in {time.perf_counter() - t0:.2f} s")
     for clip in _clips(data, args.clip):
         frames = showcase_frames(clip.stem, args.every)
-        report = run_clip(body, clip, every=args.every, snapshot_frames=frames, max_frames=args.max_frames)
+        report = run_clip(body, clip, every=args.every, snapshot_frames=frames, max_frames=args.max_frames,
+                          ik=ik)
         print(report.summary())
         if renderer is not None and report.snapshots:
             print(f"  snapshots: {render_snapshots(body, report, out_dir, renderer)}")
@@ -83,6 +101,7 @@ def cmd_cloth(args) -> int:
     from .body_job import showcase_frames
     from .cloth_job import OUTFITS, START_FRAME, render_cloth_snapshots, run_cloth_clip
 
+    ik = _ik(args)
     data, out_dir, renderer = _start(args)
     body = load_body(data)
     fabrics = fabric_by_name(args.fabric, args.fabrics) if args.fabric else None
@@ -95,7 +114,7 @@ def cmd_cloth(args) -> int:
             # the first frame is skipped (converter T-pose)
             frames = _frame_list(args.frames) if args.frames else showcase_frames(clip.stem, args.every, START_FRAME)
             report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
-                                    snapshot_frames=frames, fabrics=fabrics, surface=surface)
+                                    snapshot_frames=frames, fabrics=fabrics, surface=surface, ik=ik)
             print(report.summary())
             if renderer is not None and report.snapshots:
                 path = render_cloth_snapshots(body, report, report.models, out_dir, renderer, close_up=args.close_up)
@@ -150,6 +169,7 @@ def cmd_session(args) -> int:
     from .bus import bus_config_from_args, check_session_name
     from .session import run_session
 
+    ik = _ik(args)
     data = data_dir(args.data)
     session = check_session_name(args.session)
     clip = _clips(data, [args.clip])[0]
@@ -167,7 +187,8 @@ def cmd_session(args) -> int:
                          max_frames=args.max_frames, bus_config=cfg,
                          serve_port=args.port if args.serve else None,
                          web_port=args.web_port if args.serve else None, record=not args.no_record,
-                         snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None)
+                         snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None,
+                         ik=ik)
     print(result.summary())
     return 0
 
@@ -181,6 +202,7 @@ def cmd_ingest(args) -> int:
     from .ingest import BusPoseSource, IngestService
 
     _logging(args)
+    ik = _ik(args)
     data = data_dir(args.data)
     session = check_session_name(args.session)
     body = load_body(data)
@@ -194,7 +216,7 @@ def cmd_ingest(args) -> int:
             start = START_FRAME
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
                 "clip": "live" if args.live else Path(source.path).stem}
-        svc = IngestService(bus, session, body, source, desc)
+        svc = IngestService(bus, session, body, source, desc, ik=ik)
         try:
             n = svc.run(start_frame=start, stop=stop, wait_subscribers=args.wait_subscribers,
                         wait_ready=args.wait_ready)
@@ -346,6 +368,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--every", type=int, default=1, help="take one frame in N (2: 120 Hz clips at 60 Hz)")
     p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
+    _arm_argument(p)
     p.set_defaults(func=cmd_body)
     p = sub.add_parser("cloth", help="cloth (S101-S106) of outfits on motion clips; timings and PNG snapshots")
     p.add_argument("--level", type=int, default=6, help="PN tessellation level of the detailed surface (default 6)")
@@ -361,6 +384,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", help="snapshot frames, comma-separated session frame numbers (default: a showcase "
                    "per clip)")
     p.add_argument("--close-up", action="store_true", help="snapshots from nearer, larger: the folds of the surface")
+    _arm_argument(p)
     p.set_defaults(func=cmd_cloth)
 
     from .bus import add_bus_arguments
@@ -382,6 +406,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-record", action="store_true", help="do not write the bus recording")
     p.add_argument("--no-png", action="store_true", help="skip the PNG snapshots")
     p.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
+    _arm_argument(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_session)
 
@@ -400,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wait-ready", type=float, default=30.0,
                    help="wait up to this many seconds for the cloth service to fit the outfit (pre-roll)")
     _outfit_arguments(p)
+    _arm_argument(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_ingest)
 

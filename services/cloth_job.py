@@ -25,6 +25,7 @@ from cloth.sim import ClothSim, prepare_cloth
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
 from skinning.body import Body, body_clothed_faces, body_regions
+from skinning.retarget import IKSettings
 from skinning.source import BVHSource
 
 from .spin import SpinPool
@@ -226,11 +227,11 @@ class OutfitSession:
 def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max_frames: int | None = None,
                    snapshot_frames: list[int] | None = None, settings: SimSettings | None = None,
                    fabrics=None, profile: bool = False, on_frame=None,
-                   surface: SurfaceSettings | None = None) -> ClothReport:
+                   surface: SurfaceSettings | None = None, ik: IKSettings | None = None) -> ClothReport:
     """Run an outfit through a clip. on_frame(index, session, body_frame, positions) sees every frame."""
     wanted = set(snapshot_frames or [])
     with BVHSource(clip, every=every, max_frames=max_frames) as source:
-        animator = BodyAnimator(body, source.skeleton)
+        animator = BodyAnimator(body, source.skeleton, ik=ik)
         body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body),
                                    body.vertices)
         outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)

@@ -24,6 +24,7 @@ import zenoh
 
 from skinning.animate import STAGES, BodyAnimator
 from skinning.body import Body
+from skinning.retarget import IKSettings
 from skinning.skeleton import Skeleton
 from skinning.source import PoseFrame
 
@@ -190,14 +191,16 @@ class BusPoseSource:
 class IngestService:
     """Retarget + skin each pose of `source` and publish tryon/<s>/body.
 
-    description: the session's description, latched on tryon/<s>/session (outfit, fabrics, level...)."""
+    description: the session's description, latched on tryon/<s>/session (outfit, fabrics, level...).
+    ik: retargeting settings (default IKSettings())."""
 
     SERVICE = "ingest"
 
-    def __init__(self, bus: zenoh.Session, session: str, body: Body, source, description: dict):
+    def __init__(self, bus: zenoh.Session, session: str, body: Body, source, description: dict,
+                 ik: IKSettings | None = None):
         self.bus, self.session, self.body, self.source = bus, session, body, source
         self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
-        self.animator = BodyAnimator(body, source.skeleton, normals=False)  # displays shade it themselves
+        self.animator = BodyAnimator(body, source.skeleton, ik=ik, normals=False)  # displays shade it themselves
         self.latched = Latched(bus)
         self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible)
         self.publisher = bus.declare_publisher(key(session, "body"), congestion_control=zenoh.CongestionControl.BLOCK,

@@ -10,9 +10,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .body import Body
+from .body import BODY_REGIONS, Body, body_regions
 from .character import Character
-from .retarget import IKSettings, Retargeter, RetargetFrame, sole_points
+from .retarget import IKSettings, Retargeter, RetargetFrame, sole_points, torso_depth
 from .skeleton import Skeleton
 from .skin import MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices
 
@@ -42,7 +42,8 @@ class BodyAnimator:
         if person is not None:
             soles = [sole_points(body.vertices, body.weight_bones, body.weight_values, body.n_visible,
                                  body.skeleton, side) for side in ("left", "right")]
-            self.retargeter = Retargeter(self.character, person, soles, person_floor_y, ik)
+            torso = torso_depth(body.vertices, body_regions(body), BODY_REGIONS["torso"], body.skeleton)
+            self.retargeter = Retargeter(self.character, person, soles, person_floor_y, ik, torso)
         n_bones = len(body.skeleton.names)
         self._local = np.empty((n_bones, 3, 3))
         self._root = np.empty(3)

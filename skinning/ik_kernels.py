@@ -61,6 +61,79 @@ def copy_rotations(person_global, person_index, align, parents, char_global, cha
 
 
 @njit(cache=True, nogil=True)
+def smooth_fade(x, lo, hi):
+    """1 below lo, 0 above hi, a smoothstep between."""
+    if x <= lo:
+        return 1.0
+    if x >= hi:
+        return 0.0
+    t = (x - lo) / (hi - lo)
+    return 1.0 - t * t * (3.0 - 2.0 * t)
+
+
+@njit(cache=True, nogil=True)
+def clearance_need(c, vx, vy, vz, outward, min_angle, span, front, back):
+    """How far (rad) to turn a point at (vx, vy, vz) from the shoulder (world) outwards about the
+    chest's forward axis (c: chest rotation) so that its angle a from the chest's down axis in the
+    frontal plane is at least min_angle. With the deficit d = min_angle - a > 0 it is
+        w * d                 (d <= span)
+        w * (2 span - d)      (span < d < 2 span; 0 beyond: an arm reaching across the body,
+                               or up past the shoulder, is placed on purpose)
+    and w fades from 1 to 0 as the point's forward (backward) offset goes from 1 to 1.5 times the
+    torso's front (back) depth from the shoulder: a hand held in front of the body stays there."""
+    dx = c[0, 0] * vx + c[1, 0] * vy + c[2, 0] * vz
+    dy = c[0, 1] * vx + c[1, 1] * vy + c[2, 1] * vz
+    dz = c[0, 2] * vx + c[1, 2] * vy + c[2, 2] * vz
+    d = min_angle - np.arctan2(outward * dx, -dy)
+    if d <= 0.0 or d >= 2.0 * span:
+        return 0.0
+    depth = front if dz > 0.0 else back
+    return smooth_fade(abs(dz) / depth, 1.0, 1.5) * min(d, 2.0 * span - d)
+
+
+@njit(cache=True, nogil=True)
+def keep_arm_clear(char_global, char_local, parents, chest, subtree, arm_rest, fore_rest, outward, min_angle,
+                   span, front, back, turn, rel):
+    """Abduct an arm that hangs closer to the torso than `min_angle` (rad).
+
+    Seen from the shoulder in the chest's frame (x lateral, y up, z forward at rest), the elbow
+    and the wrist each make an angle a = atan2(outward * d_x, -d_y) with the chest's down axis in
+    the frontal plane (positive away from the body). The whole arm (the bones in `subtree`: the
+    upper arm, its forearm, then the rest) turns about the chest's forward axis by the larger
+    `clearance_need` of the two points; a turn about that axis raises both angles by exactly the
+    turn, and the turn is continuous in the pose. Globals of the subtree and the upper arm's local
+    rotation are updated; the elbow and wrist keep their copied local angles. Returns the turn
+    (rad). arm_rest, fore_rest: rest bone vectors (tail - head) of the upper arm and forearm;
+    front, back: the torso's depth in front of and behind the shoulder joint (m).
+    turn, rel: (3, 3) scratch."""
+    c = char_global[chest]
+    g = char_global[subtree[0]]
+    f = char_global[subtree[1]]
+    ex = g[0, 0] * arm_rest[0] + g[0, 1] * arm_rest[1] + g[0, 2] * arm_rest[2]
+    ey = g[1, 0] * arm_rest[0] + g[1, 1] * arm_rest[1] + g[1, 2] * arm_rest[2]
+    ez = g[2, 0] * arm_rest[0] + g[2, 1] * arm_rest[1] + g[2, 2] * arm_rest[2]
+    wx = ex + f[0, 0] * fore_rest[0] + f[0, 1] * fore_rest[1] + f[0, 2] * fore_rest[2]
+    wy = ey + f[1, 0] * fore_rest[0] + f[1, 1] * fore_rest[1] + f[1, 2] * fore_rest[2]
+    wz = ez + f[2, 0] * fore_rest[0] + f[2, 1] * fore_rest[1] + f[2, 2] * fore_rest[2]
+    delta = max(clearance_need(c, ex, ey, ez, outward, min_angle, span, front, back),
+                clearance_need(c, wx, wy, wz, outward, min_angle, span, front, back))
+    if delta == 0.0:
+        return 0.0
+    # turn = C Rz(outward * delta) C^T: a rotation about the chest's forward axis, in world
+    s, k = np.sin(outward * delta), np.cos(outward * delta)
+    for i in range(3):
+        for j in range(3):
+            turn[i, j] = (c[i, 0] * (k * c[j, 0] - s * c[j, 1]) + c[i, 1] * (s * c[j, 0] + k * c[j, 1])
+                          + c[i, 2] * c[j, 2])
+    for b in subtree:
+        mat3_mul(turn, char_global[b], rel)
+        char_global[b] = rel
+    arm = subtree[0]
+    mat3_tmul(char_global[parents[arm]], char_global[arm], char_local[arm])
+    return delta
+
+
+@njit(cache=True, nogil=True)
 def rotation_log(r, out, at):
     """Axis-angle vector of a rotation matrix (log map), robust near 0 and pi, into out[at:at + 3]."""
     c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)

@@ -20,6 +20,14 @@
   above it), so an ankle target is raised when the character's sole would go below
   the floor; the IK residual is reported against the raised target, and the raise
   itself in `floor_lift`.
+* Arm clearance: the character is broader than most captured people, so an arm
+  copied hanging straight down passes through its torso and hips. An arm whose
+  elbow or wrist is closer to the chest's down axis than
+  `IKSettings.arm_clearance_deg` (in the frontal plane) is turned outwards about
+  the chest's forward axis, elbow and wrist angles kept; the turn fades out when
+  the hand is held in front of or behind the torso (its depth is measured on the
+  body: `torso_depth`), or reaches across the body (`keep_arm_clear`). The turn is
+  reported per arm in `arm_turn`; 0 degrees copies the arms exactly.
 """
 
 from __future__ import annotations
@@ -30,7 +38,8 @@ import numpy as np
 import pinocchio as pin
 
 from .character import Character
-from .ik_kernels import IKScratch, copy_rotations, dls_step, lowest_sole_point, pose_error, weighted_cost
+from .ik_kernels import (IKScratch, copy_rotations, dls_step, keep_arm_clear, lowest_sole_point, pose_error,
+                         weighted_cost)
 from .kinematics import forward_kinematics, rotation_between
 from .skeleton import LEGS, Skeleton
 
@@ -38,6 +47,11 @@ from .skeleton import LEGS, Skeleton
 STRUCTURAL_BONES = {"Hips", "LHipJoint", "RHipJoint", "LowerBack", "Spine", "Spine1", "Neck", "Neck1", "Head",
                     "LeftShoulder", "RightShoulder"}
 TOES = {"left": "LeftToeBase", "right": "RightToeBase"}
+ARMS = ("LeftArm", "RightArm")
+# an elbow or wrist up to this far inside the clearance angle is turned out by all of the
+# deficit; the turn then shrinks to 0 at twice this (an arm reaching across the body)
+ARM_SPAN_DEG = 30.0
+DEFAULT_TORSO_DEPTH = (0.12, 0.08)  # m in front of / behind the shoulder joints, without a body
 
 
 def alignment_rotations(character: Skeleton, person: Skeleton) -> np.ndarray:
@@ -70,6 +84,19 @@ def sole_points(vertices: np.ndarray, weight_bones: np.ndarray, weight_values: n
     return vertices[pick].copy(), dominant[pick] == toe
 
 
+def torso_depth(vertices: np.ndarray, regions: np.ndarray, torso_region: int,
+                skeleton: Skeleton) -> tuple[float, float]:
+    """How far (m) the rest torso reaches in front of and behind the shoulder joints, between the
+    hip joints' and the shoulders' heights. regions: (n_visible,) region of each visible vertex."""
+    shoulder = 0.5 * (skeleton.heads[skeleton.index(ARMS[0])] + skeleton.heads[skeleton.index(ARMS[1])])
+    hips = 0.5 * (skeleton.heads[skeleton.index("LeftUpLeg")] + skeleton.heads[skeleton.index("RightUpLeg")])
+    x = vertices[: len(regions)]
+    band = (regions == torso_region) & (x[:, 1] > hips[1]) & (x[:, 1] < shoulder[1])
+    if not band.any():
+        raise ValueError("torso_depth: no torso vertex between the hips and the shoulders")
+    return float(x[band, 2].max() - shoulder[2]), float(shoulder[2] - x[band, 2].min())
+
+
 @dataclass
 class IKSettings:
     max_iterations: int = 20
@@ -82,6 +109,9 @@ class IKSettings:
     # Forward flexion added to the knees' posture prior: a straight copied knee does not say
     # which way to bend when the ankle target comes closer; a knee bends forward.
     knee_bias_deg: float = 8.0
+    # Smallest angle between a hanging upper arm and the chest's down axis (frontal plane); see
+    # the module. 0: copy the arms exactly.
+    arm_clearance_deg: float = 10.0
 
 
 @dataclass
@@ -90,6 +120,7 @@ class RetargetFrame:
     ankle_position_error: np.ndarray  # (2,) m, left/right, against the ankle targets
     ankle_rotation_error: np.ndarray  # (2,) rad
     floor_lift: np.ndarray  # (2,) m the ankle targets were raised to keep the soles above the floor
+    arm_turn: np.ndarray  # (2,) rad left/right arm turned outwards for clearance
     iterations: int
 
 
@@ -97,7 +128,8 @@ class Retargeter:
     """Per-session retargeting state: alignment, scale, last IK solution."""
 
     def __init__(self, character: Character, person: Skeleton, soles=None, person_floor_y: float = 0.0,
-                 ik: IKSettings | None = None):
+                 ik: IKSettings | None = None, torso: tuple[float, float] = DEFAULT_TORSO_DEPTH):
+        """soles: per leg `sole_points` (None: no floor); torso: `torso_depth` of the body."""
         self.character = character
         self.person = person
         self.ik = ik or IKSettings()
@@ -152,6 +184,31 @@ class Retargeter:
         self.target_rot = np.empty((2, 3, 3))
         self.target_pos = np.empty((2, 3))
         self._lift = np.zeros(2)
+        self.torso = torso
+        self._arm_turn = np.zeros(2)
+        self._turn = np.empty((3, 3))
+        self.arms = []
+        for slot, name in enumerate(ARMS):
+            if name not in cs.names:
+                continue
+            arm = cs.index(name)
+            children = [b for b in range(n) if cs.parents[b] == arm]
+            if len(children) != 1:
+                continue
+            fore = children[0]
+            subtree = [arm, fore] + [b for b in range(n) if b not in (arm, fore) and self._descends(cs.parents, b, arm)]
+            self.arms.append(dict(slot=slot, chest=int(cs.parents[cs.parents[arm]]),
+                                  subtree=np.array(subtree, dtype=np.int64),
+                                  arm_rest=cs.tails[arm] - cs.heads[arm], fore_rest=cs.tails[fore] - cs.heads[fore],
+                                  outward=float(np.sign(cs.heads[arm, 0]))))
+
+    @staticmethod
+    def _descends(parents: np.ndarray, b: int, ancestor: int) -> bool:
+        while b >= 0:
+            if b == ancestor:
+                return True
+            b = int(parents[b])
+        return False
 
     def reset(self) -> None:
         self._q_last = None
@@ -169,6 +226,13 @@ class Retargeter:
         cs = self.character.skeleton
         copy_rotations(self._person_rot, self.person_index, self.align, cs.parents, self._char_global,
                        self._char_local, self._scratch.rel)
+        self._arm_turn[:] = 0.0
+        if self.ik.arm_clearance_deg > 0.0:
+            for a in self.arms:
+                self._arm_turn[a["slot"]] = keep_arm_clear(
+                    self._char_global, self._char_local, cs.parents, a["chest"], a["subtree"], a["arm_rest"],
+                    a["fore_rest"], a["outward"], np.deg2rad(self.ik.arm_clearance_deg), np.deg2rad(ARM_SPAN_DEG),
+                    self.torso[0], self.torso[1], self._turn, self._scratch.rel)
         for knee in self._knees:  # only the IK's posture prior; the solved knee follows the targets
             self._char_local[knee] = self._char_local[knee] @ self._knee_bias
         # place the root so that the hip-joint centre lands on the mapped person's hip centre
@@ -281,4 +345,4 @@ class Retargeter:
         pos_err, rot_err, iters = self.solve_legs(q)
         self._q_last[:] = q
         return RetargetFrame(q=q, ankle_position_error=pos_err, ankle_rotation_error=rot_err,
-                             floor_lift=self._lift.copy(), iterations=iters)
+                             floor_lift=self._lift.copy(), arm_turn=self._arm_turn.copy(), iterations=iters)

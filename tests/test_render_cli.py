@@ -46,6 +46,19 @@ def test_cli_body_writes_snapshots(tmp_path, capsys):
     assert img.shape[0] > 100 and img.std() > 10
 
 
+def test_cli_arm_clearance_option(tmp_path, capsys):
+    args = ["body", "--clip", "cmu_131_01_walk_3dsmax", "--max-frames", "40", "--out", str(tmp_path), "--no-png"]
+    assert main(args) == 0
+    turned = capsys.readouterr().out
+    assert main(args + ["--arm-clearance", "0"]) == 0
+    exact = capsys.readouterr().out
+    # the walker's arms hang close to the body: by default they are turned out, with 0 they are copied
+    assert float(turned.split("arm turn deg median ")[1].split(" max ")[1].split()[0]) > 1.0
+    assert "arm turn deg median 0.0 max 0.0 " in exact
+    with pytest.raises(SystemExit, match="--arm-clearance must be in"):
+        main(args + ["--arm-clearance", "95"])
+
+
 def test_cli_reports_bad_clip(tmp_path, capsys):
     bad = tmp_path / "bad.bvh"
     bad.write_text("HIERARCHY\nROOT Hips\n{\n")
