@@ -50,11 +50,12 @@ class SimSettings:
     # which contact stages run `collision.leave_body_union` (out of the body as a whole, where a
     # face buried in another part hides the inside from the ring tests; needs the face tree):
     # 0 none, 1 after the last contact pass, 2 also before the contact strain-limiting passes.
-    # Off: where skinning sinks an arm 2-8 cm into the torso the particles come back inside every
-    # frame (the following and the substep collisions read the buried faces) and each push out
-    # stretches the cloth (acceptance with 2: frames with a particle > 1 mm inside 5,232 -> 1,312
-    # over the 18 rows, rows within 1 mm 1 -> 7, but rows with strain p99 <= 10 % 12 -> 7 and
-    # single edges stretched up to 8x; docs/history.md)
+    # Off: where skinning sinks a body part into another (the folds behind the knees, the hip
+    # crease) the particles come back inside every frame (the following and the substep
+    # collisions read the buried faces) and each push out stretches the cloth (acceptance with
+    # 2 and the arm clearance: frames with a particle > 1 mm inside 4,456 -> 1,228 over the 18
+    # rows, rows within 1 mm 1 -> 10, but rows with strain p99 <= 10 % 12 -> 9, the bottoms'
+    # single edges stretched up to 8.5x; docs/history.md)
     union_passes: int = 0
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
 
