@@ -202,7 +202,8 @@ class IngestService:
         self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
         self.animator = BodyAnimator(body, source.skeleton, ik=ik, normals=False)  # displays shade it themselves
         self.latched = Latched(bus)
-        self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible)
+        self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible,
+                                arm_clearance_deg=self.animator.retargeter.ik.arm_clearance_deg)
         self.publisher = bus.declare_publisher(key(session, "body"), congestion_control=zenoh.CongestionControl.BLOCK,
                                                reliability=zenoh.Reliability.RELIABLE)
         self.frames = 0
