@@ -76,6 +76,8 @@ def cmd_body(args) -> int:
     from .body_job import render_snapshots, run_clip, showcase_frames
 
     ik = _ik(args)
+    if args.self_contact < 0:
+        raise SystemExit(f"tryon: --self-contact must be 0 (off) or a frame interval, got {args.self_contact}")
     data, out_dir, renderer = _start(args)
     t0 = time.perf_counter()
     body = load_body(data)
@@ -84,7 +86,7 @@ def cmd_body(args) -> int:
     for clip in _clips(data, args.clip):
         frames = showcase_frames(clip.stem, args.every)
         report = run_clip(body, clip, every=args.every, snapshot_frames=frames, max_frames=args.max_frames,
-                          ik=ik)
+                          ik=ik, self_contact=args.self_contact)
         print(report.summary())
         if renderer is not None and report.snapshots:
             print(f"  snapshots: {render_snapshots(body, report, out_dir, renderer)}")
@@ -368,6 +370,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--every", type=int, default=1, help="take one frame in N (2: 120 Hz clips at 60 Hz)")
     p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
+    p.add_argument("--self-contact", type=int, default=0, metavar="N",
+                   help="every N-th frame, count the clothed skin vertices inside the body (where skinning makes "
+                        "it cut through itself), per region (default 0: off)")
     _arm_argument(p)
     p.set_defaults(func=cmd_body)
     p = sub.add_parser("cloth", help="cloth (S101-S106) of outfits on motion clips; timings and PNG snapshots")
