@@ -12,6 +12,7 @@ import numpy as np
 
 from .body import BODY_REGIONS, Body, body_regions
 from .character import Character
+from .contact import ContactSettings, SkinContact
 from .retarget import IKSettings, Retargeter, RetargetFrame, sole_points, torso_depth
 from .skeleton import Skeleton
 from .skin import MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices
@@ -26,16 +27,18 @@ class BodyFrame:
     retarget: RetargetFrame | None
 
 
-STAGES = ("ik", "skinning", "normals")
+STAGES = ("ik", "skinning", "contact", "normals")
 
 
 class BodyAnimator:
     """Retarget + skin, one frame at a time. `stage_seconds` holds the last frame's stage times."""
 
     def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
-                 person_floor_y: float = 0.0, normals: bool = True):
+                 person_floor_y: float = 0.0, normals: bool = True, contact: ContactSettings | None = ContactSettings()):
         """normals: compute the skin's vertex normals each frame (False: a service that publishes
-        the body for displays that compute their own; BodyFrame.normals is then None)."""
+        the body for displays that compute their own; BodyFrame.normals is then None).
+        contact: where the skinned body cuts through itself, bring the skin to a contact surface
+        (`SkinContact`); None: the skin as linear blend skinning leaves it."""
         self.body = body
         self.character = Character(body.skeleton)
         self.retargeter = None
@@ -50,6 +53,7 @@ class BodyAnimator:
         self._matrices = np.empty((n_bones, 3, 4))
         self._weights = SkinWeights.from_padded(body.weight_bones, body.weight_values)
         self._normals = MeshNormals(body.triangles, body.n_visible)
+        self.contact = SkinContact.for_body(body, contact) if contact is not None else None
         self.stage_seconds = np.zeros(len(STAGES))
         self.frame = BodyFrame(
             vertices=np.empty_like(body.vertices),
@@ -78,10 +82,14 @@ class BodyAnimator:
         w = self._weights
         linear_blend_skinning(self.body.vertices, w.start, w.bones, w.weights, self._matrices, f.vertices)
         t1 = time.perf_counter()
+        if self.contact is not None:
+            self.contact(f.vertices)
+        t2 = time.perf_counter()
         if f.normals is not None:
             self._normals(f.vertices, f.normals)
         self.stage_seconds[1] = t1 - t0
-        self.stage_seconds[2] = time.perf_counter() - t1
+        self.stage_seconds[2] = t2 - t1
+        self.stage_seconds[3] = time.perf_counter() - t2
         return f
 
     def __call__(self, local_rot: np.ndarray, root_position: np.ndarray) -> BodyFrame:

@@ -1,0 +1,104 @@
+"""Skin contact (skinning/contact.py): where the skinned body cuts through itself, the two skins
+meet halfway."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from cloth.winding import WindingGrid, closed_faces, winding_numbers
+from skinning.animate import BodyAnimator
+from skinning.body import body_clothed_faces
+from skinning.character import configuration_to_local, local_to_configuration
+from skinning.contact import ContactSettings, SkinContact
+from skinning.kinematics import axis_rotation
+
+
+def two_boxes(overlap: float):
+    """Two 20 cm cubes side by side along x, the second cutting `overlap` into the first; at rest
+    the second stood 40 cm away. Returns (rest, posed, triangles, which box per vertex)."""
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    for _ in range(3):
+        box = box.subdivide()
+    v, f = np.asarray(box.vertices), np.asarray(box.faces)
+    shift = np.array([0.2 - overlap, 0.0, 0.0])
+    posed = np.vstack([v, v + shift])
+    rest = np.vstack([v, v + shift + [0.4, 0.0, 0.0]])
+    tris = np.vstack([f, f + len(v)])
+    return rest, posed, tris, np.repeat([0, 1], len(v))
+
+
+def test_overlapping_boxes_meet_on_the_midplane():
+    rest, posed, tris, which = two_boxes(0.02)
+    x = posed.copy()
+    contact = SkinContact(rest, tris)
+    moved = contact(x)
+    # the faces that cut into each other: A's at x = 0.1, B's at x = 0.08; away from their rims
+    # every vertex normal is the face's, and each ray leaves the other box after 2 cm
+    inner = (np.abs(posed[:, 1]) < 0.09) & (np.abs(posed[:, 2]) < 0.09)
+    face_a = inner & (which == 0) & np.isclose(posed[:, 0], 0.1)
+    face_b = inner & (which == 1) & np.isclose(posed[:, 0], 0.08)
+    assert face_a.sum() > 20 and face_b.sum() > 20
+    np.testing.assert_allclose(x[face_a | face_b, 0], 0.09, atol=1e-9)
+    np.testing.assert_array_equal(x[face_a | face_b, 1:], posed[face_a | face_b, 1:])
+    # nothing else on those faces' sides moves: only the lens's 2 cm rims besides
+    rim = ((which == 0) & (posed[:, 0] > 0.08 - 1e-9)) | ((which == 1) & (posed[:, 0] < 0.1 + 1e-9))
+    np.testing.assert_array_equal(x[~rim], posed[~rim])
+    assert moved == np.count_nonzero(np.any(x != posed, axis=1))
+
+
+def test_far_side_of_the_own_part_and_the_rest_pose_are_left_alone():
+    rest, posed, tris, _ = two_boxes(0.02)
+    # boxes apart (a 1 cm gap): every ray leaves through its own box's far side, 20 cm away
+    apart = posed.copy()
+    apart[len(posed) // 2:, 0] += 0.03
+    x = apart.copy()
+    assert SkinContact(rest, tris)(x) == 0
+    np.testing.assert_array_equal(x, apart)
+    # the rest pose itself, even with the boxes touching there: nothing was farther at rest
+    x = posed.copy()
+    assert SkinContact(posed, tris)(x) == 0
+
+
+def test_settings_are_validated():
+    with pytest.raises(ValueError, match="ContactSettings.reach"):
+        ContactSettings(reach=0.0)
+
+
+def deep_in_another_part(body, x, normals, depth=0.002):
+    """Clothed skin vertices that lie more than `depth` inside another part of the body: the
+    point `depth` inwards along the normal has a winding number of 2 or more (inside its own
+    part and another); an independent test of the capped clothed skin."""
+    keep = body_clothed_faces(body)
+    grid = WindingGrid(closed_faces(body.triangles, keep), body.n_visible)
+    verts = np.unique(body.triangles[keep])
+    skin = np.ascontiguousarray(x[: body.n_visible])
+    grid.update(skin)
+    w = np.empty(len(verts), dtype=np.int32)
+    winding_numbers(skin[verts] - depth * normals[verts], skin, grid.tris, *grid.arrays(), w)
+    return verts[w >= 2]
+
+
+THIGH, KNEE = -80.0, 110.0
+
+
+def test_bent_knee_and_raised_thigh_skins_meet(body):
+    sk = body.skeleton
+    plain = BodyAnimator(body, contact=None)
+    fixed = BodyAnimator(body)
+    q = plain.rest_configuration()
+    local, root = np.empty((len(sk.names), 3, 3)), np.empty(3)
+    configuration_to_local(q, plain.character.idx_q, local, root)
+    # a high step: the left thigh raised into the belly, the knee bent
+    axis_rotation(0, THIGH, local[sk.index("LeftUpLeg")])
+    axis_rotation(0, KNEE, local[sk.index("LeftLeg")])
+    local_to_configuration(local, root, plain.character.idx_q, q)
+    before = plain.pose(q)
+    inside_before = deep_in_another_part(body, before.vertices, before.normals)
+    after = fixed.pose(q)
+    inside_after = deep_in_another_part(body, after.vertices, after.normals)
+    assert fixed.contact.moved > 30
+    assert len(inside_before) > 40  # 68 when written
+    assert len(inside_after) < 0.25 * len(inside_before)  # 11
+    # the right leg, nowhere near, is untouched
+    right = body.weight_bones[: body.n_visible, 0] == sk.index("RightLeg")
+    np.testing.assert_array_equal(after.vertices[: body.n_visible][right], before.vertices[: body.n_visible][right])
