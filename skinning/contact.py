@@ -31,19 +31,40 @@ _HASH_BITS = 15
 @dataclass(frozen=True)
 class ContactSettings:
     reach: float = 0.06  # m, the thickest lens corrected (deeper: the far side is as likely)
-    margin: float = 0.02  # m, how much farther than the ray's length the face must have been at rest
+    margin: float = 0.01  # m, how much farther than the ray's length the face must have been at rest
+    across: float = 0.5  # ... and at least acos(across) off the vertex's inward normal
     cell: float = 0.02  # m, the face grid's cell
     sample: float = 0.025  # m, spacing at rest of the vertices a ray is cast from in every pose
+    smooth_passes: int = 2  # rounds that fill the vertices a lens's rays missed and fade the moves over its rim
 
     def __post_init__(self):
         for key in ("reach", "margin", "cell", "sample"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"ContactSettings.{key} must be > 0, got {getattr(self, key)!r}")
+        if not isinstance(self.smooth_passes, int) or self.smooth_passes < 0:
+            raise ValueError(f"ContactSettings.smooth_passes must be an integer >= 0, got {self.smooth_passes!r}")
+        if not -1.0 < self.across <= 1.0:
+            raise ValueError(f"ContactSettings.across must be in (-1, 1], got {self.across!r}")
 
 
 @njit(cache=True, nogil=True)
 def _cell_hash(i, j, k, mask):
     return ((i * 73856093) ^ (j * 19349663) ^ (k * 83492791)) & mask
+
+
+@njit(cache=True, nogil=True)
+def far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across):
+    """Whether face f was elsewhere at rest than across v's own limb: farther from v than t +
+    margin, and more than acos(across) off v's inward normal. The far side of v's own limb, which
+    its inward ray leaves through when v is in no lens, lay straight across at rest too."""
+    cx = rest_centroid[f, 0] - rest[v, 0]
+    cy = rest_centroid[f, 1] - rest[v, 1]
+    cz = rest_centroid[f, 2] - rest[v, 2]
+    d2 = cx * cx + cy * cy + cz * cz
+    if d2 <= (t + margin) ** 2:
+        return False
+    inward = -(cx * rest_normals[v, 0] + cy * rest_normals[v, 1] + cz * rest_normals[v, 2])
+    return inward < across * np.sqrt(d2)
 
 
 @njit(cache=True, nogil=True)
@@ -77,11 +98,12 @@ def build_face_grid(x, tris, inv_cell, mask, lo, hi, start, ids, count):
 
 
 @njit(cache=True, nogil=True)
-def first_exit(px, py, pz, dx, dy, dz, reach, v, x, tris, inv_cell, mask, start, ids, rest, rest_centroid, margin):
+def first_exit(px, py, pz, dx, dy, dz, reach, v, x, tris, inv_cell, mask, start, ids, rest, rest_normals,
+               rest_centroid, margin, across):
     """The ray p + t d (d unit) from skin vertex v, t in (0, reach], against the faces of `tris`
     but those around v: (t of the first face it leaves a part through (its outward normal along
     d), or reach; that face, or -1; whether it crossed a face before, either way, that was farther
-    from v at rest than t + margin)."""
+    from v at rest than t + margin and not across its limb: `far_at_rest`)."""
     best = -1
     best_t = reach
     far_t = np.inf
@@ -137,10 +159,7 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, x, tris, inv_cell, mask, start,
             t = (e2x * rx + e2y * ry + e2z * rz) * inv
             if not 0.0 < t <= reach:
                 continue
-            cx = rest[v, 0] - rest_centroid[f, 0]
-            cy = rest[v, 1] - rest_centroid[f, 1]
-            cz = rest[v, 2] - rest_centroid[f, 2]
-            if t < far_t and cx * cx + cy * cy + cz * cz > (t + margin) ** 2:
+            if t < far_t and far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across):
                 far_t = t
             if det < 0.0 and t < best_t:
                 best_t = t
@@ -161,7 +180,7 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, x, tris, inv_cell, mask, start,
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def lens_depths(x, normals, verts, which, tris, rest, rest_centroid, reach, margin, inv_cell, mask, start, ids, depth,
+def lens_depths(x, normals, verts, which, tris, rest, rest_normals, rest_centroid, reach, margin, across, inv_cell, mask, start, ids, depth,
                 trigger):
     """For verts[which[i]]: depth, how far the skin there has sunk into another part along -normal
     (the first face its inward ray leaves a part through, if that face was far at rest; else 0),
@@ -170,14 +189,8 @@ def lens_depths(x, normals, verts, which, tris, rest, rest_centroid, reach, marg
         k = which[i]
         v = verts[k]
         t, f, far = first_exit(x[v, 0], x[v, 1], x[v, 2], -normals[v, 0], -normals[v, 1], -normals[v, 2], reach, v,
-                               x, tris, inv_cell, mask, start, ids, rest, rest_centroid, margin)
-        depth[k] = 0.0
-        if f >= 0:
-            cx = rest[v, 0] - rest_centroid[f, 0]
-            cy = rest[v, 1] - rest_centroid[f, 1]
-            cz = rest[v, 2] - rest_centroid[f, 2]
-            if cx * cx + cy * cy + cz * cz > (t + margin) ** 2:  # not the far side of its own limb
-                depth[k] = t
+                               x, tris, inv_cell, mask, start, ids, rest, rest_normals, rest_centroid, margin, across)
+        depth[k] = t if f >= 0 and far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across) else 0.0
         trigger[k] = far
 
 
@@ -201,18 +214,60 @@ def around_triggered(seeds, trigger, nbr_start, nbr_ids, done, out):
 
 
 @njit(cache=True, nogil=True)
-def meet_halfway(x, normals, verts, depth):
-    """Each vertex in a lens back into its own part by half the lens, so both sheets meet."""
+def meet_halfway(x, normals, verts, depth, ring_start, ring_ids, passes, move, spare):
+    """Each vertex in a lens back into its own part by half the lens, so both sheets meet; then
+    `passes` rounds in which every other vertex takes its ring's mean move: a vertex whose ray
+    missed the lens no longer stands out of the moved skin around it, and the moves fade out over
+    the lens's rim. Returns how many vertices moved."""
+    n = verts.shape[0]
+    for k in range(n):
+        h = -0.5 * depth[k]
+        v = verts[k]
+        move[k, 0] = h * normals[v, 0]
+        move[k, 1] = h * normals[v, 1]
+        move[k, 2] = h * normals[v, 2]
+    for _ in range(passes):
+        for k in range(n):
+            if depth[k] > 0.0:
+                spare[k, 0] = move[k, 0]
+                spare[k, 1] = move[k, 1]
+                spare[k, 2] = move[k, 2]
+                continue
+            mx = 0.0
+            my = 0.0
+            mz = 0.0
+            for q in range(ring_start[k], ring_start[k + 1]):
+                j = ring_ids[q]
+                mx += move[j, 0]
+                my += move[j, 1]
+                mz += move[j, 2]
+            c = 1.0 / max(1, ring_start[k + 1] - ring_start[k])
+            spare[k, 0] = mx * c
+            spare[k, 1] = my * c
+            spare[k, 2] = mz * c
+        move[:] = spare
     moved = 0
-    for k in range(verts.shape[0]):
-        if depth[k] > 0.0:
+    for k in range(n):
+        if move[k, 0] != 0.0 or move[k, 1] != 0.0 or move[k, 2] != 0.0:
             v = verts[k]
-            h = 0.5 * depth[k]
-            x[v, 0] -= h * normals[v, 0]
-            x[v, 1] -= h * normals[v, 1]
-            x[v, 2] -= h * normals[v, 2]
+            x[v, 0] += move[k, 0]
+            x[v, 1] += move[k, 1]
+            x[v, 2] += move[k, 2]
             moved += 1
     return moved
+
+
+def vertex_rings(tris: np.ndarray, verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each vertex's edge neighbours, as positions in `verts` (compressed rows)."""
+    pos = np.full(int(verts.max()) + 1, -1, dtype=np.int64)
+    pos[verts] = np.arange(len(verts))
+    t = pos[tris]
+    edges = np.unique(np.sort(np.vstack([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1), axis=0)
+    both = np.vstack([edges, edges[:, ::-1]])
+    both = both[np.argsort(both[:, 0], kind="stable")]
+    start = np.zeros(len(verts) + 1, dtype=np.int64)
+    start[1:] = np.cumsum(np.bincount(both[:, 0], minlength=len(verts)))
+    return start, np.ascontiguousarray(both[:, 1])
 
 
 def seed_vertices(rest: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -243,8 +298,12 @@ class SkinContact:
         self.verts = np.unique(self.tris)
         self.rest = np.ascontiguousarray(rest_vertices, dtype=np.float64)
         self.rest_centroid = self.rest[self.tris].mean(axis=1)
-        self.seeds, self.nbr_start, self.nbr_ids = seed_vertices(self.rest[self.verts], s.sample)
         self._normals = MeshNormals(self.tris, len(self.rest))
+        self.rest_normals = self._normals(self.rest, np.zeros((len(self.rest), 3)))
+        self.seeds, self.nbr_start, self.nbr_ids = seed_vertices(self.rest[self.verts], s.sample)
+        self.ring_start, self.ring_ids = vertex_rings(self.tris, self.verts)
+        self._move = np.zeros((len(self.verts), 3))
+        self._spare = np.zeros((len(self.verts), 3))
         self.normals = np.zeros((len(self.rest), 3))
         self.depth = np.zeros(len(self.verts))  # m, last pose's lens depth per vertex of `verts`
         self._trigger = np.zeros(len(self.verts), dtype=np.bool_)
@@ -278,11 +337,12 @@ class SkinContact:
             build_face_grid(*grid, self._ids, self._count)
         self.depth[:] = 0.0
         rays = (x, self.normals, self.verts)
-        query = (self.tris, self.rest, self.rest_centroid, s.reach, s.margin, inv_cell, self._mask, self._start,
+        query = (self.tris, self.rest, self.rest_normals, self.rest_centroid, s.reach, s.margin, s.across, inv_cell, self._mask, self._start,
                  self._ids, self.depth, self._trigger)
         lens_depths(*rays, self.seeds, *query)
         k = around_triggered(self.seeds, self._trigger, self.nbr_start, self.nbr_ids, self._done, self._around)
         lens_depths(*rays, self._around[:k], *query)
         self.rays = len(self.seeds) + k
-        self.moved = meet_halfway(x, self.normals, self.verts, self.depth)
+        self.moved = meet_halfway(x, self.normals, self.verts, self.depth, self.ring_start, self.ring_ids,
+                                  s.smooth_passes, self._move, self._spare)
         return self.moved
