@@ -32,10 +32,19 @@ def _clips(data: Path, names: list[str] | None) -> list[Path]:
     return out
 
 
-def _arm_argument(p) -> None:
+def _body_arguments(p) -> None:
     p.add_argument("--arm-clearance", type=float, default=None, metavar="DEG",
                    help="smallest angle between a hanging arm and the torso's axis; the copied arms are turned out "
                         "to it so they do not pass through a broader character (default 10; 0: copy exactly)")
+    p.add_argument("--no-skin-contact", action="store_true",
+                   help="leave the skin as linear blend skinning makes it where the body cuts through itself (behind "
+                        "a bent knee, at the hip crease); by default the two skins meet halfway there")
+
+
+def _contact(args):
+    from skinning.contact import ContactSettings
+
+    return None if args.no_skin_contact else ContactSettings()
 
 
 def _ik(args):
@@ -86,7 +95,7 @@ def cmd_body(args) -> int:
     for clip in _clips(data, args.clip):
         frames = showcase_frames(clip.stem, args.every)
         report = run_clip(body, clip, every=args.every, snapshot_frames=frames, max_frames=args.max_frames,
-                          ik=ik, self_contact=args.self_contact)
+                          ik=ik, self_contact=args.self_contact, contact=_contact(args))
         print(report.summary())
         if renderer is not None and report.snapshots:
             print(f"  snapshots: {render_snapshots(body, report, out_dir, renderer)}")
@@ -116,7 +125,8 @@ def cmd_cloth(args) -> int:
             # the first frame is skipped (converter T-pose)
             frames = _frame_list(args.frames) if args.frames else showcase_frames(clip.stem, args.every, START_FRAME)
             report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
-                                    snapshot_frames=frames, fabrics=fabrics, surface=surface, ik=ik)
+                                    snapshot_frames=frames, fabrics=fabrics, surface=surface, ik=ik,
+                                    contact=_contact(args))
             print(report.summary())
             if renderer is not None and report.snapshots:
                 path = render_cloth_snapshots(body, report, report.models, out_dir, renderer, close_up=args.close_up)
@@ -190,7 +200,7 @@ def cmd_session(args) -> int:
                          serve_port=args.port if args.serve else None,
                          web_port=args.web_port if args.serve else None, record=not args.no_record,
                          snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None,
-                         ik=ik)
+                         ik=ik, contact=_contact(args))
     print(result.summary())
     return 0
 
@@ -218,7 +228,7 @@ def cmd_ingest(args) -> int:
             start = START_FRAME
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
                 "clip": "live" if args.live else Path(source.path).stem}
-        svc = IngestService(bus, session, body, source, desc, ik=ik)
+        svc = IngestService(bus, session, body, source, desc, ik=ik, contact=_contact(args))
         try:
             n = svc.run(start_frame=start, stop=stop, wait_subscribers=args.wait_subscribers,
                         wait_ready=args.wait_ready)
@@ -373,7 +383,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--self-contact", type=int, default=0, metavar="N",
                    help="every N-th frame, count the clothed skin vertices inside the body (where skinning makes "
                         "it cut through itself), per region (default 0: off)")
-    _arm_argument(p)
+    _body_arguments(p)
     p.set_defaults(func=cmd_body)
     p = sub.add_parser("cloth", help="cloth (S101-S106) of outfits on motion clips; timings and PNG snapshots")
     p.add_argument("--level", type=int, default=6, help="PN tessellation level of the detailed surface (default 6)")
@@ -389,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames", help="snapshot frames, comma-separated session frame numbers (default: a showcase "
                    "per clip)")
     p.add_argument("--close-up", action="store_true", help="snapshots from nearer, larger: the folds of the surface")
-    _arm_argument(p)
+    _body_arguments(p)
     p.set_defaults(func=cmd_cloth)
 
     from .bus import add_bus_arguments
@@ -411,7 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-record", action="store_true", help="do not write the bus recording")
     p.add_argument("--no-png", action="store_true", help="skip the PNG snapshots")
     p.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
-    _arm_argument(p)
+    _body_arguments(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_session)
 
@@ -430,7 +440,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wait-ready", type=float, default=30.0,
                    help="wait up to this many seconds for the cloth service to fit the outfit (pre-roll)")
     _outfit_arguments(p)
-    _arm_argument(p)
+    _body_arguments(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_ingest)
 

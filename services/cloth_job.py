@@ -25,6 +25,7 @@ from cloth.sim import ClothSim, prepare_cloth
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
 from skinning.body import Body, body_clothed_faces, body_regions
+from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings
 from skinning.source import BVHSource
 
@@ -209,8 +210,10 @@ class OutfitSession:
             self._pool.close()
         self._pool = None
 
-    def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5):
-        """Blend the body from rest to the first frame's pose, then hold it while the cloth settles."""
+    def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5,
+                contact: bool = True):
+        """Blend the body from rest to the first frame's pose, then hold it while the cloth settles.
+        contact: pose the blend with the animator's skin contact (as the session's frames are)."""
         model = self.animator.character.model
         q_rest = self.animator.rest_configuration()
         n_blend = max(1, int(round(blend_seconds / dt)))
@@ -219,7 +222,7 @@ class OutfitSession:
         for k in range(1, n + 1):
             t = smoothstep(min(1.0, k / n_blend))
             q = pin.interpolate(model, q_rest, q_first, t)
-            frame = self.animator.pose(q)
+            frame = self.animator.pose(q, contact=contact)
             # the detailed surface only needs the last few steps to settle onto the coarse cloth
             self.step_cloth(frame.vertices, dt, surface=k > n - self.PREROLL_SURFACE_STEPS)
 
@@ -227,11 +230,12 @@ class OutfitSession:
 def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max_frames: int | None = None,
                    snapshot_frames: list[int] | None = None, settings: SimSettings | None = None,
                    fabrics=None, profile: bool = False, on_frame=None,
-                   surface: SurfaceSettings | None = None, ik: IKSettings | None = None) -> ClothReport:
+                   surface: SurfaceSettings | None = None, ik: IKSettings | None = None,
+                   contact: ContactSettings | None = ContactSettings()) -> ClothReport:
     """Run an outfit through a clip. on_frame(index, session, body_frame, positions) sees every frame."""
     wanted = set(snapshot_frames or [])
     with BVHSource(clip, every=every, max_frames=max_frames) as source:
-        animator = BodyAnimator(body, source.skeleton, ik=ik)
+        animator = BodyAnimator(body, source.skeleton, ik=ik, contact=contact)
         body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body),
                                    body.vertices)
         outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)

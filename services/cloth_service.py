@@ -92,6 +92,7 @@ class GarmentSession:
         self.body_x = np.empty((service.body.n_visible, 3))
         self.last_frame = -1
         self.started = False
+        self.skin_contact = True
         self.announced_ns = 0  # stamp of the announcement it was set up from (0: none)
         self.end_frame: int | None = None  # set by the session's end message
         self.skipped_since = 0  # frames stepped without their surface since the last published one
@@ -110,13 +111,17 @@ class GarmentSession:
         """Settle the garments from the rest pose into pose q, then tell the session we are ready."""
         t0 = time.perf_counter()
         with self.service.animator_lock:  # the service's one animator poses the blend
-            self.sim.preroll(np.array(q, dtype=np.float64), self.dt)
+            self.sim.preroll(np.array(q, dtype=np.float64), self.dt, contact=self.skin_contact)
         self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
         self.started = True
         ready = Message("control", self.session, meta={"event": "ready", "from": "cloth", "garments": self.names})
         self.latched.publish(key(self.session, "status", "cloth"), encode(ready))
 
     def start_from_description(self, desc: dict, key_expr: str) -> None:
+        contact = desc.get("skin_contact", True)
+        if not isinstance(contact, bool):
+            raise MessageError(key_expr, f"'skin_contact' must be true or false, got {contact!r}")
+        self.skin_contact = contact  # the pre-roll's blend is skinned as the ingest skins the frames
         q = desc.get("first_q")
         if q is None:
             return  # no first pose announced: the first body frame starts the session

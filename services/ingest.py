@@ -24,6 +24,7 @@ import zenoh
 
 from skinning.animate import STAGES, BodyAnimator
 from skinning.body import Body
+from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings
 from skinning.skeleton import Skeleton
 from skinning.source import PoseFrame
@@ -192,18 +193,21 @@ class IngestService:
     """Retarget + skin each pose of `source` and publish tryon/<s>/body.
 
     description: the session's description, latched on tryon/<s>/session (outfit, fabrics, level...).
-    ik: retargeting settings (default IKSettings())."""
+    ik: retargeting settings (default IKSettings()); contact: the skin contact (None: off), said
+    in the description as skin_contact so that the cloth poses its pre-roll the same way."""
 
     SERVICE = "ingest"
 
     def __init__(self, bus: zenoh.Session, session: str, body: Body, source, description: dict,
-                 ik: IKSettings | None = None):
+                 ik: IKSettings | None = None, contact: ContactSettings | None = ContactSettings()):
         self.bus, self.session, self.body, self.source = bus, session, body, source
         self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
-        self.animator = BodyAnimator(body, source.skeleton, ik=ik, normals=False)  # displays shade it themselves
+        # displays shade it themselves
+        self.animator = BodyAnimator(body, source.skeleton, ik=ik, normals=False, contact=contact)
         self.latched = Latched(bus)
         self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible,
-                                arm_clearance_deg=self.animator.retargeter.ik.arm_clearance_deg)
+                                arm_clearance_deg=self.animator.retargeter.ik.arm_clearance_deg,
+                                skin_contact=contact is not None)
         self.publisher = bus.declare_publisher(key(session, "body"), congestion_control=zenoh.CongestionControl.BLOCK,
                                                reliability=zenoh.Reliability.RELIABLE)
         self.frames = 0

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from skinning.body import Body
+from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings
 from skinning.source import BVHSource
 
@@ -174,7 +175,8 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
                 every: int = 2, max_frames: int | None = None, bus_config: BusConfig | None = None,
                 serve_port: int | None = None, web_port: int | None = None, record: bool = True,
                 snapshot_frames: list[int] | None = None, png: bool = True, progress: bool | None = None,
-                window: int = 1, stop: threading.Event | None = None, ik: IKSettings | None = None) -> SessionResult:
+                window: int = 1, stop: threading.Event | None = None, ik: IKSettings | None = None,
+                contact: ContactSettings | None = ContactSettings()) -> SessionResult:
     """Run one session end to end in this process (see the module docstring)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     serve = serve_port is not None
@@ -197,7 +199,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
             total = min(total, max_frames - START_FRAME)
         bar = Progress(total, progress)
         description = {"outfit": spec.outfit, "fabric": spec.fabric, "level": spec.level, "clip": clip.stem}
-        ingest = IngestService(bus, session, body, source, description, ik=ik)
+        ingest = IngestService(bus, session, body, source, description, ik=ik, contact=contact)
         # one description + the body topology are latched before the first frame
 
         streaming_since = []  # when the first frame was out (the setup waits before it)

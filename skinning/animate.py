@@ -73,8 +73,9 @@ class BodyAnimator:
         q[:3] += self.world_offset
         return q
 
-    def pose(self, q: np.ndarray) -> BodyFrame:
-        """Skin the body in configuration q (Pinocchio layout)."""
+    def pose(self, q: np.ndarray, contact: bool = True) -> BodyFrame:
+        """Skin the body in configuration q (Pinocchio layout); contact=False: without the skin
+        contact even if the animator has one."""
         f = self.frame
         t0 = time.perf_counter()
         self.character.global_pose(q, self._local, self._root, f.joint_rotations, f.joint_positions)
@@ -82,7 +83,7 @@ class BodyAnimator:
         w = self._weights
         linear_blend_skinning(self.body.vertices, w.start, w.bones, w.weights, self._matrices, f.vertices)
         t1 = time.perf_counter()
-        if self.contact is not None:
+        if contact and self.contact is not None:
             self.contact(f.vertices)
         t2 = time.perf_counter()
         if f.normals is not None:

@@ -46,7 +46,7 @@ def test_cli_body_writes_snapshots(tmp_path, capsys):
     assert img.shape[0] > 100 and img.std() > 10
 
 
-def test_cli_body_arm_clearance_and_self_contact_options(tmp_path, capsys):
+def test_cli_body_arm_clearance_skin_contact_and_self_contact_options(tmp_path, capsys):
     args = ["body", "--clip", "cmu_131_01_walk_3dsmax", "--max-frames", "40", "--out", str(tmp_path), "--no-png"]
     assert main(args) == 0
     turned = capsys.readouterr().out
@@ -57,8 +57,13 @@ def test_cli_body_arm_clearance_and_self_contact_options(tmp_path, capsys):
     assert "arm turn deg median 0.0 max 0.0 " in exact
     with pytest.raises(SystemExit, match="--arm-clearance must be in"):
         main(args + ["--arm-clearance", "95"])
+    # the walker's knees bend: by default the skins behind them meet, with --no-skin-contact they overlap
+    moved = int(turned.split("skin contact: vertices moved median ")[1].split(" max ")[1].split()[0])
+    assert moved > 20
+    assert main(args + ["--no-skin-contact"]) == 0
+    assert "skin contact: vertices moved median 0 max 0 " in capsys.readouterr().out
     assert main(args + ["--self-contact", "10"]) == 0
-    assert "clothed skin inside the body, vertices per frame (mean over 4 frames): torso" in capsys.readouterr().out
+    assert "clothed skin inside another part of the body, vertices per frame (mean over 4 frames): torso" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="--self-contact must be 0"):
         main(args + ["--self-contact", "-1"])
 

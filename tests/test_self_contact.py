@@ -37,7 +37,7 @@ def test_the_rest_body_does_not_cut_through_itself(body, contact):
 
 
 def test_an_arm_lowered_through_the_torso_is_counted_there_and_grows_with_the_overlap(body, contact):
-    animator = BodyAnimator(body)
+    animator = BodyAnimator(body, contact=None)  # the skin as linear blend skinning leaves it
     counts = [contact(*(lambda f: (f.vertices, f.normals))(_arm_lowered(animator, d))) for d in (-30, -40, -50)]
     arm, torso = REGIONS.index("left_arm"), REGIONS.index("torso")
     for c in counts:  # the A-pose arm (about 40 degrees out) turned 30-50 degrees in: it enters the chest's side
@@ -49,13 +49,14 @@ def test_an_arm_lowered_through_the_torso_is_counted_there_and_grows_with_the_ov
 
 def test_arm_clearance_takes_the_walkers_arms_out_of_the_torso(body, mocap):
     clip = mocap / "cmu_131_01_walk_3dsmax.bvh"
-    exact = run_clip(body, clip, every=2, max_frames=60, ik=IKSettings(arm_clearance_deg=0.0), self_contact=5)
-    clear = run_clip(body, clip, every=2, max_frames=60, self_contact=5)
+    exact = run_clip(body, clip, every=2, max_frames=60, ik=IKSettings(arm_clearance_deg=0.0), self_contact=5,
+                     contact=None)
+    clear = run_clip(body, clip, every=2, max_frames=60, self_contact=5, contact=None)
     assert exact.self_contact.shape == clear.self_contact.shape == (12, len(BODY_REGIONS))
     arm, torso = REGIONS.index("left_arm"), REGIONS.index("torso")
     before, after = exact.self_contact.mean(axis=0), clear.self_contact.mean(axis=0)
     # the walker's left hand rests at the hip: copied exactly, the forearm is in it
     assert before[arm] > 50 and after[arm] < 0.2 * before[arm]
     assert after[torso] < 0.2 * before[torso]
-    assert "clothed skin inside the body" in clear.summary() and "clothed skin" not in run_clip(
+    assert "clothed skin inside another part" in clear.summary() and "clothed skin" not in run_clip(
         body, clip, every=2, max_frames=3).summary()

@@ -5,9 +5,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from cloth.winding import WindingGrid, closed_faces, winding_numbers
+from services.body_job import SelfContact
 from skinning.animate import BodyAnimator
-from skinning.body import body_clothed_faces
 from skinning.character import configuration_to_local, local_to_configuration
 from skinning.contact import ContactSettings, SkinContact
 from skinning.kinematics import axis_rotation
@@ -64,20 +63,6 @@ def test_settings_are_validated():
         ContactSettings(reach=0.0)
 
 
-def deep_in_another_part(body, x, normals, depth=0.002):
-    """Clothed skin vertices that lie more than `depth` inside another part of the body: the
-    point `depth` inwards along the normal has a winding number of 2 or more (inside its own
-    part and another); an independent test of the capped clothed skin."""
-    keep = body_clothed_faces(body)
-    grid = WindingGrid(closed_faces(body.triangles, keep), body.n_visible)
-    verts = np.unique(body.triangles[keep])
-    skin = np.ascontiguousarray(x[: body.n_visible])
-    grid.update(skin)
-    w = np.empty(len(verts), dtype=np.int32)
-    winding_numbers(skin[verts] - depth * normals[verts], skin, grid.tris, *grid.arrays(), w)
-    return verts[w >= 2]
-
-
 THIGH, KNEE = -80.0, 110.0
 
 
@@ -92,10 +77,11 @@ def test_bent_knee_and_raised_thigh_skins_meet(body):
     axis_rotation(0, THIGH, local[sk.index("LeftUpLeg")])
     axis_rotation(0, KNEE, local[sk.index("LeftLeg")])
     local_to_configuration(local, root, plain.character.idx_q, q)
+    inside = SelfContact(body)  # the winding number of the capped clothed skin: independent
     before = plain.pose(q)
-    inside_before = deep_in_another_part(body, before.vertices, before.normals)
+    inside_before = inside.inside(before.vertices, before.normals)
     after = fixed.pose(q)
-    inside_after = deep_in_another_part(body, after.vertices, after.normals)
+    inside_after = inside.inside(after.vertices, after.normals)
     assert fixed.contact.moved > 30
     assert len(inside_before) > 40  # 68 when written
     assert len(inside_after) < 0.25 * len(inside_before)  # 11
