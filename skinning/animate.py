@@ -34,7 +34,8 @@ class BodyAnimator:
     """Retarget + skin, one frame at a time. `stage_seconds` holds the last frame's stage times."""
 
     def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
-                 person_floor_y: float = 0.0, normals: bool = True, contact: ContactSettings | None = ContactSettings()):
+                 person_floor_y: float = 0.0, normals: bool = True,
+                 contact: ContactSettings | None = ContactSettings()):
         """normals: compute the skin's vertex normals each frame (False: a service that publishes
         the body for displays that compute their own; BodyFrame.normals is then None).
         contact: where the skinned body cuts through itself, bring the skin to a contact surface

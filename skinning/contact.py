@@ -20,19 +20,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import get_num_threads, get_thread_id, njit, prange
 
 from .body import Body, body_clothed_faces
 from .skin import MeshNormals
 
 _HASH_BITS = 15
+MIN_T = 1e-9  # m
 
 
 @dataclass(frozen=True)
 class ContactSettings:
     reach: float = 0.06  # m, the thickest lens corrected (deeper: the far side is as likely)
     margin: float = 0.01  # m, how much farther than the ray's length the face must have been at rest
-    across: float = 0.5  # ... and at least acos(across) off the vertex's inward normal
+    across: float = 0.3  # ... and at least acos(across) off the vertex's inward normal
     cell: float = 0.02  # m, the face grid's cell
     sample: float = 0.025  # m, spacing at rest of the vertices a ray is cast from in every pose
     smooth_passes: int = 2  # rounds that fill the vertices a lens's rays missed and fade the moves over its rim
@@ -67,16 +68,26 @@ def far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across):
     return inward < across * np.sqrt(d2)
 
 
-@njit(cache=True, nogil=True)
-def build_face_grid(x, tris, inv_cell, mask, lo, hi, start, ids, count):
-    """Every face into each hashed cell its bounding box overlaps (counting sort into start/ids;
-    lo/hi (m, 3) receive the boxes' cell ranges). Returns the entries needed (> len(ids): grow)."""
-    start[:] = 0
-    for t in range(tris.shape[0]):
+@njit(cache=True, nogil=True, parallel=True)
+def face_boxes(x, tris, inv_cell, corners, lo, hi):
+    """Per face: its corners side by side (corners (m, 9), one load per face in the ray tests)
+    and the cell range of its bounding box (lo/hi (m, 3))."""
+    for t in prange(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         for d in range(3):
+            corners[t, d] = x[a, d]
+            corners[t, 3 + d] = x[b, d]
+            corners[t, 6 + d] = x[c, d]
             lo[t, d] = int(np.floor(min(x[a, d], x[b, d], x[c, d]) * inv_cell))
             hi[t, d] = int(np.floor(max(x[a, d], x[b, d], x[c, d]) * inv_cell))
+
+
+@njit(cache=True, nogil=True)
+def build_face_grid(lo, hi, mask, start, ids, count):
+    """Every face into each hashed cell its bounding box overlaps (`face_boxes`; a counting sort
+    into start/ids). Returns the entries needed (> len(ids): grow ids and ask again)."""
+    start[:] = 0
+    for t in range(lo.shape[0]):
         for i in range(lo[t, 0], hi[t, 0] + 1):
             for j in range(lo[t, 1], hi[t, 1] + 1):
                 for k in range(lo[t, 2], hi[t, 2] + 1):
@@ -87,7 +98,7 @@ def build_face_grid(x, tris, inv_cell, mask, lo, hi, start, ids, count):
     if n > ids.shape[0]:
         return n
     count[:] = 0
-    for t in range(tris.shape[0]):
+    for t in range(lo.shape[0]):
         for i in range(lo[t, 0], hi[t, 0] + 1):
             for j in range(lo[t, 1], hi[t, 1] + 1):
                 for k in range(lo[t, 2], hi[t, 2] + 1):
@@ -98,12 +109,13 @@ def build_face_grid(x, tris, inv_cell, mask, lo, hi, start, ids, count):
 
 
 @njit(cache=True, nogil=True)
-def first_exit(px, py, pz, dx, dy, dz, reach, v, x, tris, inv_cell, mask, start, ids, rest, rest_normals,
+def first_exit(px, py, pz, dx, dy, dz, reach, v, corners, stamp, ray, inv_cell, mask, start, ids, rest, rest_normals,
                rest_centroid, margin, across):
-    """The ray p + t d (d unit) from skin vertex v, t in (0, reach], against the faces of `tris`
-    but those around v: (t of the first face it leaves a part through (its outward normal along
-    d), or reach; that face, or -1; whether it crossed a face before, either way, that was farther
-    from v at rest than t + margin and not across its limb: `far_at_rest`)."""
+    """The ray p + t d (d unit) from skin vertex v, t in (0, reach], against the faces (corners
+    (m, 9)) but those around v (t = 0 there): (t of the first face it leaves a part through (its
+    outward normal along d), or reach; that face, or -1; whether it crossed a face before, either
+    way, that was elsewhere at rest: `far_at_rest`). stamp (m,): the ray that last tested each
+    face, set to `ray` for the faces this one tests (a face in several cells is tested once)."""
     best = -1
     best_t = reach
     far_t = np.inf
@@ -127,38 +139,44 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, x, tris, inv_cell, mask, start,
         h = _cell_hash(i, j, k, mask)
         for s in range(start[h], start[h + 1]):
             f = ids[s]
-            a, b, c = tris[f, 0], tris[f, 1], tris[f, 2]
-            if a == v or b == v or c == v:
+            if stamp[f] == ray:  # in an earlier cell of this ray too
                 continue
+            stamp[f] = ray
             # Moller-Trumbore; det < 0 <=> d . (e1 x e2) > 0: the ray leaves through the face
-            e1x = x[b, 0] - x[a, 0]
-            e1y = x[b, 1] - x[a, 1]
-            e1z = x[b, 2] - x[a, 2]
-            e2x = x[c, 0] - x[a, 0]
-            e2y = x[c, 1] - x[a, 1]
-            e2z = x[c, 2] - x[a, 2]
+            ax = corners[f, 0]
+            ay = corners[f, 1]
+            az = corners[f, 2]
+            e1x = corners[f, 3] - ax
+            e1y = corners[f, 4] - ay
+            e1z = corners[f, 5] - az
+            e2x = corners[f, 6] - ax
+            e2y = corners[f, 7] - ay
+            e2z = corners[f, 8] - az
             qx = dy * e2z - dz * e2y
             qy = dz * e2x - dx * e2z
             qz = dx * e2y - dy * e2x
             det = e1x * qx + e1y * qy + e1z * qz
-            if abs(det) < 1e-14:
+            # the barycentric tests scaled by |det|: no division for the faces the ray misses
+            sign = 1.0 if det > 0.0 else -1.0
+            adet = det * sign
+            if adet < 1e-14:
                 continue
-            inv = 1.0 / det
-            sx = px - x[a, 0]
-            sy = py - x[a, 1]
-            sz = pz - x[a, 2]
-            u = (sx * qx + sy * qy + sz * qz) * inv
-            if u < 0.0 or u > 1.0:
+            sx = px - ax
+            sy = py - ay
+            sz = pz - az
+            u = (sx * qx + sy * qy + sz * qz) * sign
+            if u < 0.0 or u > adet:
                 continue
             rx = sy * e1z - sz * e1y
             ry = sz * e1x - sx * e1z
             rz = sx * e1y - sy * e1x
-            w = (dx * rx + dy * ry + dz * rz) * inv
-            if w < 0.0 or u + w > 1.0:
+            w = (dx * rx + dy * ry + dz * rz) * sign
+            if w < 0.0 or u + w > adet:
                 continue
-            t = (e2x * rx + e2y * ry + e2z * rz) * inv
-            if not 0.0 < t <= reach:
+            t = (e2x * rx + e2y * ry + e2z * rz) * sign
+            if not MIN_T * adet < t <= reach * adet:  # the faces around v, which the ray starts on, give t = 0
                 continue
+            t /= adet
             if t < far_t and far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across):
                 far_t = t
             if det < 0.0 and t < best_t:
@@ -180,8 +198,8 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, x, tris, inv_cell, mask, start,
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def lens_depths(x, normals, verts, which, tris, rest, rest_normals, rest_centroid, reach, margin, across, inv_cell, mask, start, ids, depth,
-                trigger):
+def lens_depths(x, normals, verts, which, corners, stamps, first_ray, rest, rest_normals, rest_centroid, reach,
+                margin, across, inv_cell, mask, start, ids, depth, trigger):
     """For verts[which[i]]: depth, how far the skin there has sunk into another part along -normal
     (the first face its inward ray leaves a part through, if that face was far at rest; else 0),
     and trigger, whether the ray met any face that was far at rest (a lens may be near)."""
@@ -189,7 +207,8 @@ def lens_depths(x, normals, verts, which, tris, rest, rest_normals, rest_centroi
         k = which[i]
         v = verts[k]
         t, f, far = first_exit(x[v, 0], x[v, 1], x[v, 2], -normals[v, 0], -normals[v, 1], -normals[v, 2], reach, v,
-                               x, tris, inv_cell, mask, start, ids, rest, rest_normals, rest_centroid, margin, across)
+                               corners, stamps[get_thread_id()], first_ray + k, inv_cell, mask, start, ids, rest,
+                               rest_normals, rest_centroid, margin, across)
         depth[k] = t if f >= 0 and far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across) else 0.0
         trigger[k] = far
 
@@ -275,7 +294,7 @@ def seed_vertices(rest: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndar
     seed's neighbours, every vertex within 2 x spacing of it at rest (compressed rows), so that
     every vertex is some seed's neighbour. Positions index `rest`."""
     _, first = np.unique(np.floor(rest / spacing).astype(np.int64), axis=0, return_index=True)
-    seeds = np.sort(first)
+    seeds = first  # in cell order: rays cast one after the other read faces near each other
     r2 = (2.0 * spacing) ** 2
     rows = []
     for chunk in np.array_split(seeds, max(1, len(seeds) // 256)):
@@ -294,7 +313,10 @@ class SkinContact:
         """rest_vertices (n, 3) m; triangles (m, 3): the closed or open skin that takes part
         (outward winding); the vertices they use are the ones moved."""
         self.settings = s = settings or ContactSettings()
-        self.tris = np.ascontiguousarray(triangles, dtype=np.int64)
+        rest = np.asarray(rest_vertices, dtype=np.float64)
+        # faces that share a cell lie side by side in memory: a ray's tests in a cell read few lines
+        cells = np.floor(rest[triangles].mean(axis=1) / s.cell).astype(np.int64)
+        self.tris = np.ascontiguousarray(triangles[np.lexsort(cells.T)], dtype=np.int64)
         self.verts = np.unique(self.tris)
         self.rest = np.ascontiguousarray(rest_vertices, dtype=np.float64)
         self.rest_centroid = self.rest[self.tris].mean(axis=1)
@@ -313,6 +335,11 @@ class SkinContact:
         self._mask = (1 << _HASH_BITS) - 1
         self._start = np.zeros(self._mask + 2, dtype=np.int64)
         self._count = np.zeros(self._mask + 1, dtype=np.int64)
+        self._corners = np.empty((len(self.tris), 9))
+        # per thread, the ray that last tested each face (first ray of the pose + the vertex's
+        # position in verts): a face in several cells of a ray is tested once
+        self._rays = 0
+        self._stamps = np.full((get_num_threads(), len(self.tris)), -1, dtype=np.int64)
         self._lo = np.empty((len(self.tris), 3), dtype=np.int64)
         self._hi = np.empty((len(self.tris), 3), dtype=np.int64)
         self._ids = np.zeros(8 * len(self.tris), dtype=np.int64)
@@ -330,15 +357,19 @@ class SkinContact:
         x = vertices
         self._normals(x, self.normals)
         inv_cell = 1.0 / s.cell
-        grid = (x, self.tris, inv_cell, self._mask, self._lo, self._hi, self._start)
+        face_boxes(x, self.tris, inv_cell, self._corners, self._lo, self._hi)
+        grid = (self._lo, self._hi, self._mask, self._start)
         n = build_face_grid(*grid, self._ids, self._count)
         if n > len(self._ids):
             self._ids = np.zeros(2 * n, dtype=np.int64)
             build_face_grid(*grid, self._ids, self._count)
         self.depth[:] = 0.0
         rays = (x, self.normals, self.verts)
-        query = (self.tris, self.rest, self.rest_normals, self.rest_centroid, s.reach, s.margin, s.across, inv_cell, self._mask, self._start,
-                 self._ids, self.depth, self._trigger)
+        if self._stamps.shape[0] < get_num_threads():
+            self._stamps = np.full((get_num_threads(), len(self.tris)), -1, dtype=np.int64)
+        self._rays += len(self.verts)  # ray ids never seen before in the stamps
+        query = (self._corners, self._stamps, self._rays, self.rest, self.rest_normals, self.rest_centroid, s.reach, s.margin,
+                 s.across, inv_cell, self._mask, self._start, self._ids, self.depth, self._trigger)
         lens_depths(*rays, self.seeds, *query)
         k = around_triggered(self.seeds, self._trigger, self.nbr_start, self.nbr_ids, self._done, self._around)
         lens_depths(*rays, self._around[:k], *query)
