@@ -34,6 +34,7 @@ from services.protocol import decode  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 CLIP = "cmu_131_01_walk_3dsmax"
 OUTFIT = "female_casualsuit01"
+INGEST_OPTIONS: list[str] = []  # extra options of every mocap-ingest process (--no-skin-contact)
 
 
 def free_port() -> int:
@@ -98,7 +99,7 @@ def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, 
     level_args = ["--coarse-only"] if level == 0 else ["--level", str(level)]
     procs = [subprocess.Popen(cli("ingest", "--session", s, "--clip", CLIP, "--pace", pace, "--every", str(every),
                                   "--max-frames", str(frames + 1), "--mode", "client", "--connect", endpoint,
-                                  "--outfit", OUTFIT, *level_args),
+                                  "--outfit", OUTFIT, *level_args, *INGEST_OPTIONS),
                               cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for s in sessions]
     for p in procs:
         p.wait()
@@ -158,13 +159,16 @@ def main() -> None:
     ap.add_argument("--max-sessions", type=int, default=3)
     ap.add_argument("--pin-cores", metavar="LIST", default="auto",
                     help="passed to the cloth service: auto (its default), none, or cores (e.g. 0,1)")
+    ap.add_argument("--no-skin-contact", action="store_true", help="passed to the mocap-ingest processes")
     args = ap.parse_args()
+    if args.no_skin_contact:
+        INGEST_OPTIONS.append("--no-skin-contact")
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     print(f"machine: {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}")
     print(f"outfit {OUTFIT} (two garments), level {args.level or 'coarse only'}, clip {CLIP}; "
           f"cloth service, ingest and this subscriber in separate processes over TCP loopback"
-          f"; cloth service --pin-cores {args.pin_cores}\n")
+          f"; cloth service --pin-cores {args.pin_cores}; ingest {' '.join(INGEST_OPTIONS) or 'with the skin contact'}\n")
     print("| cloth service | input | frames | latency p50 ms | p99 ms | max ms | frames without garments | "
           "compute ms/frame |")
     print("|---|---|---|---|---|---|---|---|")

@@ -10,9 +10,11 @@ pressed on skin does (the contact surface of implicit skinning, Vaillant et al. 
 one ray per vertex).
 
 A vertex is in the lens when the first face its inward ray (along -normal) leaves a part through
-lies within `reach` and was far from the vertex in the rest pose (more than the ray's length plus
-`margin`): the far side of the vertex's own limb, which the ray leaves through otherwise, was as
-far away at rest as it is now. Only the clothed skin takes part (not the head, hands or toes).
+lies within `reach` and was elsewhere at rest than across the vertex's own limb (`far_at_rest`):
+the far side of its own limb, which the ray leaves through otherwise, lay straight across at
+rest too. Rays from seeds spread over the skin find the lenses (or their rims); the lenses are
+then flooded ring by ring. Only the clothed skin takes part
+(not the head, hands or toes).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ class ContactSettings:
     margin: float = 0.01  # m, how much farther than the ray's length the face must have been at rest
     across: float = 0.3  # ... and at least acos(across) off the vertex's inward normal
     cell: float = 0.02  # m, the face grid's cell
-    sample: float = 0.025  # m, spacing at rest of the vertices a ray is cast from in every pose
+    sample: float = 0.035  # m, spacing at rest of the seeds, the vertices a ray is cast from in every pose
     smooth_passes: int = 2  # rounds that fill the vertices a lens's rays missed and fade the moves over its rim
 
     def __post_init__(self):
@@ -82,29 +84,39 @@ def face_boxes(x, tris, inv_cell, corners, lo, hi):
             hi[t, d] = int(np.floor(max(x[a, d], x[b, d], x[c, d]) * inv_cell))
 
 
-@njit(cache=True, nogil=True)
-def build_face_grid(lo, hi, mask, start, ids, count):
-    """Every face into each hashed cell its bounding box overlaps (`face_boxes`; a counting sort
-    into start/ids). Returns the entries needed (> len(ids): grow ids and ask again)."""
-    start[:] = 0
-    for t in range(lo.shape[0]):
-        for i in range(lo[t, 0], hi[t, 0] + 1):
-            for j in range(lo[t, 1], hi[t, 1] + 1):
-                for k in range(lo[t, 2], hi[t, 2] + 1):
-                    start[_cell_hash(i, j, k, mask) + 1] += 1
-    for h in range(mask + 1):
-        start[h + 1] += start[h]
-    n = start[mask + 1]
+@njit(cache=True, nogil=True, parallel=True)
+def build_face_grid(lo, hi, mask, start, ids, counts):
+    """Every face into each hashed cell its bounding box overlaps (`face_boxes`): a counting sort
+    into start/ids, the faces split into counts.shape[0] runs counted and placed in parallel
+    (each run's faces after the earlier runs' in a cell: the same order every time). Returns the
+    entries needed (> len(ids): grow ids and ask again)."""
+    m = lo.shape[0]
+    runs = counts.shape[0]
+    for r in prange(runs):
+        counts[r, :] = 0
+        for t in range(r * m // runs, (r + 1) * m // runs):
+            for i in range(lo[t, 0], hi[t, 0] + 1):
+                for j in range(lo[t, 1], hi[t, 1] + 1):
+                    for k in range(lo[t, 2], hi[t, 2] + 1):
+                        counts[r, _cell_hash(i, j, k, mask)] += 1
+    n = 0
+    for h in range(mask + 1):  # counts become each run's next slot in the cell
+        start[h] = n
+        for r in range(runs):
+            c = counts[r, h]
+            counts[r, h] = n
+            n += c
+    start[mask + 1] = n
     if n > ids.shape[0]:
         return n
-    count[:] = 0
-    for t in range(lo.shape[0]):
-        for i in range(lo[t, 0], hi[t, 0] + 1):
-            for j in range(lo[t, 1], hi[t, 1] + 1):
-                for k in range(lo[t, 2], hi[t, 2] + 1):
-                    h = _cell_hash(i, j, k, mask)
-                    ids[start[h] + count[h]] = t
-                    count[h] += 1
+    for r in prange(runs):
+        for t in range(r * m // runs, (r + 1) * m // runs):
+            for i in range(lo[t, 0], hi[t, 0] + 1):
+                for j in range(lo[t, 1], hi[t, 1] + 1):
+                    for k in range(lo[t, 2], hi[t, 2] + 1):
+                        h = _cell_hash(i, j, k, mask)
+                        ids[counts[r, h]] = t
+                        counts[r, h] += 1
     return n
 
 
@@ -214,21 +226,35 @@ def lens_depths(x, normals, verts, which, corners, stamps, first_ray, rest, rest
 
 
 @njit(cache=True, nogil=True)
-def around_triggered(seeds, trigger, nbr_start, nbr_ids, done, out):
-    """The vertices near the seeds whose rays met a face far at rest, each once, seeds left out
-    (done: seeds marked True on entry, left so). Returns how many are in out."""
+def first_front(seeds, depth, trigger, ring_start, ring_ids, seen, out):
+    """Where the flood fill of the lenses starts: the ring neighbours of every seed whose ray met
+    a lens or a face far at rest. seen: False on entry; marks the seeds and what is put in out.
+    Returns how many are in out."""
+    for q in range(seeds.shape[0]):
+        seen[seeds[q]] = True
+    return next_front(seeds, depth, trigger, ring_start, ring_ids, seen, out)
+
+
+@njit(cache=True, nogil=True)
+def next_front(front, depth, trigger, ring_start, ring_ids, seen, out):
+    """The unseen ring neighbours of the front's vertices whose rays met a lens or a face far at
+    rest (marked seen). Returns how many are in out."""
     n = 0
-    for s in range(seeds.shape[0]):
-        if not trigger[seeds[s]]:
-            continue
-        for q in range(nbr_start[s], nbr_start[s + 1]):
-            k = nbr_ids[q]
-            if not done[k]:
-                done[k] = True
-                out[n] = k
-                n += 1
-    for q in range(n):
-        done[out[q]] = False
+    for q in range(front.shape[0]):
+        k = front[q]
+        if depth[k] > 0.0 or trigger[k]:
+            n = _push_ring(k, ring_start, ring_ids, seen, out, n)
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _push_ring(k, ring_start, ring_ids, seen, out, n):
+    for q in range(ring_start[k], ring_start[k + 1]):
+        j = ring_ids[q]
+        if not seen[j]:
+            seen[j] = True
+            out[n] = j
+            n += 1
     return n
 
 
@@ -289,20 +315,12 @@ def vertex_rings(tris: np.ndarray, verts: np.ndarray) -> tuple[np.ndarray, np.nd
     return start, np.ascontiguousarray(both[:, 1])
 
 
-def seed_vertices(rest: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Seeds a ray is cast from every pose: one vertex per cube of `spacing` at rest; and each
-    seed's neighbours, every vertex within 2 x spacing of it at rest (compressed rows), so that
-    every vertex is some seed's neighbour. Positions index `rest`."""
+def seed_vertices(rest: np.ndarray, spacing: float) -> np.ndarray:
+    """The vertices a ray is cast from in every pose: one per cube of `spacing` at rest, in
+    the cubes' order (rays cast one after the other read faces near each other). Positions
+    index `rest`."""
     _, first = np.unique(np.floor(rest / spacing).astype(np.int64), axis=0, return_index=True)
-    seeds = first  # in cell order: rays cast one after the other read faces near each other
-    r2 = (2.0 * spacing) ** 2
-    rows = []
-    for chunk in np.array_split(seeds, max(1, len(seeds) // 256)):
-        d2 = ((rest[chunk, None, :] - rest[None, :, :]) ** 2).sum(axis=2)
-        rows.extend(np.flatnonzero(row <= r2) for row in d2)
-    start = np.zeros(len(seeds) + 1, dtype=np.int64)
-    start[1:] = np.cumsum([len(r) for r in rows])
-    return seeds.astype(np.int64), start, np.concatenate(rows).astype(np.int64)
+    return first.astype(np.int64)
 
 
 class SkinContact:
@@ -322,19 +340,19 @@ class SkinContact:
         self.rest_centroid = self.rest[self.tris].mean(axis=1)
         self._normals = MeshNormals(self.tris, len(self.rest))
         self.rest_normals = self._normals(self.rest, np.zeros((len(self.rest), 3)))
-        self.seeds, self.nbr_start, self.nbr_ids = seed_vertices(self.rest[self.verts], s.sample)
+        self.seeds = seed_vertices(self.rest[self.verts], s.sample)
         self.ring_start, self.ring_ids = vertex_rings(self.tris, self.verts)
         self._move = np.zeros((len(self.verts), 3))
         self._spare = np.zeros((len(self.verts), 3))
         self.normals = np.zeros((len(self.rest), 3))
         self.depth = np.zeros(len(self.verts))  # m, last pose's lens depth per vertex of `verts`
         self._trigger = np.zeros(len(self.verts), dtype=np.bool_)
-        self._done = np.zeros(len(self.verts), dtype=np.bool_)
-        self._done[self.seeds] = True
-        self._around = np.empty(len(self.verts), dtype=np.int64)
+        self._seen = np.zeros(len(self.verts), dtype=np.bool_)
+        self._front = np.empty(len(self.verts), dtype=np.int64)
+        self._next = np.empty(len(self.verts), dtype=np.int64)
         self._mask = (1 << _HASH_BITS) - 1
         self._start = np.zeros(self._mask + 2, dtype=np.int64)
-        self._count = np.zeros(self._mask + 1, dtype=np.int64)
+        self._count = np.zeros((max(1, get_num_threads()), self._mask + 1), dtype=np.int64)
         self._corners = np.empty((len(self.tris), 9))
         # per thread, the ray that last tested each face (first ray of the pose + the vertex's
         # position in verts): a face in several cells of a ray is tested once
@@ -364,16 +382,26 @@ class SkinContact:
             self._ids = np.zeros(2 * n, dtype=np.int64)
             build_face_grid(*grid, self._ids, self._count)
         self.depth[:] = 0.0
-        rays = (x, self.normals, self.verts)
+        self._seen[:] = False
         if self._stamps.shape[0] < get_num_threads():
             self._stamps = np.full((get_num_threads(), len(self.tris)), -1, dtype=np.int64)
+        rays = (x, self.normals, self.verts)
+        grid = (self.rest, self.rest_normals, self.rest_centroid)
+        after = (s.margin, s.across, inv_cell, self._mask, self._start, self._ids, self.depth, self._trigger)
+        # rays from the seeds find the lenses (or their rims), then the lenses are flooded ring by
+        # ring, as far as the rays meet a lens or a face far at rest
         self._rays += len(self.verts)  # ray ids never seen before in the stamps
-        query = (self._corners, self._stamps, self._rays, self.rest, self.rest_normals, self.rest_centroid, s.reach, s.margin,
-                 s.across, inv_cell, self._mask, self._start, self._ids, self.depth, self._trigger)
-        lens_depths(*rays, self.seeds, *query)
-        k = around_triggered(self.seeds, self._trigger, self.nbr_start, self.nbr_ids, self._done, self._around)
-        lens_depths(*rays, self._around[:k], *query)
-        self.rays = len(self.seeds) + k
+        lens_depths(*rays, self.seeds, self._corners, self._stamps, self._rays, *grid, s.reach, *after)
+        ring = (self.ring_start, self.ring_ids, self._seen)
+        n = first_front(self.seeds, self.depth, self._trigger, *ring, self._front)
+        self.rays = len(self.seeds)
+        front, spare = self._front, self._next
+        while n:
+            self._rays += len(self.verts)
+            lens_depths(*rays, front[:n], self._corners, self._stamps, self._rays, *grid, s.reach, *after)
+            self.rays += n
+            n = next_front(front[:n], self.depth, self._trigger, *ring, spare)
+            front, spare = spare, front
         self.moved = meet_halfway(x, self.normals, self.verts, self.depth, self.ring_start, self.ring_ids,
                                   s.smooth_passes, self._move, self._spare)
         return self.moved
