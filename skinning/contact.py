@@ -362,6 +362,7 @@ class SkinContact:
         self._hi = np.empty((len(self.tris), 3), dtype=np.int64)
         self._ids = np.zeros(8 * len(self.tris), dtype=np.int64)
         self.moved = 0  # vertices moved in the last pose
+        self.rays = 0  # rays cast in the last pose
 
     @classmethod
     def for_body(cls, body: Body, settings: ContactSettings | None = None) -> "SkinContact":
@@ -386,19 +387,19 @@ class SkinContact:
         if self._stamps.shape[0] < get_num_threads():
             self._stamps = np.full((get_num_threads(), len(self.tris)), -1, dtype=np.int64)
         rays = (x, self.normals, self.verts)
-        grid = (self.rest, self.rest_normals, self.rest_centroid)
+        at_rest = (self.rest, self.rest_normals, self.rest_centroid)
         after = (s.margin, s.across, inv_cell, self._mask, self._start, self._ids, self.depth, self._trigger)
         # rays from the seeds find the lenses (or their rims), then the lenses are flooded ring by
         # ring, as far as the rays meet a lens or a face far at rest
         self._rays += len(self.verts)  # ray ids never seen before in the stamps
-        lens_depths(*rays, self.seeds, self._corners, self._stamps, self._rays, *grid, s.reach, *after)
+        lens_depths(*rays, self.seeds, self._corners, self._stamps, self._rays, *at_rest, s.reach, *after)
         ring = (self.ring_start, self.ring_ids, self._seen)
         n = first_front(self.seeds, self.depth, self._trigger, *ring, self._front)
         self.rays = len(self.seeds)
         front, spare = self._front, self._next
         while n:
             self._rays += len(self.verts)
-            lens_depths(*rays, front[:n], self._corners, self._stamps, self._rays, *grid, s.reach, *after)
+            lens_depths(*rays, front[:n], self._corners, self._stamps, self._rays, *at_rest, s.reach, *after)
             self.rays += n
             n = next_front(front[:n], self.depth, self._trigger, *ring, spare)
             front, spare = spare, front
