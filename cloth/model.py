@@ -50,14 +50,20 @@ class SimSettings:
     # which contact stages run `collision.leave_body_union` (out of the body as a whole, where a
     # face buried in another part hides the inside from the ring tests; needs the face tree):
     # 0 none, 1 after the last contact pass, 2 also before the contact strain-limiting passes.
-    # Off: where skinning sinks a body part into another (the folds behind the knees, the hip
-    # crease) the particles come back inside every frame (the following and the substep
-    # collisions read the buried faces) and each push out stretches the cloth (acceptance with
-    # 2 and the arm clearance: frames with a particle > 1 mm inside 4,456 -> 1,228 over the 18
-    # rows, rows within 1 mm 1 -> 10, but rows with strain p99 <= 10 % 12 -> 9, the bottoms'
-    # single edges stretched up to 8.5x; docs/history.md)
-    union_passes: int = 0
+    # On since the body's skin contact (skinning.contact) keeps the skin from sinking into
+    # itself at bent joints: what is left inside is shallow and the pushes no longer stretch the
+    # cloth (acceptance, 18 rows: frames with a particle > 1 mm inside 3,099 -> 688, strain p99
+    # within the cloth's noise). Without the skin contact the particles came back inside every
+    # frame, 2-8 cm deep in the folds, and each push stretched the cloth (docs/history.md).
+    union_passes: int = 2
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
+
+    def __post_init__(self):
+        if self.union_passes not in (0, 1, 2):
+            raise ValueError(f"SimSettings.union_passes must be 0, 1 or 2, got {self.union_passes!r}")
+        if self.union_passes and not self.nearest_face_radius > 0:
+            raise ValueError("SimSettings.union_passes needs the face tree (nearest_face_radius > 0): set "
+                             f"union_passes=0 with nearest_face_radius={self.nearest_face_radius!r}")
 
 
 @dataclass

@@ -887,15 +887,21 @@ def test_slide_pass_lets_placed_particles_slide_back_to_the_strain_limit(slide_p
 
 def test_nearest_face_query_off_keeps_no_face_tree():
     """nearest_face_radius = 0: the simulation's body pose keeps no face tree (no refit per
-    pose), and the contact passes still place the quad on the box (the same answer as with it)."""
+    pose), and the contact passes still place the quad on the box (the same answer as with it;
+    the union pass, which reads the tree, off)."""
     results = []
     for radius in (0.0, SimSettings().nearest_face_radius):
-        sim, x = quad_on_box(SimSettings(nearest_face_radius=radius))
+        sim, x = quad_on_box(SimSettings(nearest_face_radius=radius, union_passes=0))
         assert (sim.pose.faces is None) == (radius == 0.0)
         sim.settle_contacts(sim.pose)
         results.append(x.copy())
     np.testing.assert_allclose(results[0][:, 1], 0.303, atol=1e-12)
     np.testing.assert_array_equal(results[0], results[1])
+    # the union pass (on by default) reads the face tree: without it the settings are refused
+    with pytest.raises(ValueError, match="union_passes needs the face tree"):
+        SimSettings(nearest_face_radius=0.0)
+    with pytest.raises(ValueError, match="union_passes must be 0, 1 or 2"):
+        SimSettings(union_passes=3)
 
 
 def canonical_triangles(v, t):
