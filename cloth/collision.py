@@ -35,7 +35,7 @@ class BodyMesh:
     nbr_ids: np.ndarray  # int32
     tri_start: np.ndarray  # (n + 1,) int64
     tri_ids: np.ndarray  # int32
-    regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each leg)
+    regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each thigh, each lower leg)
     tri_nbrs: np.ndarray  # (m, 3) int32: the triangle across each edge (see topology.triangle_neighbours)
     clothed_faces: np.ndarray  # (m,) bool: the faces clothes can touch (see build)
     winding_faces: np.ndarray  # (k, 3) int32: the clothed faces, their holes capped (`winding.closed_faces`)

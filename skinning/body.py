@@ -125,18 +125,28 @@ def load_body(data: str | Path | None = None) -> Body:
     )
 
 
+# Each region is a body part the cloth's collision walks over on its own; where two regions
+# meet (the hip crease, the armpit, behind the knee) a particle near both is tested against
+# each. The legs are split at the knee: behind a bent knee the thigh's and the calf's skins
+# form a crease, and a walk over one leg stops on the thigh while a detailed cloth vertex
+# is inside the calf (walk, jeans: detailed vertex-frames deeper than 1 mm 29,563 -> 22,940).
+# (One bit each, uint8: one bit is left; the elbows would need two.)
 BODY_REGIONS = {
     "torso": 1,
     "left_arm": 2,
     "right_arm": 4,
-    "left_leg": 8,
-    "right_leg": 16,
+    "left_thigh": 8,
+    "right_thigh": 16,
+    "left_lower_leg": 32,
+    "right_lower_leg": 64,
 }
 _REGION_BONES = {
     "left_arm": ("LeftArm", "LeftForeArm", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb"),
     "right_arm": ("RightArm", "RightForeArm", "RightHand", "RightFingerBase", "RightHandFinger1", "RThumb"),
-    "left_leg": ("LeftUpLeg", "LeftLeg", "LeftFoot", "LeftToeBase"),
-    "right_leg": ("RightUpLeg", "RightLeg", "RightFoot", "RightToeBase"),
+    "left_thigh": ("LeftUpLeg",),
+    "right_thigh": ("RightUpLeg",),
+    "left_lower_leg": ("LeftLeg", "LeftFoot", "LeftToeBase"),
+    "right_lower_leg": ("RightLeg", "RightFoot", "RightToeBase"),
 }
 
 

@@ -74,5 +74,6 @@ def test_body_regions_and_clothed_faces_follow_the_dominant_bones(body):
     spine = (dominant[body.triangles] == "Spine").all(axis=1)
     assert spine.any() and clothed[spine].all()
     regions = body_regions(body)
-    assert (regions[dominant == "LeftUpLeg"] == BODY_REGIONS["left_leg"]).all()
+    assert (regions[dominant == "LeftUpLeg"] == BODY_REGIONS["left_thigh"]).all()
+    assert (regions[dominant == "RightLeg"] == BODY_REGIONS["right_lower_leg"]).all()
     assert (regions[dominant == "Spine"] == BODY_REGIONS["torso"]).all()
