@@ -52,7 +52,7 @@ class SimSettings:
     # 0 none, 1 after the last contact pass, 2 also before the contact strain-limiting passes.
     # On since the body's skin contact (skinning.contact) keeps the skin from sinking into
     # itself at bent joints: what is left inside is shallow and the pushes no longer stretch the
-    # cloth (acceptance, 18 rows: frames with a particle > 1 mm inside 3,099 -> 688, strain p99
+    # cloth (acceptance, 18 rows: frames with a particle > 1 mm inside 3,099 -> 674, strain p99
     # within the cloth's noise). Without the skin contact the particles came back inside every
     # frame, 2-8 cm deep in the folds, and each push stretched the cloth (docs/history.md).
     union_passes: int = 2
