@@ -864,8 +864,8 @@ def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child,
 
 
 @kernel
-def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, tris, box, child, first, count, order,
-                     stack, hit_t, hit_s, hit_f, thickness, active, placed_inv_mass):
+def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, wspan, wextent, tris, box, child, first,
+                     count, order, stack, hit_t, hit_s, hit_f, thickness, active, placed_inv_mass):
     """Put out every active particle that is inside the body as a whole (its winding number,
     `winding.winding_number`), where the contact pass's ring tests cannot see it: behind a
     face of one body part that lies buried in another (a thigh pressed into the belly by the
@@ -875,7 +875,7 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
     of the face it ends at, if that face's plane is nearer; the particle goes thickness beyond
     it, if what lies there is outside the body, and its velocity into the body (relative to the
     body's, body_vel) along that direction is removed.
-    face_n: the pose's face normals (`body_face_normals`); wfaces, wlo, wstart, wids: the pose's
+    face_n: the pose's face normals (`body_face_normals`); wfaces, wlo ... wextent: the pose's
     `WindingGrid` (BodyMesh.winding_faces and its arrays); box ... order: the pose's `FaceTree`
     (its clothed faces), stack its scratch; hit_t, hit_s, hit_f: scratch of `tree_ray_exit`.
     placed_inv_mass: 0 written for each particle moved. Returns the number moved."""
@@ -884,7 +884,7 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
         if not active[i]:
             continue
         px, py, pz = x[i, 0], x[i, 1], x[i, 2]
-        wind = winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids)
+        wind = winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent)
         if wind <= 0:
             continue
         best = np.inf
@@ -901,14 +901,15 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
                 plane = (body_x[a, 0] - px) * nx + (body_x[a, 1] - py) * ny + (body_x[a, 2] - pz) * nz
                 if 0.0 < plane < min(t, best) and winding_number(
                         px + (plane + thickness) * nx, py + (plane + thickness) * ny, pz + (plane + thickness) * nz,
-                        body_x, wfaces, wlo, wstart, wids) == 0:
+                        body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
                     best, bx, by, bz = plane, nx, ny, nz
                     continue  # nearer than the ray's own way out
                 ax = sign if axis == 0 else 0.0
                 ay = sign if axis == 1 else 0.0
                 az = sign if axis == 2 else 0.0
                 if t < best and winding_number(px + (t + thickness) * ax, py + (t + thickness) * ay,
-                                               pz + (t + thickness) * az, body_x, wfaces, wlo, wstart, wids) == 0:
+                                               pz + (t + thickness) * az, body_x, wfaces, wlo, wstart, wids,
+                                               wspan, wextent) == 0:
                     best, bx, by, bz = t, ax, ay, az
         if best == np.inf:
             continue

@@ -22,9 +22,14 @@ vertices. The capped surface is closed, so its winding number is exact everywher
 capped-off parts, where it differs from the whole body's only inside the head, hands and toes.
 
 The grid is dense over the body's x-y extent: each column of `cell` x `cell` lists the faces
-whose x-y box overlaps it (a counting sort, two passes over the faces), so a query reads one
-column and tests each face in it once (the clothed MakeHuman body, 9,574 faces with the caps:
-~190 µs per pose, 0.8 µs per query near the skin). A point exactly on an edge or vertex as the
+whose x-y box overlaps it (a counting sort, two passes over the faces) with each face's span
+along the ray, so a query reads one column and tests each face in it once. On a closed
+surface the crossings of a whole line sum to 0: a query counts on the side of the point
+where less of the column lies (the crossings beyond it, or minus those before it), skipping
+faces wholly on the other side by their span; a point near the skin has the body's far wall
+on the other side (the clothed MakeHuman body, 9,574 faces with the caps, ~37 faces a
+column near the skin: 0.22 µs per query near the skin, against 0.51 µs over the whole
+column; ~220-280 µs per pose). A point exactly on an edge or vertex as the
 ray sees it is counted by one face of the two by the top-left rule, from the edge's lower
 vertex index, so the two faces get bitwise opposite edge values: no ray slips between faces,
 none counts twice.
@@ -46,10 +51,13 @@ MAX_COLUMNS = 1 << 16  # a body spread wider than this many columns gets wider c
 
 
 @kernel
-def build_winding_grid(body_x, tris, cell, lo, start, ids, vertex_column, face_columns):
+def build_winding_grid(body_x, tris, cell, lo, start, ids, span, vertex_column, face_columns, extent):
     """Bucket every face into the columns its box across the ray overlaps (CSR: start, ids),
     over the vertices' extent. lo (5,) float64, written: the grid's corner (u0, v0), its columns
     along u and along v, and their side: cell, widened until the columns fit in len(start) - 1.
+    span (len(ids), 2) float64, written: each entry's face's lowest and highest coordinate along
+    the ray; extent (len(start) - 1, 2) float64, written: the same over each column's faces
+    (`winding_number` reads them to skip faces, and whole columns).
     vertex_column (n_vertices, 2), face_columns (n_faces, 4) int32: scratch. Returns the entries
     needed; when that exceeds len(ids) nothing is filled (grow ids and call again)."""
     u0 = v0 = np.inf
@@ -88,12 +96,22 @@ def build_winding_grid(body_x, tris, cell, lo, start, ids, vertex_column, face_c
     total = start[n]
     if total > ids.shape[0]:
         return total
+    for c in range(n):
+        extent[c, 0] = np.inf
+        extent[c, 1] = -np.inf
     for t in range(tris.shape[0]):  # fill: start[c] runs up to the next column's start
+        a, b, d = tris[t, 0], tris[t, 1], tris[t, 2]
+        w0 = min(body_x[a, W], min(body_x[b, W], body_x[d, W]))
+        w1 = max(body_x[a, W], max(body_x[b, W], body_x[d, W]))
         for i in range(face_columns[t, 0], face_columns[t, 1] + 1):
             for k in range(face_columns[t, 2], face_columns[t, 3] + 1):
                 c = i * nv + k
                 ids[start[c]] = t
+                span[start[c], 0] = w0
+                span[start[c], 1] = w1
                 start[c] += 1
+                extent[c, 0] = min(extent[c, 0], w0)
+                extent[c, 1] = max(extent[c, 1], w1)
     for c in range(n, 0, -1):  # back to each column's first entry
         start[c] = start[c - 1]
     start[0] = 0
@@ -147,28 +165,49 @@ def ray_crossing(x, tris, t, pu, pv, u, v, w):
 
 
 @njit(cache=True, inline="always")
-def winding_number(px, py, pz, body_x, tris, lo, start, ids):
+def winding_number(px, py, pz, body_x, tris, lo, start, ids, span, extent):
     """How many times the body's surface wraps p: the signed crossings of the ray from p (see
-    module). lo, start, ids: a `WindingGrid` of this pose (`WindingGrid.arrays()`)."""
+    module). lo, start, ids, span, extent: a `WindingGrid` of this pose (`WindingGrid.arrays()`).
+
+    The crossings of the whole line sum to 0 on a closed surface, so those beyond p along +w
+    sum to minus those before it: the count runs on the side of p with less of the column's
+    extent, where fewer faces lie (a point near the skin has the body's far wall on the other
+    side), and a face wholly on the other side is skipped on its span alone."""
     p = (px, py, pz)
     i = math.floor((p[U] - lo[0]) / lo[4])
     k = math.floor((p[V] - lo[1]) / lo[4])
     if i < 0 or k < 0 or i >= lo[2] or k >= lo[3]:
         return 0  # beside the body
     c = int(i) * int(lo[3]) + int(k)
+    # in front of every face of the column the ray meets none; behind them all it meets every
+    # crossing of the whole line, which sum to 0 on a closed surface (cloth in front of or
+    # behind the body: most queries)
+    if p[W] >= extent[c, 1] or p[W] < extent[c, 0]:
+        return 0
     w = 0
-    for e in range(start[c], start[c + 1]):
+    if 2.0 * p[W] >= extent[c, 0] + extent[c, 1]:  # nearer the far end: the crossings beyond p
+        for e in range(start[c], start[c + 1]):
+            if span[e, 1] <= p[W]:
+                continue
+            h, s = ray_crossing(body_x, tris, ids[e], p[U], p[V], U, V, W)
+            if s != 0 and h > p[W]:
+                w += s
+        return w
+    for e in range(start[c], start[c + 1]):  # the crossings before p, counted against
+        if span[e, 0] >= p[W]:
+            continue
         h, s = ray_crossing(body_x, tris, ids[e], p[U], p[V], U, V, W)
-        if s != 0 and h > p[W]:
-            w += s
+        if s != 0 and h < p[W]:
+            w -= s
     return w
 
 
 @kernel
-def winding_numbers(points, body_x, tris, lo, start, ids, out):
+def winding_numbers(points, body_x, tris, lo, start, ids, span, extent, out):
     """out[s] = `winding_number` of points[s] (k, 3), for a batch."""
     for s in range(points.shape[0]):
-        out[s] = winding_number(points[s, 0], points[s, 1], points[s, 2], body_x, tris, lo, start, ids)
+        out[s] = winding_number(points[s, 0], points[s, 1], points[s, 2], body_x, tris, lo, start, ids, span,
+                                extent)
 
 
 def closed_faces(triangles: np.ndarray, keep: np.ndarray | None = None) -> np.ndarray:
@@ -197,23 +236,26 @@ class WindingGrid:
         self.lo = np.zeros(5)
         self.start = np.zeros(max_columns + 1, dtype=np.int32)
         self.ids = np.zeros(4 * len(triangles), dtype=np.int32)
+        self.span = np.zeros((len(self.ids), 2))
         self.vertex_column = np.zeros((n_vertices, 2), dtype=np.int32)
         self.face_columns = np.zeros((len(triangles), 4), dtype=np.int32)
+        self.extent = np.zeros((max_columns, 2))
 
     def update(self, body_x: np.ndarray) -> None:
         """body_x: (n_vertices, 3) float64, this pose."""
         if body_x.shape != self.vertex_column.shape[:1] + (3,):
             raise ValueError(f"WindingGrid: body vertices must be ({len(self.vertex_column)}, 3), got {body_x.shape}")
         while True:
-            need = build_winding_grid(body_x, self.tris, self.cell, self.lo, self.start, self.ids,
-                                      self.vertex_column, self.face_columns)
+            need = build_winding_grid(body_x, self.tris, self.cell, self.lo, self.start, self.ids, self.span,
+                                      self.vertex_column, self.face_columns, self.extent)
             if need <= len(self.ids):
                 break
             self.ids = np.zeros(int(need * 1.25), dtype=np.int32)
+            self.span = np.zeros((len(self.ids), 2))
 
     def arrays(self) -> tuple:
-        """(lo, start, ids): what `winding_number` takes."""
-        return self.lo, self.start, self.ids
+        """(lo, start, ids, span, extent): what `winding_number` takes."""
+        return self.lo, self.start, self.ids, self.span, self.extent
 
 
 __all__ = ["WindingGrid", "build_winding_grid", "closed_faces", "edge_side", "owns_edge", "ray_crossing",

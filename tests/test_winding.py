@@ -46,6 +46,14 @@ def test_winding_number_counts_overlapping_boxes_like_the_solid_angle():
     diag = np.array([[cx + t, cy + s * t, z] for cx, cy in ((0.0, 0.0), (0.3, 0.1)) for t in (-0.15, -0.05, 0.0, 0.15)
                      for s in (-1.0, 1.0) for z in (-0.25, 0.0, 0.15)])
     np.testing.assert_array_equal(windings(v, f, diag, cell=0.05), np.round(solid_angle_winding(v, f, diag)))
+    # the count runs on the nearer side of a column's extent (the crossings beyond p along the
+    # ray, or minus those before it), and is 0 outside the extent: points in front of, behind
+    # and near the walls of the boxes (each side of each wall) read as the solid angle does
+    near = np.vstack([rng.uniform([-0.3, -0.3, z - 0.02], [0.6, 0.4, z + 0.02], (100, 3))
+                      for z in (-0.2, 0.2, 0.3)])
+    far = np.vstack([rand + [0.0, 0.0, 0.5], rand - [0.0, 0.0, 0.5], near])
+    np.testing.assert_array_equal(windings(v, f, far, cell=0.05), np.round(solid_angle_winding(v, f, far)))
+    assert windings(v, f, far, cell=0.05)[: 2 * len(rand)].max() == 0
 
 
 def test_closed_faces_caps_the_holes_of_the_faces_kept():
