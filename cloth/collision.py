@@ -814,10 +814,11 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
 def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child, first, count, order, stack, hit_t,
                   hit_s, hit_f):
     """How far along the ray from p along axis (0-2) towards sign (+-1) a point wrapped `wind`
-    times by the body first gets out (its winding number falls to 0), and the face it leaves
-    through: the tree's faces the ray crosses within reach, in order along it, each -1 where the
-    ray leaves through it, +1 where it enters. (inf, -1): not within reach (or more crossings
-    than hit_t holds).
+    times by the body first gets out (its winding number falls to 0), the face it leaves
+    through, and where the ray next crosses the body after that (inf: not within reach): the
+    tree's faces the ray crosses within reach, in order along it, each -1 where the ray leaves
+    through it, +1 where it enters. (inf, -1, inf): not within reach (or more crossings than
+    hit_t holds).
     stack: the tree's traversal scratch; hit_t (k,) float64, hit_s, hit_f (k,) int32: scratch."""
     u = (axis + 1) % 3
     v = (axis + 2) % 3
@@ -845,7 +846,7 @@ def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child,
             if s == 0 or t <= 0.0 or t > reach:
                 continue
             if n == hit_t.shape[0]:
-                return np.inf, -1
+                return np.inf, -1, np.inf
             k = n  # insertion: the hits in order along the ray
             while k > 0 and hit_t[k - 1] > t:
                 hit_t[k] = hit_t[k - 1]
@@ -859,8 +860,8 @@ def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child,
     for k in range(n):
         wind -= hit_s[k]
         if wind <= 0:
-            return hit_t[k], hit_f[k]
-    return np.inf, -1
+            return hit_t[k], hit_f[k], (hit_t[k + 1] if k + 1 < n else np.inf)
+    return np.inf, -1, np.inf
 
 
 @kernel
@@ -874,7 +875,10 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
     axis directions, the one on which the body ends nearest (within UNION_REACH), or the normal
     of the face it ends at, if that face's plane is nearer; the particle goes thickness beyond
     it, if what lies there is outside the body, and its velocity into the body (relative to the
-    body's, body_vel) along that direction is removed.
+    body's, body_vel) along that direction is removed. Where every way out is a slit narrower
+    than thickness (two skins pressed together, the skinned body closed over it again within
+    a few millimetres: the gluteal fold of a leg spread sideways), the particle goes to the
+    middle of the nearest slit along an axis: outside, if by less than thickness.
     face_n: the pose's face normals (`body_face_normals`); wfaces, wlo ... wextent: the pose's
     `WindingGrid` (BodyMesh.winding_faces and its arrays); box ... order: the pose's `FaceTree`
     (its clothed faces), stack its scratch; hit_t, hit_s, hit_f: scratch of `tree_ray_exit`.
@@ -889,10 +893,12 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
             continue
         best = np.inf
         bx = by = bz = 0.0  # the unit direction out
+        slit = np.inf  # the nearest slit's middle along an axis (no way out thickness wide)
+        sx = sy = sz = 0.0
         for axis in range(3):
             for sign in (-1.0, 1.0):
-                t, f = tree_ray_exit(px, py, pz, axis, sign, wind, UNION_REACH, body_x, tris, box, child, first,
-                                     count, order, stack, hit_t, hit_s, hit_f)
+                t, f, t_next = tree_ray_exit(px, py, pz, axis, sign, wind, UNION_REACH, body_x, tris, box, child,
+                                             first, count, order, stack, hit_t, hit_s, hit_f)
                 if t == np.inf:
                     continue
                 # the exit face's plane is the nearer way out where the ray meets it at a slant
@@ -911,9 +917,17 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
                                                pz + (t + thickness) * az, body_x, wfaces, wlo, wstart, wids,
                                                wspan, wextent) == 0:
                     best, bx, by, bz = t, ax, ay, az
-        if best == np.inf:
+                elif best == np.inf and t_next < t + thickness:
+                    mid = 0.5 * (t + t_next)
+                    if mid < slit and winding_number(px + mid * ax, py + mid * ay, pz + mid * az, body_x, wfaces,
+                                                     wlo, wstart, wids, wspan, wextent) == 0:
+                        slit, sx, sy, sz = mid, ax, ay, az
+        if best < np.inf:
+            step = best + thickness
+        elif slit < np.inf:
+            step, bx, by, bz = slit, sx, sy, sz
+        else:
             continue
-        step = best + thickness
         x[i, 0] = px + step * bx
         x[i, 1] = py + step * by
         x[i, 2] = pz + step * bz

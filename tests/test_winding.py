@@ -120,6 +120,25 @@ def test_leave_body_union_takes_the_exit_face_normal_where_the_axes_meet_it_at_a
     np.testing.assert_allclose(x[0], 0.205 * n, atol=1e-12)
 
 
+def test_leave_body_union_goes_into_a_slit_narrower_than_thickness_only_where_there_is_no_wider_way_out():
+    """Box A around the origin and box B 2 mm beyond its +x face (two skins pressed together):
+    from 3 cm inside A's +x face, with every other way out of A beyond UNION_REACH, the only way
+    out is the 2 mm slit, narrower than thickness (5 mm): the particle goes to its middle, outside
+    both. 7 cm below A's top as well, the way up, 7 cm but wide, is taken instead of the slit."""
+    a = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    b = trimesh.creation.box(extents=(0.4, 0.4, 0.4))
+    b.apply_translation((0.402, 0.0, 0.0))
+    v = np.vstack([a.vertices, b.vertices])
+    f = np.vstack([a.faces, b.faces + len(a.vertices)]).astype(np.int32)
+    pts = [[0.17, 0.0, 0.0], [0.17, 0.13, 0.0]]
+    x, vel, placed, moved = push_out(v, f, pts, [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], thickness=0.005)
+    assert moved == 2
+    np.testing.assert_allclose(x[0], [0.201, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(x[1], [0.17, 0.205, 0.0], atol=1e-12)
+    np.testing.assert_array_equal(windings(v, f, x, cell=0.05), [0, 0])
+    np.testing.assert_allclose(vel, [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], atol=1e-12)  # outward speed kept
+
+
 @pytest.mark.parametrize("union_passes", [0, 1])
 def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes):
     """A 2 cm cotton quad at rest inside box A of the overlapping boxes (finely meshed), 5 cm in
