@@ -663,7 +663,7 @@ NO_FACE_TREE = (np.zeros((1, 6)), np.full((1, 2), -1, np.int32), np.zeros(1, np.
                 np.zeros(0, np.int32), np.full(1, -1, np.int32), np.full(0, -1, np.int32))  # FaceTree.arrays(), no faces
 FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most this deep, less two)
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
-UNION_REACH = 0.08  # m: how far along each axis `leave_body_union` looks for the way out
+UNION_REACH = 0.12  # m: how far along each axis `leave_body_union` looks for a way out (8 cm: deep squats stayed in)
 UNION_HITS = 32  # the most faces one of its rays may cross within reach
 
 

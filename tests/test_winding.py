@@ -93,7 +93,7 @@ def test_leave_body_union_puts_a_particle_out_where_the_nearest_face_is_buried()
     sideways one kept. A particle outside both boxes, and one in both whose every way out is
     beyond UNION_REACH, stay where they are."""
     v, f = overlapping_boxes()
-    assert UNION_REACH < 0.1
+    assert UNION_REACH < 0.2  # the third particle's ways out are 20 cm or more
     pts = [[0.05, 0.13, 0.0], [-0.3, 0.0, 0.0], [0.2, 0.0, 0.0]]
     vel = [[0.3, -1.0, 0.0], [0.0, -1.0, 0.0], [0.0, -1.0, 0.0]]
     x, vel_out, placed, moved = push_out(v, f, pts, vel, thickness=0.005)
