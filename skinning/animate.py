@@ -13,6 +13,8 @@ import numpy as np
 from .body import BODY_REGIONS, Body, body_regions
 from .character import Character
 from .contact import ContactSettings, SkinContact
+from .hands import HandClearance, HandSettings, axis_angle_matrix
+from .kinematics import matrix_to_quaternion_xyzw
 from .retarget import IKSettings, Retargeter, RetargetFrame, sole_points, torso_depth
 from .skeleton import Skeleton
 from .skin import MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices
@@ -35,11 +37,13 @@ class BodyAnimator:
 
     def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
                  person_floor_y: float = 0.0, normals: bool = True,
-                 contact: ContactSettings | None = ContactSettings()):
+                 contact: ContactSettings | None = ContactSettings(), hands: HandSettings | None = HandSettings()):
         """normals: compute the skin's vertex normals each frame (False: a service that publishes
         the body for displays that compute their own; BodyFrame.normals is then None).
         contact: where the skinned body cuts through itself, bring the skin to a contact surface
-        (`SkinContact`); None: the skin as linear blend skinning leaves it."""
+        (`SkinContact`); None: the skin as linear blend skinning leaves it.
+        hands: turn a retargeted arm out where its hand sinks into the torso or a leg
+        (`HandClearance`); None: the arms as the retargeting leaves them."""
         self.body = body
         self.character = Character(body.skeleton)
         self.retargeter = None
@@ -55,6 +59,9 @@ class BodyAnimator:
         self._weights = SkinWeights.from_padded(body.weight_bones, body.weight_values)
         self._normals = MeshNormals(body.triangles, body.n_visible)
         self.contact = SkinContact.for_body(body, contact) if contact is not None else None
+        self.hands = HandClearance.for_body(body, hands) if hands is not None and person is not None else None
+        self._turn = np.empty((3, 3))
+        self._arm = np.empty((3, 3))
         self.stage_seconds = np.zeros(len(STAGES))
         self.frame = BodyFrame(
             vertices=np.empty_like(body.vertices),
@@ -74,25 +81,53 @@ class BodyAnimator:
         q[:3] += self.world_offset
         return q
 
-    def pose(self, q: np.ndarray, contact: bool = True) -> BodyFrame:
-        """Skin the body in configuration q (Pinocchio layout); contact=False: without the skin
-        contact even if the animator has one."""
+    def _skin(self, q: np.ndarray) -> None:
         f = self.frame
-        t0 = time.perf_counter()
         self.character.global_pose(q, self._local, self._root, f.joint_rotations, f.joint_positions)
         skin_matrices(f.joint_rotations, f.joint_positions, self.body.skeleton.heads, self._matrices)
         w = self._weights
         linear_blend_skinning(self.body.vertices, w.start, w.bones, w.weights, self._matrices, f.vertices)
+
+    def _clear_hands(self, q: np.ndarray, arm_turn: np.ndarray) -> bool:
+        """Turn out (in q) each arm whose hand the skinned frame has inside the torso or a leg;
+        the turn is added to arm_turn. True if an arm turned."""
+        f = self.frame
+        moved = False
+        for hand in self.hands.hands:
+            arm = hand["arm"]
+            axis = hand["outward"] * f.joint_rotations[hand["chest"], :, 2]
+            angle = self.hands.turn(hand, f.vertices, f.joint_rotations, f.joint_positions[arm], axis)
+            if angle == 0.0:
+                continue
+            # the arm's global rotation turned about the world axis, then back to its local rotation
+            axis_angle_matrix(axis, angle, self._turn)
+            np.matmul(self._turn, f.joint_rotations[arm], out=self._arm)
+            np.matmul(f.joint_rotations[hand["parent"]].T, self._arm, out=self._turn)
+            i = self.character.idx_q[arm]
+            matrix_to_quaternion_xyzw(self._turn, q[i: i + 4])
+            arm_turn[hand["slot"]] += angle
+            moved = True
+        return moved
+
+    def pose(self, q: np.ndarray, contact: bool = True) -> BodyFrame:
+        """Skin the body in configuration q (Pinocchio layout); contact=False: without the skin
+        contact even if the animator has one."""
+        t0 = time.perf_counter()
+        self._skin(q)
         t1 = time.perf_counter()
+        self._finish(contact, t1)
+        self.stage_seconds[1] = t1 - t0
+        return self.frame
+
+    def _finish(self, contact: bool, t1: float) -> None:
+        f = self.frame
         if contact and self.contact is not None:
             self.contact(f.vertices)
         t2 = time.perf_counter()
         if f.normals is not None:
             self._normals(f.vertices, f.normals)
-        self.stage_seconds[1] = t1 - t0
         self.stage_seconds[2] = t2 - t1
         self.stage_seconds[3] = time.perf_counter() - t2
-        return f
 
     def __call__(self, local_rot: np.ndarray, root_position: np.ndarray) -> BodyFrame:
         """Retarget one frame of the person's motion and skin the character."""
@@ -100,8 +135,13 @@ class BodyAnimator:
             raise RuntimeError("BodyAnimator was built without a person skeleton")
         t0 = time.perf_counter()
         result = self.retargeter(local_rot, root_position)
-        ik = time.perf_counter() - t0
-        self.pose(result.q)
-        self.stage_seconds[0] = ik
+        t1 = time.perf_counter()
+        self._skin(result.q)
+        if self.hands is not None and self._clear_hands(result.q, result.arm_turn):
+            self._skin(result.q)
+        t2 = time.perf_counter()
+        self._finish(True, t2)
+        self.stage_seconds[0] = t1 - t0
+        self.stage_seconds[1] = t2 - t1
         self.frame.retarget = result
         return self.frame

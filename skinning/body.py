@@ -152,7 +152,7 @@ _REGION_BONES = {
 
 # bones whose skin no garment covers: the head and face, the hands, the toes (small, many
 # triangles: 17,000 of the body's 26,756)
-_UNCLOTHED_BONES = ("Head", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb", "RightHand", "RightFingerBase",
+UNCLOTHED_BONES = ("Head", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb", "RightHand", "RightFingerBase",
                     "RightHandFinger1", "RThumb", "LeftToeBase", "RightToeBase")
 
 
@@ -161,7 +161,7 @@ def body_clothed_faces(body: Body) -> np.ndarray:
     a bone of the head, the hands or the toes."""
     names = body.skeleton.names
     bare = np.zeros(len(names), dtype=bool)
-    bare[[names.index(b) for b in _UNCLOTHED_BONES if b in names]] = True
+    bare[[names.index(b) for b in UNCLOTHED_BONES if b in names]] = True
     vis = np.arange(body.n_visible)
     dominant = body.weight_bones[vis, np.argmax(body.weight_values[vis], axis=1)]
     return ~bare[dominant][body.triangles].all(axis=1)
