@@ -36,6 +36,9 @@ def _body_arguments(p) -> None:
     p.add_argument("--arm-clearance", type=float, default=None, metavar="DEG",
                    help="smallest angle between a hanging arm and the torso's axis; the copied arms are turned out "
                         "to it so they do not pass through a broader character (default 10; 0: copy exactly)")
+    p.add_argument("--no-hand-clearance", action="store_true",
+                   help="leave a hand where the copied arm puts it, even inside the hip or a thigh; by default the "
+                        "arm turns out until the hand rests a few millimetres in front of the skin")
     p.add_argument("--no-skin-contact", action="store_true",
                    help="leave the skin as linear blend skinning makes it where the body cuts through itself (behind "
                         "a bent knee, at the hip crease); by default the two skins meet halfway there")
@@ -50,11 +53,15 @@ def _contact(args):
 def _ik(args):
     from skinning.retarget import IKSettings
 
+    ik = IKSettings()
+    if args.no_hand_clearance:
+        ik.hand_clearance = None
     if args.arm_clearance is None:
-        return IKSettings()
+        return ik
     if not 0.0 <= args.arm_clearance < 90.0:
         raise SystemExit(f"tryon: --arm-clearance must be in [0, 90) degrees, got {args.arm_clearance}")
-    return IKSettings(arm_clearance_deg=args.arm_clearance)
+    ik.arm_clearance_deg = args.arm_clearance
+    return ik
 
 
 def _frame_list(text: str) -> list[int]:

@@ -207,6 +207,7 @@ class IngestService:
         self.latched = Latched(bus)
         self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible,
                                 arm_clearance_deg=self.animator.retargeter.ik.arm_clearance_deg,
+                                hand_clearance=self.animator.retargeter.ik.hand_clearance is not None,
                                 skin_contact=contact is not None)
         self.publisher = bus.declare_publisher(key(session, "body"), congestion_control=zenoh.CongestionControl.BLOCK,
                                                reliability=zenoh.Reliability.RELIABLE)

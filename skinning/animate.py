@@ -13,7 +13,7 @@ import numpy as np
 from .body import BODY_REGIONS, Body, body_regions
 from .character import Character
 from .contact import ContactSettings, SkinContact
-from .hands import HandClearance, HandSettings, axis_angle_matrix
+from .hands import HandClearance, axis_angle_matrix
 from .kinematics import matrix_to_quaternion_xyzw
 from .retarget import IKSettings, Retargeter, RetargetFrame, sole_points, torso_depth
 from .skeleton import Skeleton
@@ -29,7 +29,7 @@ class BodyFrame:
     retarget: RetargetFrame | None
 
 
-STAGES = ("ik", "skinning", "contact", "normals")
+STAGES = ("ik", "skinning", "hands", "contact", "normals")
 
 
 class BodyAnimator:
@@ -37,13 +37,13 @@ class BodyAnimator:
 
     def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
                  person_floor_y: float = 0.0, normals: bool = True,
-                 contact: ContactSettings | None = ContactSettings(), hands: HandSettings | None = HandSettings()):
+                 contact: ContactSettings | None = ContactSettings()):
         """normals: compute the skin's vertex normals each frame (False: a service that publishes
         the body for displays that compute their own; BodyFrame.normals is then None).
         contact: where the skinned body cuts through itself, bring the skin to a contact surface
         (`SkinContact`); None: the skin as linear blend skinning leaves it.
-        hands: turn a retargeted arm out where its hand sinks into the torso or a leg
-        (`HandClearance`); None: the arms as the retargeting leaves them."""
+        With a person, `ik.hand_clearance` turns a retargeted arm out where its hand sinks into the
+        torso or a leg (`HandClearance`)."""
         self.body = body
         self.character = Character(body.skeleton)
         self.retargeter = None
@@ -59,7 +59,8 @@ class BodyAnimator:
         self._weights = SkinWeights.from_padded(body.weight_bones, body.weight_values)
         self._normals = MeshNormals(body.triangles, body.n_visible)
         self.contact = SkinContact.for_body(body, contact) if contact is not None else None
-        self.hands = HandClearance.for_body(body, hands) if hands is not None and person is not None else None
+        hands = self.retargeter.ik.hand_clearance if self.retargeter is not None else None
+        self.hands = HandClearance.for_body(body, hands) if hands is not None else None
         self._turn = np.empty((3, 3))
         self._arm = np.empty((3, 3))
         self.stage_seconds = np.zeros(len(STAGES))
@@ -115,8 +116,9 @@ class BodyAnimator:
         t0 = time.perf_counter()
         self._skin(q)
         t1 = time.perf_counter()
-        self._finish(contact, t1)
         self.stage_seconds[1] = t1 - t0
+        self.stage_seconds[2] = 0.0
+        self._finish(contact, t1)
         return self.frame
 
     def _finish(self, contact: bool, t1: float) -> None:
@@ -126,8 +128,8 @@ class BodyAnimator:
         t2 = time.perf_counter()
         if f.normals is not None:
             self._normals(f.vertices, f.normals)
-        self.stage_seconds[2] = t2 - t1
-        self.stage_seconds[3] = time.perf_counter() - t2
+        self.stage_seconds[3] = t2 - t1
+        self.stage_seconds[4] = time.perf_counter() - t2
 
     def __call__(self, local_rot: np.ndarray, root_position: np.ndarray) -> BodyFrame:
         """Retarget one frame of the person's motion and skin the character."""
@@ -137,11 +139,11 @@ class BodyAnimator:
         result = self.retargeter(local_rot, root_position)
         t1 = time.perf_counter()
         self._skin(result.q)
-        if self.hands is not None and self._clear_hands(result.q, result.arm_turn):
-            self._skin(result.q)
         t2 = time.perf_counter()
-        self._finish(True, t2)
-        self.stage_seconds[0] = t1 - t0
-        self.stage_seconds[1] = t2 - t1
+        if self.hands is not None and self._clear_hands(result.q, result.arm_turn):
+            self._skin(result.q)  # the turned arm: skinned again
+        t3 = time.perf_counter()
+        self._finish(True, t3)
+        self.stage_seconds[:3] = t1 - t0, t2 - t1, t3 - t2
         self.frame.retarget = result
         return self.frame

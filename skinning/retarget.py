@@ -28,16 +28,20 @@
   the hand is held in front of or behind the torso (its depth is measured on the
   body: `torso_depth`), or reaches across the body (`keep_arm_clear`). The turn is
   reported per arm in `arm_turn`; 0 degrees copies the arms exactly.
+* Hand clearance: a hand still inside the torso or a leg once the body is skinned (a hand
+  resting on the hip) turns its arm out further about the same axis (`hands.HandClearance`,
+  applied by `animate.BodyAnimator`; the turn is added to `arm_turn`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import pinocchio as pin
 
 from .character import Character
+from .hands import HandSettings
 from .ik_kernels import (IKScratch, copy_rotations, dls_step, keep_arm_clear, lowest_sole_point, pose_error,
                          weighted_cost)
 from .kinematics import forward_kinematics, rotation_between
@@ -112,6 +116,9 @@ class IKSettings:
     # Smallest angle between a hanging upper arm and the chest's down axis (frontal plane); see
     # the module. 0: copy the arms exactly.
     arm_clearance_deg: float = 10.0
+    # A hand the pose sinks into the torso or a leg turns out with its arm, once the body is skinned
+    # (`hands.HandClearance`, applied by `BodyAnimator`); None: the hands stay where the arms put them.
+    hand_clearance: HandSettings | None = field(default_factory=HandSettings)
 
 
 @dataclass

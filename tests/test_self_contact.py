@@ -49,8 +49,8 @@ def test_an_arm_lowered_through_the_torso_is_counted_there_and_grows_with_the_ov
 
 def test_arm_clearance_takes_the_walkers_arms_out_of_the_torso(body, mocap):
     clip = mocap / "cmu_131_01_walk_3dsmax.bvh"
-    exact = run_clip(body, clip, every=2, max_frames=60, ik=IKSettings(arm_clearance_deg=0.0), self_contact=5,
-                     contact=None)
+    exact = run_clip(body, clip, every=2, max_frames=60, ik=IKSettings(arm_clearance_deg=0.0, hand_clearance=None),
+                     self_contact=5, contact=None)
     clear = run_clip(body, clip, every=2, max_frames=60, self_contact=5, contact=None)
     assert exact.self_contact.shape == clear.self_contact.shape == (12, len(BODY_REGIONS))
     arm, torso = REGIONS.index("left_arm"), REGIONS.index("torso")

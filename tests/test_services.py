@@ -147,11 +147,12 @@ def test_full_session_across_processes(data, tmp_path):
             recorder = Recorder(bus, "procs", tmp_path / "procs.mcap")
             ingest, log = start(["ingest", "--session", "procs", "--clip", SHORT, "--pace", "realtime", "--loop",
                                  "--mode", "client", "--connect", endpoint, "--level", str(LEVEL),
-                                 "--arm-clearance", "12", "--no-skin-contact"], None)
+                                 "--arm-clearance", "12", "--no-hand-clearance", "--no-skin-contact"], None)
             wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[1]}")) >= 10, 120, "garments from the cloth process")
             topo = fetch_latched(bus, key("procs", "topology", "**"))  # while the session runs
             desc = fetch_latched(bus, key("procs", "session"))[key("procs", "session")].meta
             assert desc["arm_clearance_deg"] == 12.0 and desc["outfit"] == OUTFIT  # how the person was retargeted
+            assert desc["hand_clearance"] is False
             assert desc["skin_contact"] is False  # ... and skinned
             assert set(topo) == {key("procs", "topology", "body")} | {key("procs", "topology", "garment", g)
                                                                       for g in GARMENTS}
