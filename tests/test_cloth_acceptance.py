@@ -1,8 +1,10 @@
-"""Every shipped clip × outfit at 60 Hz: no NaN ever reaches the output, and the waistband stays
-within 3 cm of the body surface on every frame (independent signed distance, tests/signed_distance.py).
+"""Every shipped clip × outfit at 60 Hz: no NaN ever reaches the output, no coarse particle is deeper
+than 1 mm inside the body after a step, and the waistband stays within 3 cm of the body surface, on
+every frame (independent signed distance, tests/signed_distance.py: exact closest points, the sign
+from the skin's winding number).
 
-Penetration depth and edge stretch are measured by the same module (python -m tests.cloth_acceptance)
-and reported in the README; they do not meet the issue's bounds yet (see the README)."""
+Edge stretch is measured by the same module (python -m tests.cloth_acceptance) and reported in the
+README; it does not meet the issue's bound yet on every garment (see the README)."""
 
 import pytest
 
@@ -13,11 +15,15 @@ from tests.conftest import CLIPS
 
 @pytest.mark.parametrize("clip", CLIPS)
 @pytest.mark.parametrize("outfit", OUTFITS)
-def test_garments_stay_finite_and_waistbands_stay_at_the_waist(body, data, outfit, clip):
-    records, report = measure(body, data, outfit, clip, full=False)
+def test_garments_stay_finite_outside_the_body_and_at_the_waist(body, data, outfit, clip):
+    records, report = measure(body, data, outfit, clip)
     assert report.frames > 30
     for r in records:
         assert r.nan_frames == 0, r.name
+        assert len(r.depth) == report.frames
+        inside = [i for i, d in enumerate(r.depth) if d < -0.001]
+        assert not inside, (f"{r.name}: a particle deeper than 1 mm on {len(inside)} frames (first {inside[:5]}), "
+                            f"deepest {r.deepest * 1000:.1f} mm")
         if r.name.endswith(".bottom"):
             assert len(r.waist_gap) == report.frames
             assert max(r.waist_gap) < 0.03, f"{r.name}: waistband {max(r.waist_gap) * 100:.1f} cm from the body"
