@@ -46,15 +46,19 @@ def test_cli_body_writes_snapshots(tmp_path, capsys):
     assert img.shape[0] > 100 and img.std() > 10
 
 
-def test_cli_body_arm_clearance_skin_contact_and_self_contact_options(tmp_path, capsys):
+def test_cli_body_arm_and_hand_clearance_skin_contact_and_self_contact_options(tmp_path, capsys):
     args = ["body", "--clip", "cmu_131_01_walk_3dsmax", "--max-frames", "40", "--out", str(tmp_path), "--no-png"]
     assert main(args) == 0
     turned = capsys.readouterr().out
-    assert main(args + ["--arm-clearance", "0"]) == 0
+    assert main(args + ["--arm-clearance", "0", "--no-hand-clearance"]) == 0
     exact = capsys.readouterr().out
+    assert main(args + ["--arm-clearance", "0"]) == 0
+    hands = capsys.readouterr().out
     # the walker's arms hang close to the body: by default they are turned out, with 0 they are copied
     assert float(turned.split("arm turn deg median ")[1].split(" max ")[1].split()[0]) > 1.0
     assert "arm turn deg median 0.0 max 0.0 " in exact
+    # ... but for the hands: copied, they hang into the hips, and the hand clearance turns the arm out
+    assert float(hands.split("arm turn deg median ")[1].split(" max ")[1].split()[0]) > 5.0
     with pytest.raises(SystemExit, match="--arm-clearance must be in"):
         main(args + ["--arm-clearance", "95"])
     # the walker's knees bend: by default the skins behind them meet, with --no-skin-contact they overlap
