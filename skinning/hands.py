@@ -8,14 +8,16 @@ hanging arm's line, but the hand on the hip bends in from the wrist.
 
 Here the body is skinned once with the retargeted pose; then each hand's points (its vertices,
 one per `sample` cube at rest) are tested against the clothed skin of the body's other parts
-(torso and legs; not the arms, nor the head: a hand on the face is no garment's business): a point is `margin` in front of the skin when its offset from the nearest
-of those vertices, along that vertex's normal, is at least `margin`. If a point is not, the whole
-arm turns outwards about the chest's forward axis, through the shoulder joint, as the arm
-clearance turns it, by the smallest angle (found by bisection) that puts every point in front;
-a hand that needs more than `max_turn_deg` is held there on purpose (on the belly, at the neck)
-and is left alone, and the turn fades out from two thirds of that. A turn about that axis keeps the elbow's and the wrist's angles: the hand
-keeps its shape and its place on the hip, a garment's thickness away from the skin. The turn is 0
-until the hand comes within `margin` of the skin, and grows continuously with the depth.
+(torso and legs; not the arms, nor the head: a hand on the face is no garment's business). A
+point is `margin` in front of the skin when its offset from the nearest of those vertices,
+along that vertex's normal, is at least `margin`. If a point is not, the whole arm turns
+outwards about the chest's forward axis, through the shoulder joint, as the arm clearance turns
+it, by the smallest angle (found by bisection) that puts every point in front. A turn about
+that axis keeps the elbow's and the wrist's angles: the hand keeps its shape and rests on the
+hip, a garment's thickness away from the skin. The turn is 0 until the hand comes within
+`margin` of the skin and grows continuously with the depth. A hand that needs more than
+`max_turn_deg` is held there on purpose (on the belly, at the neck) and is left alone; the turn
+fades out from two thirds of that, so that it stays continuous.
 """
 
 from __future__ import annotations
@@ -25,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .ik_kernels import smooth_fade
 from .body import BODY_REGIONS, UNCLOTHED_BONES, Body, body_regions
+from .ik_kernels import smooth_fade
 from .skeleton import Skeleton
 from .skin import MeshNormals
 
@@ -143,8 +145,9 @@ def hand_turn(x, points, s, axis, max_turn, bisections, body_ids, rest_normals, 
               cand, margin, near, scratch):
     """The smallest turn t (rad) about the unit `axis` through the shoulder s that puts every hand
     point (x[points]) `margin` in front of the body's skin, faded out as t goes from 2/3 of
-    max_turn to max_turn; 0 where no turn up to max_turn does (a hand held there on purpose). The candidates are the body vertices (x[body_ids]) within reach + near of the hand's
-    centre, turned with the hand at each angle tried (reach: its farthest point from its centre).
+    max_turn to max_turn; 0 where no turn up to max_turn does (a hand held there on purpose).
+    The candidates are the body vertices (x[body_ids]) within reach + near of the hand's centre,
+    turned with the hand at each angle tried (reach: its farthest point from its centre).
     scratch: (3, 3)."""
     centre, moved, p = scratch[0], scratch[1], scratch[2]
     centre[:] = 0.0
@@ -192,8 +195,8 @@ class HandClearance:
         """rest_vertices, rest_normals: (>= n_visible, 3) the rest body and its unit vertex
         normals; weight_bones, weight_values: (n, k) skinning weights; regions: (n_visible,)
         region bits of the visible vertices, arm_regions the bits of the arms (their skin, and the
-        head's and the toes' (`UNCLOTHED_BONES`), is not the body a hand is kept out of); skeleton: the character's (bone names, parents and rest
-        joints)."""
+        head's and the toes' (`UNCLOTHED_BONES`), is not the body a hand is kept out of);
+        skeleton: the character's (bone names, parents and rest joints)."""
         self.settings = s = settings or HandSettings()
         vis = np.arange(n_visible)
         dominant = weight_bones[vis, np.argmax(weight_values[vis], axis=1)].astype(np.int64)
