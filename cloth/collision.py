@@ -665,9 +665,6 @@ FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 UNION_REACH = 0.12  # m: how far along each axis `leave_body_union` looks for a way out (8 cm: deep squats stayed in)
 UNION_HITS = 32  # the most faces one of its rays may cross within reach
-# a way out that leaves one of the particle's edges longer than this times its rest length gives
-# way to the one that stretches its edges least (the nearest way out can be across a limb)
-UNION_STRETCH = 1.25
 
 
 @kernel
@@ -867,38 +864,9 @@ def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child,
     return np.inf, -1, np.inf
 
 
-def particle_edges(spring_i: np.ndarray, spring_j: np.ndarray, rest: np.ndarray,
-                   n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each particle's neighbours along the given springs and the rest lengths to them, as
-    compressed rows (start (n + 1,) int32, ids int32, rest float64): what `leave_body_union`
-    reads a way out's stretch from."""
-    a = np.concatenate([spring_i, spring_j]).astype(np.int64)
-    b = np.concatenate([spring_j, spring_i]).astype(np.int32)
-    r = np.concatenate([rest, rest]).astype(np.float64)
-    order = np.argsort(a, kind="stable")
-    start = np.zeros(n + 1, dtype=np.int32)
-    start[1:] = np.cumsum(np.bincount(a, minlength=n))
-    return start, np.ascontiguousarray(b[order]), np.ascontiguousarray(r[order])
-
-
-@njit(cache=True, inline="always")
-def union_stretch(x, i, dist, ux, uy, uz, thickness, edge_start, edge_ids, edge_rest):
-    """The longest of particle i's structural edges, over its rest length, were it moved out by
-    dist + thickness along the unit (ux, uy, uz)."""
-    step = dist + thickness
-    qx, qy, qz = x[i, 0] + step * ux, x[i, 1] + step * uy, x[i, 2] + step * uz
-    worst = 0.0
-    for e in range(edge_start[i], edge_start[i + 1]):
-        j = edge_ids[e]
-        d = math.sqrt((x[j, 0] - qx) ** 2 + (x[j, 1] - qy) ** 2 + (x[j, 2] - qz) ** 2)
-        worst = max(worst, d / edge_rest[e])
-    return worst
-
-
 @kernel
 def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, wspan, wextent, tris, box, child, first,
-                     count, order, stack, hit_t, hit_s, hit_f, thickness, active, placed_inv_mass, edge_start, edge_ids,
-                     edge_rest, ways):
+                     count, order, stack, hit_t, hit_s, hit_f, thickness, active, placed_inv_mass):
     """Put out every active particle that is inside the body as a whole (its winding number,
     `winding.winding_number`), where the contact pass's ring tests cannot see it: behind a
     face of one body part that lies buried in another (a thigh pressed into the belly by the
@@ -907,19 +875,14 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
     axis directions, the one on which the body ends nearest (within UNION_REACH), or the normal
     of the face it ends at, if that face's plane is nearer; the particle goes thickness beyond
     it, if what lies there is outside the body, and its velocity into the body (relative to the
-    body's, body_vel) along that direction is removed. Where the nearest way out would leave one
-    of the particle's structural edges longer than UNION_STRETCH times its rest length (it lies
-    across a limb from the rest of the cloth), the way out that stretches its edges least is
-    taken instead: the cloth is not pulled into a spike. Where every way out is a slit narrower
+    body's, body_vel) along that direction is removed. Where every way out is a slit narrower
     than thickness (two skins pressed together, the skinned body closed over it again within
     a few millimetres: the gluteal fold of a leg spread sideways), the particle goes to the
     middle of the nearest slit along an axis: outside, if by less than thickness.
     face_n: the pose's face normals (`body_face_normals`); wfaces, wlo ... wextent: the pose's
     `WindingGrid` (BodyMesh.winding_faces and its arrays); box ... order: the pose's `FaceTree`
     (its clothed faces), stack its scratch; hit_t, hit_s, hit_f: scratch of `tree_ray_exit`.
-    placed_inv_mass: 0 written for each particle moved. edge_start, edge_ids, edge_rest: each
-    particle's structural neighbours and the rest lengths to them (compressed rows); ways: (12, 4)
-    scratch. Returns the number moved."""
+    placed_inv_mass: 0 written for each particle moved. Returns the number moved."""
     moved = 0
     for i in range(x.shape[0]):
         if not active[i]:
@@ -928,7 +891,8 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
         wind = winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent)
         if wind <= 0:
             continue
-        n_ways = 0  # every way out that lands outside: (distance, unit direction)
+        best = np.inf
+        bx = by = bz = 0.0  # the unit direction out
         slit = np.inf  # the nearest slit's middle along an axis (no way out thickness wide)
         sx = sy = sz = 0.0
         for axis in range(3):
@@ -941,39 +905,25 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
                 nx, ny, nz = face_n[f, 0], face_n[f, 1], face_n[f, 2]
                 a = tris[f, 0]
                 plane = (body_x[a, 0] - px) * nx + (body_x[a, 1] - py) * ny + (body_x[a, 2] - pz) * nz
-                if 0.0 < plane < t and winding_number(
+                if 0.0 < plane < min(t, best) and winding_number(
                         px + (plane + thickness) * nx, py + (plane + thickness) * ny, pz + (plane + thickness) * nz,
                         body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
-                    ways[n_ways, 0], ways[n_ways, 1], ways[n_ways, 2], ways[n_ways, 3] = plane, nx, ny, nz
-                    n_ways += 1
+                    best, bx, by, bz = plane, nx, ny, nz
                     continue  # nearer than the ray's own way out
                 ax = sign if axis == 0 else 0.0
                 ay = sign if axis == 1 else 0.0
                 az = sign if axis == 2 else 0.0
-                if winding_number(px + (t + thickness) * ax, py + (t + thickness) * ay, pz + (t + thickness) * az,
-                                  body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
-                    ways[n_ways, 0], ways[n_ways, 1], ways[n_ways, 2], ways[n_ways, 3] = t, ax, ay, az
-                    n_ways += 1
-                elif t_next < t + thickness:
+                if t < best and winding_number(px + (t + thickness) * ax, py + (t + thickness) * ay,
+                                               pz + (t + thickness) * az, body_x, wfaces, wlo, wstart, wids,
+                                               wspan, wextent) == 0:
+                    best, bx, by, bz = t, ax, ay, az
+                elif best == np.inf and t_next < t + thickness:
                     mid = 0.5 * (t + t_next)
                     if mid < slit and winding_number(px + mid * ax, py + mid * ay, pz + mid * az, body_x, wfaces,
                                                      wlo, wstart, wids, wspan, wextent) == 0:
                         slit, sx, sy, sz = mid, ax, ay, az
-        best = -1
-        for k in range(n_ways):  # the nearest
-            if best < 0 or ways[k, 0] < ways[best, 0]:
-                best = k
-        if best >= 0:
-            worst = union_stretch(x, i, ways[best, 0], ways[best, 1], ways[best, 2], ways[best, 3], thickness,
-                                  edge_start, edge_ids, edge_rest)
-            if worst > UNION_STRETCH:
-                for k in range(n_ways):  # the one that stretches the particle's edges least
-                    r = union_stretch(x, i, ways[k, 0], ways[k, 1], ways[k, 2], ways[k, 3], thickness, edge_start,
-                                      edge_ids, edge_rest)
-                    if r < worst:
-                        best, worst = k, r
-        if best >= 0:
-            step, bx, by, bz = ways[best, 0] + thickness, ways[best, 1], ways[best, 2], ways[best, 3]
+        if best < np.inf:
+            step = best + thickness
         elif slit < np.inf:
             step, bx, by, bz = slit, sx, sy, sz
         else:

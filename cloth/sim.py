@@ -24,7 +24,7 @@ import numpy as np
 from .coarsen import coarsen
 from .collision import (FACE_TREE_STACK, PART_SLOTS, UNION_HITS, BodyMesh, BodyPose, attach_to_body,
                         collide_particles, face_normals, follow_body, leave_body_union, part_scratch, part_seeds,
-                        particle_edges, resolve_contacts, track_parts)
+                        resolve_contacts, track_parts)
 from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment
@@ -167,7 +167,6 @@ class ClothState:
         self.hit_t = np.zeros(UNION_HITS)  # the rays of leave_body_union
         self.hit_s = np.zeros(UNION_HITS, dtype=np.int32)
         self.hit_f = np.zeros(UNION_HITS, dtype=np.int32)
-        self.ways = np.zeros((12, 4))  # its ways out of the body (distance, direction)
         self.part, self.part_vertex, self.part_d2 = part_scratch()
         self.placed_inv_mass = np.zeros(n)  # inverse masses with 0 for the particles the contact pass placed
         self.held_from = np.zeros((n, 3))  # positions before the strain-limiting passes with those held
@@ -196,8 +195,6 @@ class ClothSim:
         self.model = model
         self.body = body
         self.state = ClothState(model.n_particles, len(model.spring_i))
-        k = model.n_structural
-        self.edges = particle_edges(model.spring_i[:k], model.spring_j[:k], model.rest_length[:k], model.n_particles)
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
         st = model.settings
@@ -348,7 +345,7 @@ class ClothSim:
         self.stats.union_pushes += leave_body_union(
             s.x, s.v, s.carrier, pose.x, pose.face_n, b.winding_faces, *pose.winding.arrays(), b.triangles,
             *pose.faces.arrays()[:5], s.stack, s.hit_t, s.hit_s, s.hit_f, self.model.fabric.thickness, s.all_particles,
-            s.placed_inv_mass, *self.edges, s.ways)
+            s.placed_inv_mass)
 
     def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
         """`resolve_contacts` against the whole body in this pose for the active particles (all
