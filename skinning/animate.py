@@ -63,6 +63,7 @@ class BodyAnimator:
         self.hands = HandClearance.for_body(body, hands) if hands is not None else None
         self._turn = np.empty((3, 3))
         self._arm = np.empty((3, 3))
+        self._axis = np.empty(3)
         self.stage_seconds = np.zeros(len(STAGES))
         self.frame = BodyFrame(
             vertices=np.empty_like(body.vertices),
@@ -96,7 +97,7 @@ class BodyAnimator:
         moved = False
         for hand in self.hands.hands:
             arm = hand["arm"]
-            axis = hand["outward"] * f.joint_rotations[hand["chest"], :, 2]
+            axis = np.multiply(f.joint_rotations[hand["chest"], :, 2], hand["outward"], out=self._axis)
             angle = self.hands.turn(hand, f.vertices, f.joint_rotations, f.joint_positions[arm], axis)
             if angle == 0.0:
                 continue

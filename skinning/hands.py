@@ -141,6 +141,16 @@ def posed_normals(rest_normals, dominant, rotations, cand, n, out):
 
 
 @njit(cache=True, nogil=True)
+def clearance_near(angle, centre, x, points, s, axis, radius, body_ids, rest_normals, dominant, rotations, body_normals,
+                   cand, margin, near, p):
+    """`hand_clearance_at` the turn `angle`, against the body vertices within `radius` of the
+    hand's centre turned by it (`centre`), their normals posed first."""
+    n = near_body(x, body_ids, centre, radius, cand)
+    posed_normals(rest_normals, dominant, rotations, cand, n, body_normals)
+    return hand_clearance_at(x, points, s, axis, angle, body_ids, body_normals, cand[:n], margin, near, p)
+
+
+@njit(cache=True, nogil=True)
 def hand_turn(x, points, s, axis, max_turn, bisections, body_ids, rest_normals, dominant, rotations, body_normals,
               cand, margin, near, scratch):
     """The smallest turn t (rad) about the unit `axis` through the shoulder s that puts every hand
@@ -160,24 +170,18 @@ def hand_turn(x, points, s, axis, max_turn, bisections, body_ids, rest_normals, 
         for a in range(3):
             d2 += (x[points[i], a] - centre[a]) ** 2
         reach = max(reach, np.sqrt(d2))
-    n = near_body(x, body_ids, centre, reach + near, cand)
-    if n == 0:
-        return 0.0
-    posed_normals(rest_normals, dominant, rotations, cand, n, body_normals)
-    if hand_clearance_at(x, points, s, axis, 0.0, body_ids, body_normals, cand[:n], margin, near, p) >= 0.0:
+    args = (x, points, s, axis, reach + near, body_ids, rest_normals, dominant, rotations, body_normals, cand, margin,
+            near, p)
+    if clearance_near(0.0, centre, *args) >= 0.0:
         return 0.0
     turned(centre, s, axis, max_turn, moved)
-    n = near_body(x, body_ids, moved, reach + near, cand)
-    posed_normals(rest_normals, dominant, rotations, cand, n, body_normals)
-    if hand_clearance_at(x, points, s, axis, max_turn, body_ids, body_normals, cand[:n], margin, near, p) < 0.0:
+    if clearance_near(max_turn, moved, *args) < 0.0:
         return 0.0  # no turn up to max_turn clears it: a hand placed on purpose (at the neck, on the belly)
     lo, hi = 0.0, max_turn
     for _ in range(bisections):
         mid = 0.5 * (lo + hi)
         turned(centre, s, axis, mid, moved)
-        n = near_body(x, body_ids, moved, reach + near, cand)
-        posed_normals(rest_normals, dominant, rotations, cand, n, body_normals)
-        if hand_clearance_at(x, points, s, axis, mid, body_ids, body_normals, cand[:n], margin, near, p) >= 0.0:
+        if clearance_near(mid, moved, *args) >= 0.0:
             hi = mid
         else:
             lo = mid
