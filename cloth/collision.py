@@ -864,6 +864,41 @@ def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child,
     return np.inf, -1, np.inf
 
 
+# the 20 directions between the axes (unit), where `leave_body_union` also looks for a way out
+DIAGONALS = np.array([(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)
+                      if abs(a) + abs(b) + abs(c) > 1], dtype=np.float64)
+DIAGONALS /= np.linalg.norm(DIAGONALS, axis=1)[:, None]
+MARCH_BISECTIONS = 10  # halvings of a winding-number march's last step (its first step / 1024 at most)
+MARCH_FIRST_STEP = 0.001  # m
+
+
+@njit(cache=True, inline="always")
+def march_exit(px, py, pz, dx, dy, dz, reach, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
+    """How far from p (inside the body) along the unit direction d the body first ends, by
+    winding numbers: steps doubling from MARCH_FIRST_STEP, then bisection; inf if not within
+    reach (or d is zero). Can step over a part thinner than a step: only a nearer way out is
+    taken from it, and the caller checks the point it lands on."""
+    if dx * dx + dy * dy + dz * dz == 0.0:
+        return np.inf
+    lo = 0.0
+    step = MARCH_FIRST_STEP
+    while lo < reach:
+        hi = min(lo + step, reach)
+        if winding_number(px + hi * dx, py + hi * dy, pz + hi * dz, body_x, wfaces, wlo, wstart, wids, wspan,
+                          wextent) == 0:
+            for _ in range(MARCH_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                if winding_number(px + mid * dx, py + mid * dy, pz + mid * dz, body_x, wfaces, wlo, wstart, wids,
+                                  wspan, wextent) == 0:
+                    hi = mid
+                else:
+                    lo = mid
+            return hi
+        lo = hi
+        step *= 2.0
+    return np.inf
+
+
 @kernel
 def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, wspan, wextent, tris, box, child, first,
                      count, order, stack, hit_t, hit_s, hit_f, thickness, active, placed_inv_mass):
@@ -879,6 +914,12 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
     than thickness (two skins pressed together, the skinned body closed over it again within
     a few millimetres: the gluteal fold of a leg spread sideways), the particle goes to the
     middle of the nearest slit along an axis: outside, if by less than thickness.
+    The axes alone often go round a limb: in the walk's deep stride the jeans' seat particles
+    caught in the crease of the right hip were taken 8-12 cm out along an axis, across the
+    thigh from their neighbours (1-2 cm away), and the edges to them stretched to 1.5-2.4 times
+    their rest length. So the 20 directions between the axes (DIAGONALS) are ways out too,
+    where they are nearer: found by winding numbers along them (`march_exit`), which only the
+    particles inside pay for (on that walk the largest move fell from 11.9 to 6.8 cm).
     face_n: the pose's face normals (`body_face_normals`); wfaces, wlo ... wextent: the pose's
     `WindingGrid` (BodyMesh.winding_faces and its arrays); box ... order: the pose's `FaceTree`
     (its clothed faces), stack its scratch; hit_t, hit_s, hit_f: scratch of `tree_ray_exit`.
@@ -922,6 +963,14 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
                     if mid < slit and winding_number(px + mid * ax, py + mid * ay, pz + mid * az, body_x, wfaces,
                                                      wlo, wstart, wids, wspan, wextent) == 0:
                         slit, sx, sy, sz = mid, ax, ay, az
+        for k in range(DIAGONALS.shape[0]):
+            nx, ny, nz = DIAGONALS[k, 0], DIAGONALS[k, 1], DIAGONALS[k, 2]
+            t = march_exit(px, py, pz, nx, ny, nz, min(best, UNION_REACH), body_x, wfaces, wlo, wstart, wids, wspan,
+                           wextent)
+            if t < best and winding_number(px + (t + thickness) * nx, py + (t + thickness) * ny,
+                                           pz + (t + thickness) * nz, body_x, wfaces, wlo, wstart, wids,
+                                           wspan, wextent) == 0:
+                best, bx, by, bz = t, nx, ny, nz
         if best < np.inf:
             step = best + thickness
         elif slit < np.inf:

@@ -120,6 +120,36 @@ def test_leave_body_union_takes_the_exit_face_normal_where_the_axes_meet_it_at_a
     np.testing.assert_allclose(x[0], 0.205 * n, atol=1e-12)
 
 
+def test_leave_body_union_takes_a_diagonal_where_every_axis_goes_round_a_limb():
+    """A 30 cm cube turned so that a face's normal is n = (1, 1, 1)/sqrt(3), the particle 4 mm
+    inside that face, and three thin rods (6 mm square) from 3 mm beyond it along +x, +y and +z
+    for 20 cm, overlapping the cube: every axis ray from the particle stays inside the body
+    beyond UNION_REACH (along -x, -y, -z through the cube), so no axis offers a way out, nor a
+    slit. The diagonal n does, 4 mm away: the particle lands thickness beyond the face."""
+    n = np.ones(3) / np.sqrt(3.0)
+    cube = trimesh.creation.box(extents=(0.3, 0.3, 0.3))
+    cube.apply_transform(trimesh.geometry.align_vectors([1.0, 0.0, 0.0], n))
+    cube.apply_translation(-(0.15 - 0.004) * n)  # its face 4 mm along n from the origin
+    parts = [cube]
+    for axis in range(3):
+        extents = np.full(3, 0.006)
+        extents[axis] = 0.2
+        rod = trimesh.creation.box(extents=extents)
+        shift = np.zeros(3)
+        shift[axis] = 0.003 + 0.1
+        rod.apply_translation(shift)
+        parts.append(rod)
+    verts = np.vstack([m.vertices for m in parts])
+    faces = np.vstack([m.faces + sum(len(o.vertices) for o in parts[:k]) for k, m in enumerate(parts)]).astype(np.int32)
+    t = np.linspace(0.0, UNION_REACH + 0.005, 200)[:, None]
+    for axis in np.vstack([np.eye(3), -np.eye(3)]):  # every axis: inside all the way
+        assert windings(verts, faces, t * axis, cell=0.05).min() >= 1
+    x, _, placed, moved = push_out(verts, faces, [[0.0, 0.0, 0.0]], [[0.0, 0.0, 0.0]], thickness=0.005)
+    assert moved == 1 and placed[0] == 0.0
+    np.testing.assert_allclose(x[0], 0.009 * n, atol=2e-5)  # 4 mm out (bisected to 4 µm), then thickness
+    assert windings(verts, faces, x, cell=0.05)[0] == 0
+
+
 def test_leave_body_union_goes_into_a_slit_narrower_than_thickness_only_where_there_is_no_wider_way_out():
     """Box A around the origin and box B 2 mm beyond its +x face (two skins pressed together):
     from 3 cm inside A's +x face, with every other way out of A beyond UNION_REACH, the only way
