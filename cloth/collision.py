@@ -903,7 +903,7 @@ def march_exit(px, py, pz, dx, dy, dz, reach, body_x, wfaces, wlo, wstart, wids,
 
 @kernel
 def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, wspan, wextent, tris, box, child, first,
-                     count, order, stack, hit_t, hit_s, hit_f, thickness, active, placed_inv_mass):
+                     count, order, parent, leaf, stack, hit_t, hit_s, hit_f, q, thickness, active, placed_inv_mass):
     """Put out every active particle that is inside the body as a whole (its winding number,
     `winding.winding_number`), where the contact pass's ring tests cannot see it: behind a
     face of one body part that lies buried in another (a thigh pressed into the belly by the
@@ -941,6 +941,18 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
         bx = by = bz = 0.0  # the unit direction out
         slit = np.inf  # the nearest slit's middle along an axis (no way out thickness wide)
         sx = sy = sz = 0.0
+        # the nearest face the particle is behind: straight out through it, if outside beyond it
+        f, d2, _, _ = tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count, order, parent,
+                                        leaf, -1, -1, stack, UNION_REACH * UNION_REACH, thickness, q)
+        if f >= 0:
+            d = math.sqrt(d2)
+            if d > 1e-9:
+                nx, ny, nz = (q[0] - px) / d, (q[1] - py) / d, (q[2] - pz) / d
+            else:
+                nx, ny, nz = face_n[f, 0], face_n[f, 1], face_n[f, 2]
+            if winding_number(px + (d + thickness) * nx, py + (d + thickness) * ny, pz + (d + thickness) * nz,
+                              body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
+                best, bx, by, bz = d, nx, ny, nz
         for axis in range(3):
             for sign in (-1.0, 1.0):
                 t, f, t_next = tree_ray_exit(px, py, pz, axis, sign, wind, UNION_REACH, body_x, tris, box, child,
@@ -1007,8 +1019,8 @@ class BodyPose:
     while the garments start; `ClothSim` calls `wait_queries()` before its contact passes."""
 
     def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False):
-        """face_tree: keep the face tree (the contact pass's nearest-face query; False when every
-        garment on the body has it off, `SimSettings.nearest_face_radius`). winding: keep the
+        """face_tree: keep the face tree (the contact pass's nearest-face query and the union
+        pass read it; False when no garment on the body needs it, `SimSettings.needs_face_tree`). winding: keep the
         winding grid (`leave_body_union`, when a garment on the body has
         `SimSettings.union_passes`)."""
         self.body = body

@@ -198,7 +198,7 @@ class ClothSim:
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
         st = model.settings
-        self.own_pose = BodyPose(body, st.nearest_face_radius > 0, st.union_passes > 0)  # when no shared pose is given
+        self.own_pose = BodyPose(body, st.needs_face_tree, st.union_passes > 0)  # when no shared pose is given
         self.pose = self.own_pose  # the body pose of the last step, for the detailed surface stage
         self.reset(body_vertices)
 
@@ -340,11 +340,11 @@ class ClothSim:
         particles)."""
         if pose.faces is None or pose.winding is None:
             raise ValueError("SimSettings.union_passes needs a body pose with the face tree and the winding grid "
-                             "(nearest_face_radius > 0; BodyPose(..., winding=True))")
+                             "(BodyPose(..., face_tree=True, winding=True))")
         s, b = self.state, self.body
         self.stats.union_pushes += leave_body_union(
             s.x, s.v, s.carrier, pose.x, pose.face_n, b.winding_faces, *pose.winding.arrays(), b.triangles,
-            *pose.faces.arrays()[:5], s.stack, s.hit_t, s.hit_s, s.hit_f, self.model.fabric.thickness, s.all_particles,
+            *pose.faces.arrays(), s.stack, s.hit_t, s.hit_s, s.hit_f, s.q, self.model.fabric.thickness, s.all_particles,
             s.placed_inv_mass)
 
     def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:

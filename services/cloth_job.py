@@ -134,7 +134,7 @@ class OutfitSession:
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
         # the frame's body: face normals, vertex grid, face tree; shared by the garments
-        self.pose = BodyPose(body_mesh, any(m.settings.nearest_face_radius > 0 for m in outfit.models),
+        self.pose = BodyPose(body_mesh, any(m.settings.needs_face_tree for m in outfit.models),
                              any(m.settings.union_passes > 0 for m in outfit.models))
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))

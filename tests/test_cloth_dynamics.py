@@ -14,7 +14,7 @@ from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 from cloth.model import SimSettings
 from cloth.sim import mark_moved
 
-REFINE_RADIUS = SimSettings().nearest_face_radius
+REFINE_RADIUS = 0.08  # the contact pass's nearest-face query where it is on (SimSettings.nearest_face_radius)
 
 G = 9.81
 
@@ -886,20 +886,23 @@ def test_slide_pass_lets_placed_particles_slide_back_to_the_strain_limit(slide_p
 
 
 def test_nearest_face_query_off_keeps_no_face_tree():
-    """nearest_face_radius = 0: the simulation's body pose keeps no face tree (no refit per
-    pose), and the contact passes still place the quad on the box (the same answer as with it;
-    the union pass, which reads the tree, off)."""
+    """nearest_face_radius = 0 and no union pass: the simulation's body pose keeps no face tree
+    (no refit per pose), and the contact passes still place the quad on the box (the same
+    answer as with the query on). The union pass (on by default) reads the tree: with it the
+    pose keeps one whatever the radius. A negative radius is refused."""
     results = []
-    for radius in (0.0, SimSettings().nearest_face_radius):
+    for radius in (0.0, REFINE_RADIUS):
         sim, x = quad_on_box(SimSettings(nearest_face_radius=radius, union_passes=0))
         assert (sim.pose.faces is None) == (radius == 0.0)
         sim.settle_contacts(sim.pose)
         results.append(x.copy())
     np.testing.assert_allclose(results[0][:, 1], 0.303, atol=1e-12)
     np.testing.assert_array_equal(results[0], results[1])
-    # the union pass (on by default) reads the face tree: without it the settings are refused
-    with pytest.raises(ValueError, match="union_passes needs the face tree"):
-        SimSettings(nearest_face_radius=0.0)
+    assert SimSettings().nearest_face_radius == 0.0 and SimSettings().needs_face_tree
+    sim, _ = quad_on_box(SimSettings())
+    assert sim.pose.faces is not None
+    with pytest.raises(ValueError, match="nearest_face_radius must be >= 0"):
+        SimSettings(nearest_face_radius=-0.01)
     with pytest.raises(ValueError, match="union_passes must be 0, 1 or 2"):
         SimSettings(union_passes=3)
 

@@ -80,8 +80,8 @@ def push_out(vertices, faces, points, velocities, thickness=0.005):
     tree.update(body_x)
     placed = np.ones(len(x))
     moved = leave_body_union(x, v, np.zeros_like(v), body_x, face_normals(body_x, faces), grid.tris, *grid.arrays(),
-                             faces, *tree.arrays()[:5], np.zeros(FACE_TREE_STACK, np.int32), np.zeros(UNION_HITS),
-                             np.zeros(UNION_HITS, np.int32), np.zeros(UNION_HITS, np.int32), thickness,
+                             faces, *tree.arrays(), np.zeros(FACE_TREE_STACK, np.int32), np.zeros(UNION_HITS),
+                             np.zeros(UNION_HITS, np.int32), np.zeros(UNION_HITS, np.int32), np.zeros(3), thickness,
                              np.ones(len(x), np.uint8), placed)
     return x, v, placed, moved
 
@@ -204,3 +204,24 @@ def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes)
         bare.update(verts)
         with pytest.raises(ValueError, match="union_passes needs a body pose"):
             sim.settle_contacts(bare)
+
+
+def test_leave_body_union_goes_straight_out_through_the_nearest_face():
+    """A sphere of 10 cm (an icosphere of 1,280 faces: a limb's curve), the particle 3 cm inside
+    its surface in a direction that is neither an axis nor between axes: the nearest way out
+    is through the nearest face, to its closest point (by trimesh), and the particle lands
+    thickness beyond it along the way it left, its inward velocity removed. An axis ray leaves
+    the sphere through another face, whose plane is farther."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    faces = sphere.faces.astype(np.int32)
+    d = np.array([0.31, 0.52, 0.80])
+    d /= np.linalg.norm(d)
+    p = 0.07 * d
+    on_faces = trimesh.triangles.closest_point(sphere.triangles, np.repeat([p], len(faces), axis=0))
+    q = on_faces[np.argmin(np.linalg.norm(on_faces - p, axis=1))]
+    out = (q - p) / np.linalg.norm(q - p)
+    x, vel, placed, moved = push_out(sphere.vertices, faces, [p], [-out], thickness=0.005)
+    assert moved == 1 and placed[0] == 0.0
+    np.testing.assert_allclose(x[0], q + 0.005 * out, atol=1e-9)
+    np.testing.assert_allclose(vel[0], 0.0, atol=1e-12)
+    assert windings(sphere.vertices, faces, x, cell=0.05)[0] == 0
