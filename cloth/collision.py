@@ -908,7 +908,11 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
     `winding.winding_number`), where the contact pass's ring tests cannot see it: behind a
     face of one body part that lies buried in another (a thigh pressed into the belly by the
     skinning, the shoulder cap into the chest, the calf into the thigh behind a bent knee),
-    the nearest face is the buried one, and it faces the particle. The way out: of the six
+    the nearest face is the buried one, and it faces the particle. The way out: straight out
+    through the nearest face the particle is behind (by its plane, or less than thickness in
+    front of it), to the face's closest point (the other sheet of a fold of the skinned skin,
+    which the contact pass's rings cannot see either: this replaced a face-tree query per
+    contact-pass particle); else, of the six
     axis directions, the one on which the body ends nearest (within UNION_REACH), or the normal
     of the face it ends at, if that face's plane is nearer; the particle goes thickness beyond
     it, if what lies there is outside the body, and its velocity into the body (relative to the
@@ -927,7 +931,8 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
     13.5 %, 11.8 % with the threshold).
     face_n: the pose's face normals (`body_face_normals`); wfaces, wlo ... wextent: the pose's
     `WindingGrid` (BodyMesh.winding_faces and its arrays); box ... order: the pose's `FaceTree`
-    (its clothed faces), stack its scratch; hit_t, hit_s, hit_f: scratch of `tree_ray_exit`.
+    (its clothed faces), stack its scratch; hit_t, hit_s, hit_f: scratch of `tree_ray_exit`;
+    q: (3,) scratch.
     placed_inv_mass: 0 written for each particle moved. Returns the number moved."""
     moved = 0
     for i in range(x.shape[0]):
