@@ -331,20 +331,29 @@ class ClothSim:
             # what moved far enough to have reached the body is tested once more
             mark_moved(s.x, s.held_from, FINAL_RECHECK * f.thickness, s.recheck)
             self._contact_pass(pose, s.recheck)
-        if st.union_passes >= 1:
-            self._union_pass(pose)  # last: what the ring tests above cannot see
+        if st.union_passes >= 1:  # last: what the ring tests above cannot see
+            active = None
+            if st.union_passes >= 2:
+                # the first union pass left each particle outside, or where no way out was
+                # found: only one that moved since by more than FINAL_RECHECK x thickness can
+                # have gone in (the final contact pass moved only such particles)
+                if not (st.final_contact and st.contact_limit_passes):
+                    mark_moved(s.x, s.held_from, FINAL_RECHECK * f.thickness, s.recheck)
+                active = s.recheck
+            self._union_pass(pose, active)
 
-    def _union_pass(self, pose: BodyPose) -> None:
+    def _union_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
         """`leave_body_union`: out of the body as a whole, for particles the ring tests of the
         contact pass read as outside (needs the face tree and the winding grid; marks the placed
-        particles)."""
+        particles). active: the particles to test (all unless given)."""
         if pose.faces is None or pose.winding is None:
             raise ValueError("SimSettings.union_passes needs a body pose with the face tree and the winding grid "
                              "(BodyPose(..., face_tree=True, winding=True))")
         s, b = self.state, self.body
         self.stats.union_pushes += leave_body_union(
             s.x, s.v, s.carrier, pose.x, pose.face_n, b.winding_faces, *pose.winding.arrays(), b.triangles,
-            *pose.faces.arrays(), s.stack, s.hit_t, s.hit_s, s.hit_f, s.q, self.model.fabric.thickness, s.all_particles,
+            *pose.faces.arrays(), s.stack, s.hit_t, s.hit_s, s.hit_f, s.q, self.model.fabric.thickness,
+            s.all_particles if active is None else active,
             s.placed_inv_mass)
 
     def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:

@@ -206,6 +206,58 @@ def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes)
             sim.settle_contacts(bare)
 
 
+def test_second_union_pass_tests_only_what_moved_since_the_first(monkeypatch):
+    """union_passes = 2: the first union pass puts the quad out of the overlapping boxes and
+    tests every particle; the last one tests only the particles that moved more than
+    FINAL_RECHECK x thickness since (none here: the quad lies flat and unstretched on A's top),
+    and the quad ends where the first pass put it. A particle moved back into the body after
+    the first pass (as a strain-limiting pass could) is tested and put out by the last."""
+    import cloth.sim as sim_module
+    from cloth.coarsen import CoarseMesh
+    from cloth.garment import Garment
+    from cloth.model import SimSettings, build_cloth_model
+    from cloth.sim import ClothSim
+
+    tested = []
+    real = sim_module.leave_body_union
+
+    def counting(*args):
+        tested.append(int(np.count_nonzero(args[-2])))  # active
+        return real(*args)
+
+    monkeypatch.setattr(sim_module, "leave_body_union", counting)
+    va, ta = box(0.2, 8)
+    verts = np.vstack([va, va + [0.3, 0.1, 0.0]])
+    tris = np.vstack([ta, ta + len(va)]).astype(np.int32)
+    rest = np.array([[0.04, 0.13, -0.01], [0.04, 0.13, 0.01], [0.06, 0.13, 0.01], [0.06, 0.13, -0.01]])
+    quad = np.array([[0, 1, 2, 3]], np.int32)
+    model = build_cloth_model(Garment("quad", rest, quad, np.arange(4)), fabric("cotton"),
+                              SimSettings(union_passes=2), rest,
+                              CoarseMesh(rest, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
+    sim = ClothSim(model, BodyMesh.build(tris, len(verts)), verts)
+    sim.state.x[:] = rest
+    sim.state.v[:] = 0.0
+    sim.settle_contacts(sim.pose)
+    assert tested == [4, 0]
+    np.testing.assert_allclose(sim.state.x[:, 1], 0.2 + model.fabric.thickness, atol=1e-12)
+
+    # a strain-limiting pass after the first union pass taking particle 0 back where only the
+    # union pass sees it inside (the final contact pass's rings read "outside" there)
+    real_limit = sim_module.limit_stretch
+
+    def sinking(x, *args):
+        if len(tested) == 1:
+            x[0] = rest[0]
+        return real_limit(x, *args)
+
+    monkeypatch.setattr(sim_module, "limit_stretch", sinking)
+    tested.clear()
+    sim.state.x[:] = rest
+    sim.settle_contacts(sim.pose)
+    assert tested == [4, 1]
+    np.testing.assert_allclose(sim.state.x[:, 1], 0.2 + model.fabric.thickness, atol=1e-12)
+
+
 def test_leave_body_union_goes_straight_out_through_the_nearest_face():
     """A sphere of 10 cm (an icosphere of 1,280 faces: a limb's curve), the particle 3 cm inside
     its surface in a direction that is neither an axis nor between axes: the nearest way out
