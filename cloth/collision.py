@@ -910,11 +910,11 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
     skinning, the shoulder cap into the chest, the calf into the thigh behind a bent knee),
     the nearest face is the buried one, and it faces the particle. The way out: straight out
     through the nearest face the particle is behind (by its plane, or less than thickness in
-    front of it), to the face's closest point (the other sheet of a fold of the skinned skin,
-    which the contact pass's rings cannot see either: this replaced a face-tree query per
-    contact-pass particle); else, of the six
-    axis directions, the one on which the body ends nearest (within UNION_REACH), or the normal
-    of the face it ends at, if that face's plane is nearer; the particle goes thickness beyond
+    front of it), to the face's closest point (also the other sheet of a fold of the skinned
+    skin, which the contact pass's rings cannot see either: this replaced a face-tree query
+    per contact-pass particle); else, of the six axis directions, the one on which the body
+    ends nearest (within UNION_REACH), or the normal of the face it ends at, if that face's
+    plane is nearer; the particle goes thickness beyond
     it, if what lies there is outside the body, and its velocity into the body (relative to the
     body's, body_vel) along that direction is removed. Where every way out is a slit narrower
     than thickness (two skins pressed together, the skinned body closed over it again within
@@ -1025,8 +1025,8 @@ class BodyPose:
 
     def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False):
         """face_tree: keep the face tree (the contact pass's nearest-face query and the union
-        pass read it; False when no garment on the body needs it, `SimSettings.needs_face_tree`). winding: keep the
-        winding grid (`leave_body_union`, when a garment on the body has
+        pass read it; False when no garment on the body needs it, `SimSettings.needs_face_tree`).
+        winding: keep the winding grid (`leave_body_union`, when a garment on the body has
         `SimSettings.union_passes`)."""
         self.body = body
         self.x = np.zeros((body.n_vertices, 3))  # m
