@@ -169,13 +169,12 @@ def test_leave_body_union_goes_into_a_slit_narrower_than_thickness_only_where_th
     np.testing.assert_allclose(vel, [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]], atol=1e-12)  # outward speed kept
 
 
-@pytest.mark.parametrize("union_passes", [0, 1])
-def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes):
-    """A 2 cm cotton quad at rest inside box A of the overlapping boxes (finely meshed), 5 cm in
-    front of B's buried face x = 0.1 and 7 cm below A's top: the contact pass's ring tests read
-    it as outside and leave it. With SimSettings.union_passes it ends thickness (3 mm) above
-    A's top, every corner counted once; without, it stays. A shared body pose without the
-    winding grid is refused with a message."""
+QUAD_IN_A = np.array([[0.04, 0.13, -0.01], [0.04, 0.13, 0.01], [0.06, 0.13, 0.01], [0.06, 0.13, -0.01]])
+
+
+def quad_in_overlapping_boxes(union_passes):
+    """A 2 cm cotton quad at rest at QUAD_IN_A, inside box A of the overlapping boxes (finely
+    meshed), 5 cm in front of B's buried face x = 0.1 and 7 cm below A's top: (sim, verts)."""
     from cloth.coarsen import CoarseMesh
     from cloth.garment import Garment
     from cloth.model import SimSettings, build_cloth_model
@@ -184,23 +183,32 @@ def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes)
     va, ta = box(0.2, 8)
     verts = np.vstack([va, va + [0.3, 0.1, 0.0]])
     tris = np.vstack([ta, ta + len(va)]).astype(np.int32)
-    rest = np.array([[0.04, 0.13, -0.01], [0.04, 0.13, 0.01], [0.06, 0.13, 0.01], [0.06, 0.13, -0.01]])
     quad = np.array([[0, 1, 2, 3]], np.int32)
-    model = build_cloth_model(Garment("quad", rest, quad, np.arange(4)), fabric("cotton"),
-                              SimSettings(union_passes=union_passes), rest,
-                              CoarseMesh(rest, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
-    mesh = BodyMesh.build(tris, len(verts))
-    sim = ClothSim(model, mesh, verts)
-    sim.state.x[:] = rest
+    model = build_cloth_model(Garment("quad", QUAD_IN_A, quad, np.arange(4)), fabric("cotton"),
+                              SimSettings(union_passes=union_passes), QUAD_IN_A,
+                              CoarseMesh(QUAD_IN_A, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
+    sim = ClothSim(model, BodyMesh.build(tris, len(verts)), verts)
+    sim.state.x[:] = QUAD_IN_A
     sim.state.v[:] = 0.0
+    return sim, verts
+
+
+@pytest.mark.parametrize("union_passes", [0, 1])
+def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes):
+    """A 2 cm cotton quad at rest inside box A of the overlapping boxes (finely meshed), 5 cm in
+    front of B's buried face x = 0.1 and 7 cm below A's top: the contact pass's ring tests read
+    it as outside and leave it. With SimSettings.union_passes it ends thickness (3 mm) above
+    A's top, every corner counted once; without, it stays. A shared body pose without the
+    winding grid is refused with a message."""
+    sim, verts = quad_in_overlapping_boxes(union_passes)
     sim.settle_contacts(sim.pose)
-    want = rest.copy()
+    want = QUAD_IN_A.copy()
     if union_passes:
-        want[:, 1] = 0.2 + model.fabric.thickness
+        want[:, 1] = 0.2 + sim.model.fabric.thickness
     np.testing.assert_allclose(sim.state.x, want, atol=1e-12)
     assert sim.stats.union_pushes == 4 * union_passes
     if union_passes:
-        bare = BodyPose(mesh)
+        bare = BodyPose(sim.body)
         bare.update(verts)
         with pytest.raises(ValueError, match="union_passes needs a body pose"):
             sim.settle_contacts(bare)
@@ -213,10 +221,6 @@ def test_second_union_pass_tests_only_what_moved_since_the_first(monkeypatch):
     and the quad ends where the first pass put it. A particle moved back into the body after
     the first pass (as a strain-limiting pass could) is tested and put out by the last."""
     import cloth.sim as sim_module
-    from cloth.coarsen import CoarseMesh
-    from cloth.garment import Garment
-    from cloth.model import SimSettings, build_cloth_model
-    from cloth.sim import ClothSim
 
     tested = []
     real = sim_module.leave_body_union
@@ -226,17 +230,8 @@ def test_second_union_pass_tests_only_what_moved_since_the_first(monkeypatch):
         return real(*args)
 
     monkeypatch.setattr(sim_module, "leave_body_union", counting)
-    va, ta = box(0.2, 8)
-    verts = np.vstack([va, va + [0.3, 0.1, 0.0]])
-    tris = np.vstack([ta, ta + len(va)]).astype(np.int32)
-    rest = np.array([[0.04, 0.13, -0.01], [0.04, 0.13, 0.01], [0.06, 0.13, 0.01], [0.06, 0.13, -0.01]])
-    quad = np.array([[0, 1, 2, 3]], np.int32)
-    model = build_cloth_model(Garment("quad", rest, quad, np.arange(4)), fabric("cotton"),
-                              SimSettings(union_passes=2), rest,
-                              CoarseMesh(rest, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
-    sim = ClothSim(model, BodyMesh.build(tris, len(verts)), verts)
-    sim.state.x[:] = rest
-    sim.state.v[:] = 0.0
+    sim, _ = quad_in_overlapping_boxes(2)
+    rest, model = QUAD_IN_A, sim.model
     sim.settle_contacts(sim.pose)
     assert tested == [4, 0]
     np.testing.assert_allclose(sim.state.x[:, 1], 0.2 + model.fabric.thickness, atol=1e-12)
