@@ -875,6 +875,13 @@ MARCH_FIRST_STEP = 0.001  # m
 
 
 @njit(cache=True, inline="always")
+def outside_at(px, py, pz, dx, dy, dz, s, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
+    """Whether the point s along d from p is outside the body as a whole (winding number 0)."""
+    return winding_number(px + s * dx, py + s * dy, pz + s * dz, body_x, wfaces, wlo, wstart, wids, wspan,
+                          wextent) == 0
+
+
+@njit(cache=True, inline="always")
 def march_exit(px, py, pz, dx, dy, dz, reach, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
     """How far from p (inside the body) along the unit direction d the body first ends, by
     winding numbers: steps doubling from MARCH_FIRST_STEP, then bisection; inf if not within
@@ -886,12 +893,10 @@ def march_exit(px, py, pz, dx, dy, dz, reach, body_x, wfaces, wlo, wstart, wids,
     step = MARCH_FIRST_STEP
     while lo < reach:
         hi = min(lo + step, reach)
-        if winding_number(px + hi * dx, py + hi * dy, pz + hi * dz, body_x, wfaces, wlo, wstart, wids, wspan,
-                          wextent) == 0:
+        if outside_at(px, py, pz, dx, dy, dz, hi, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
             for _ in range(MARCH_BISECTIONS):
                 mid = 0.5 * (lo + hi)
-                if winding_number(px + mid * dx, py + mid * dy, pz + mid * dz, body_x, wfaces, wlo, wstart, wids,
-                                  wspan, wextent) == 0:
+                if outside_at(px, py, pz, dx, dy, dz, mid, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
                     hi = mid
                 else:
                     lo = mid
@@ -955,8 +960,7 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
                 nx, ny, nz = (q[0] - px) / d, (q[1] - py) / d, (q[2] - pz) / d
             else:
                 nx, ny, nz = face_n[f, 0], face_n[f, 1], face_n[f, 2]
-            if winding_number(px + (d + thickness) * nx, py + (d + thickness) * ny, pz + (d + thickness) * nz,
-                              body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
+            if outside_at(px, py, pz, nx, ny, nz, d + thickness, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
                 best, bx, by, bz = d, nx, ny, nz
         for axis in range(3):
             for sign in (-1.0, 1.0):
@@ -968,30 +972,27 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
                 nx, ny, nz = face_n[f, 0], face_n[f, 1], face_n[f, 2]
                 a = tris[f, 0]
                 plane = (body_x[a, 0] - px) * nx + (body_x[a, 1] - py) * ny + (body_x[a, 2] - pz) * nz
-                if 0.0 < plane < min(t, best) and winding_number(
-                        px + (plane + thickness) * nx, py + (plane + thickness) * ny, pz + (plane + thickness) * nz,
-                        body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
+                if 0.0 < plane < min(t, best) and outside_at(px, py, pz, nx, ny, nz, plane + thickness, body_x,
+                                                               wfaces, wlo, wstart, wids, wspan, wextent):
                     best, bx, by, bz = plane, nx, ny, nz
                     continue  # nearer than the ray's own way out
                 ax = sign if axis == 0 else 0.0
                 ay = sign if axis == 1 else 0.0
                 az = sign if axis == 2 else 0.0
-                if t < best and winding_number(px + (t + thickness) * ax, py + (t + thickness) * ay,
-                                               pz + (t + thickness) * az, body_x, wfaces, wlo, wstart, wids,
-                                               wspan, wextent) == 0:
+                if t < best and outside_at(px, py, pz, ax, ay, az, t + thickness, body_x, wfaces, wlo, wstart, wids,
+                                           wspan, wextent):
                     best, bx, by, bz = t, ax, ay, az
                 elif best == np.inf and t_next < t + thickness:
                     mid = 0.5 * (t + t_next)
-                    if mid < slit and winding_number(px + mid * ax, py + mid * ay, pz + mid * az, body_x, wfaces,
-                                                     wlo, wstart, wids, wspan, wextent) == 0:
+                    if mid < slit and outside_at(px, py, pz, ax, ay, az, mid, body_x, wfaces, wlo, wstart, wids,
+                                                 wspan, wextent):
                         slit, sx, sy, sz = mid, ax, ay, az
         for k in range(DIAGONALS.shape[0] if best > UNION_NEAR else 0):
             nx, ny, nz = DIAGONALS[k, 0], DIAGONALS[k, 1], DIAGONALS[k, 2]
             t = march_exit(px, py, pz, nx, ny, nz, min(best, UNION_REACH), body_x, wfaces, wlo, wstart, wids, wspan,
                            wextent)
-            if t < best and winding_number(px + (t + thickness) * nx, py + (t + thickness) * ny,
-                                           pz + (t + thickness) * nz, body_x, wfaces, wlo, wstart, wids,
-                                           wspan, wextent) == 0:
+            if t < best and outside_at(px, py, pz, nx, ny, nz, t + thickness, body_x, wfaces, wlo, wstart, wids,
+                                       wspan, wextent):
                 best, bx, by, bz = t, nx, ny, nz
         if best < np.inf:
             step = best + thickness
