@@ -76,8 +76,26 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
 
 
 @njit(cache=True, inline="always")
-def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, body_x, nbr_start, nbr_ids, regions,
-                            tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
+def _parent_hint(p, vid, other, face_ids, f, parents, loc):
+    """A lower bound on detailed particle vid's distance to the other body parts, from its
+    parents' (lattice point loc of coarse face f): max over them of other[parent] minus the
+    distance to it; -inf for a corner (no parents)."""
+    hint = -np.inf
+    if parents[loc, 0] < 0:
+        return hint
+    for m in range(3):
+        if parents[loc, m] < 0:
+            continue
+        par = face_ids[f, parents[loc, m]]
+        hint = max(hint, other[par] - math.sqrt((p[par, 0] - p[vid, 0]) ** 2 + (p[par, 1] - p[vid, 1]) ** 2
+                                                + (p[par, 2] - p[vid, 2]) ** 2))
+    return hint
+
+
+@njit(cache=True, inline="always")
+def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, other_d, face_ids, f_face, parents,
+                            loc, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
+                            part_face, face_n, q):
     """Signed distance of detailed particle i (at p[i]) to the body, by a walk over the body's
     faces (`face_walk_distance`) from the face its last walk ended on (body_face[i]): the
     body and the cloth move little between two tests, so that is usually one exact closest
@@ -95,7 +113,9 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
     by body part; reach[:n_parts] their distance from it. One walk
     per part, from its seed nearest to p, where the part is not ruled out by those distances or
     by `hint` (a lower bound on p's distance to the other parts, from its parents'), nor the
-    part the first walk ended in; start_face >= 0 (the face where p's walk in another part
+    part the first walk ended in (loc >= 0: `hint` is computed when first needed, from the
+    parents of lattice point loc of coarse face f_face and their distances other_d; see
+    `avoid_penetration`); start_face >= 0 (the face where p's walk in another part
     ended the frame before, part_face[i]) replaces them while that walk ends in another part.
     Returns (d, n_body, closest point, p's distance to the other parts as far as it is known:
     the nearest walked to, else the bounds that ruled them out; inf if none)."""
@@ -167,6 +187,9 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
             slot = parts[j, 2]
             bound = max(bound, reach[j] - PART_SLACK - (dc0 if slot == 0 else (dc1 if slot == 1 else dc2)))
         g = e
+        if loc >= 0:  # the parents' bound, computed once, here: most particles need none
+            hint = _parent_hint(p, i, other_d, face_ids, f_face, parents, loc)
+            loc = -1
         if bound >= abs(d) or hint >= abs(d):
             other = min(other, max(bound, hint))
             continue
@@ -187,8 +210,9 @@ def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hin
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
     particles a frame), where the call costs little and more inlined copies would cost
     compilation time."""
-    return _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, body_x, nbr_start, nbr_ids,
-                                   regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q)
+    return _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, reach, parts, 0, parts, -1,
+                                   body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
+                                   part_face, face_n, q)
 
 
 @njit(cache=True, inline="always")
@@ -349,22 +373,14 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                 tested += 1
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
                 # top-down like the test itself: the parents' distances to the other body parts
-                # bound the particle's (a walk in another part starts where its own ended the
-                # frame before, if it ended near)
-                hint = -np.inf
-                if parents[loc, 0] >= 0:
-                    for m in range(3):
-                        if parents[loc, m] < 0:
-                            continue
-                        par = face_ids[f, parents[loc, m]]
-                        hint = max(hint, other[par] - math.sqrt((p[par, 0] - p[vid, 0]) ** 2
-                                                                + (p[par, 1] - p[vid, 1]) ** 2
-                                                                + (p[par, 2] - p[vid, 2]) ** 2))
+                # bound the particle's (`_parent_hint`; a walk in another part starts where its
+                # own ended the frame before, if it ended near)
                 d, bx, by, bz, qx, qy, qz, other[vid] = _detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
-                                                                                part_face[vid], hint, body_x, nbr_start,
-                                                                                nbr_ids, regions, tris, tri_start,
-                                                                                tri_ids, tri_nbrs, body_face, part_face,
-                                                                                face_n, q)
+                                                                                part_face[vid], -np.inf, other,
+                                                                                face_ids, f, parents, loc, body_x,
+                                                                                nbr_start, nbr_ids, regions, tris,
+                                                                                tri_start, tri_ids, tri_nbrs, body_face,
+                                                                                part_face, face_n, q)
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 if d < clearance - LIFT_TOLERANCE:
                     # |Δh| never exceeds max_height
