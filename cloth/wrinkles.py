@@ -209,7 +209,8 @@ def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hin
                            tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
     particles a frame), where the call costs little and more inlined copies would cost
-    compilation time."""
+    compilation time. The lifts pass hint itself (loc -1: the parents' arrays after it are not
+    read, and any of the right types will do)."""
     return _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, reach, parts, 0, parts, -1,
                                    body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
                                    part_face, face_n, q)
