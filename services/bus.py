@@ -11,6 +11,8 @@ Key expressions of a session <s> (a name of letters, digits, '-', '_' and '.'):
     tryon/<s>/topology/garment/<name>   garment triangles, colour, fabric; latched
     tryon/<s>/stats/<service>     counters (received, published, rejected, dropped, timings), once a second
     tryon/<s>/control             session events ({"event": "end"} when the motion source ends)
+    tryon/<s>/status/cloth        {"event": "ready"} once the garments are settled into the first pose
+                                  (latched), or {"event": "failed", "reason": ...} when it cannot serve
 
 "Latched" messages are put once when they are made and also answered by a queryable on the same
 key, so a display that joins later gets them with one `get("tryon/<s>/topology/**")`.

@@ -355,14 +355,21 @@ class ClothService:
                 if not isinstance(err, (MessageError, FileNotFoundError, ValueError)):
                     log.error("cloth: setting up session %s failed", session, exc_info=err)
                     self.stats.add("errors")
-                self.failed[session] = f"session cannot be served: {err}"
-                self.stats.reject(MessageError(key(session, "session"), self.failed[session]))
+                self._fail(session, key(session, "session"), err)
             self._count_done()  # the announcement
             bodies = [j for j, (k, _, _) in enumerate(held) if k.endswith("/body")]
             for j, (k, payload, publish) in enumerate(held):
                 # catching up: of the frames that waited, only the newest gets its surface published
                 newest = not k.endswith("/body") or not self.catch_up or j == bodies[-1]
                 self._handle_counted(k, payload, publish and newest)
+
+    def _fail(self, session: str, key_expr: str, err: BaseException) -> None:
+        """The session cannot be served: remember why, count it, and tell its ingest (which stops
+        waiting for "ready") on tryon/<s>/status/cloth."""
+        self.failed[session] = f"session cannot be served: {err}"
+        self.stats.reject(MessageError(key_expr, self.failed[session]))
+        msg = Message("control", session, meta={"event": "failed", "from": "cloth", "reason": self.failed[session]})
+        self.bus.put(key(session, "status", "cloth"), encode(msg))
 
     def _set_up(self, session: str, key_expr: str, desc: dict, stamp_ns: int) -> "GarmentSession":
         """On the setup thread: fit the outfit and settle it into the announced first pose."""
@@ -427,8 +434,7 @@ class ClothService:
             try:
                 gs = self._open(session, key_expr)
             except (MessageError, FileNotFoundError, ValueError) as err:
-                self.failed[session] = f"session cannot be served: {err}"
-                self.stats.reject(MessageError(key_expr, self.failed[session]))
+                self._fail(session, key_expr, err)
                 return False
         gs.last_seen = time.monotonic()
         try:

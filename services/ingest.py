@@ -214,7 +214,8 @@ class IngestService:
         self.frames = 0
         self.last_index = -1  # index of the last frame published
         self._announced = False
-        self._ready = threading.Event()
+        self._ready = threading.Event()  # a cloth service reported the session ready, or failed
+        self.cloth_failed: str | None = None  # why a cloth service cannot serve the session
         self._status = bus.declare_subscriber(key(session, "status", "*"), self._on_status)
         self._verts = np.empty((body.n_visible, 3), np.float32)
 
@@ -253,7 +254,9 @@ class IngestService:
 
     def wait_ready(self, timeout: float) -> bool:
         """Wait up to `timeout` s for a cloth service to report this session ready (garments fitted
-        and settled into the first pose), so the body stream does not queue up behind the pre-roll."""
+        and settled into the first pose), so the body stream does not queue up behind the pre-roll.
+        False when it timed out or a cloth service reported that it cannot serve the session (then
+        `cloth_failed` says why): waiting longer would not help."""
         deadline = time.monotonic() + timeout
         while not self._ready.is_set():
             found = fetch_latched(self.bus, key(self.session, "status", "*"), timeout=0.5)
@@ -262,11 +265,17 @@ class IngestService:
             if time.monotonic() > deadline:
                 return False
             self._ready.wait(0.05)
-        return True
+        return self.cloth_failed is None
 
     def _on_status(self, sample) -> None:
         msg = self.stats.decode(sample, self.session, "control")
-        if msg is not None and msg.meta.get("event") == "ready":
+        if msg is None:
+            return
+        if msg.meta.get("event") == "failed":
+            self.cloth_failed = str(msg.meta.get("reason", "no reason given"))
+            self._ready.set()
+        elif msg.meta.get("event") == "ready":
+            self.cloth_failed = None
             self._ready.set()
 
     def run(self, start_frame: int = 0, before_frame: Callable[[int], bool] | None = None,
@@ -293,7 +302,12 @@ class IngestService:
                     if wait_subscribers > 0 and not self.wait_for_subscribers(wait_subscribers):
                         log.warning("ingest: nothing subscribes to %s", key(self.session, "body"))
                     if wait_ready > 0 and not self.wait_ready(wait_ready):
-                        log.warning("ingest: no cloth service reported %s ready in %.0f s", self.session, wait_ready)
+                        if self.cloth_failed is not None:
+                            log.error("ingest: the cloth service cannot serve %s: %s", self.session,
+                                      self.cloth_failed)
+                        else:
+                            log.warning("ingest: no cloth service reported %s ready in %.0f s", self.session,
+                                        wait_ready)
                     # the waits paused the source: a paced file shifts its schedule by them, a live
                     # stream drops the poses that went stale (a burst of late frames would queue up
                     # at the cloth service); a paced file also shifts itself when it falls further

@@ -30,6 +30,9 @@ from .recorder import Recorder
 from .spin import LIVE_SPIN
 from .viewer import RecordingSink, VertexNormals, ViewerBridge
 
+# how long the ingest waits for its in-process cloth service to report the session ready (or failed)
+EMBEDDED_WAIT_READY = 1800.0
+
 
 class SessionTap:
     """Sees every body and garment message of a session (in order, none dropped): per-stage timings,
@@ -213,8 +216,10 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
             return True
 
         try:
+            # the cloth service is ours: it reports ready, or failed, however long a first run's
+            # compiling takes (over 5 minutes on a slow machine); the limit only guards a hang
             ingest.run(start_frame=START_FRAME, before_frame=before_frame, stop=stop, wait_subscribers=10,
-                       wait_ready=300)
+                       wait_ready=EMBEDDED_WAIT_READY)
         except KeyboardInterrupt:
             ingest.end()
         # everything published so far is simulated, shown and recorded before the files close

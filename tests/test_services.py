@@ -471,6 +471,36 @@ def test_a_session_announced_again_starts_a_new_run(hub, body, data):
         watch.close()
 
 
+def test_an_ingest_stops_waiting_when_the_cloth_service_cannot_serve_its_session(hub, body, data, caplog):
+    """An outfit the cloth service does not have: it reports the session failed, with the reason, and
+    the ingest stops waiting for "ready" at once (not after its whole wait), logs why and streams on."""
+    port, cloth = hub
+    bus = peer(port)
+    caplog.set_level(logging.WARNING)
+    try:
+        source = BVHSource(mocap_clip(data), every=2, max_frames=4)
+        svc = IngestService(bus, "unserved", body, source, {"outfit": "no-such-outfit", "level": LEVEL})
+        waited = []
+        wait_ready = svc.wait_ready
+
+        def timed_wait(timeout):
+            t0 = time.monotonic()
+            ok = wait_ready(timeout)
+            waited.append(time.monotonic() - t0)
+            return ok
+
+        svc.wait_ready = timed_wait
+        assert svc.run(start_frame=START_FRAME, wait_subscribers=10, wait_ready=600) == 3
+        assert svc.cloth_failed is not None and "no-such-outfit" in svc.cloth_failed
+        assert waited[0] < 300  # it stopped on the report, not at the end of its 600 s
+        assert any("cannot serve unserved" in r.getMessage() and "no-such-outfit" in r.getMessage()
+                   for r in caplog.records)
+        assert "unserved" in cloth.failed and "unserved" not in cloth.sessions
+        svc.close()
+    finally:
+        bus.close()
+
+
 def test_ingest_keeps_the_clip_pace_after_a_slow_first_frame(body, data):
     """Whatever the first frame takes (the first retarget loads kernels, a cloth service settles
     the garments), the real-time schedule starts when that frame goes out: the next frames follow
