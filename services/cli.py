@@ -117,17 +117,15 @@ def cmd_cloth(args) -> int:
     from skinning.body import load_body
 
     from .body_job import showcase_frames
-    from .cloth_job import OUTFITS, START_FRAME, render_cloth_snapshots, run_cloth_clip
+    from .cloth_job import OUTFITS, START_FRAME, find_outfit, render_cloth_snapshots, run_cloth_clip
 
     ik = _ik(args)
     data, out_dir, renderer = _start(args)
     body = load_body(data)
     fabrics = fabric_by_name(args.fabric, args.fabrics) if args.fabric else None
     surface = None if args.coarse_only else SurfaceSettings(level=args.level)
-    for outfit in args.outfit or list(OUTFITS):
-        outfit_dir = Path(outfit) if Path(outfit).is_dir() else data / "garments" / outfit
-        if not outfit_dir.is_dir():
-            raise FileNotFoundError(f"outfit {outfit!r} not found (looked for {outfit_dir})")
+    outfits = [find_outfit(data, outfit) for outfit in args.outfit or list(OUTFITS)]  # all checked first
+    for outfit_dir in outfits:
         for clip in _clips(data, args.clip):
             # the first frame is skipped (converter T-pose)
             frames = _frame_list(args.frames) if args.frames else showcase_frames(clip.stem, args.every, START_FRAME)
@@ -150,9 +148,18 @@ def _logging(args) -> None:
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", stream=sys.stderr)
 
 
-def _spec(args):
+def _spec(args, data: Path | None = None):
+    """The outfit, fabric and level the options name; with `data`, checked first (an unknown outfit
+    or fabric stops the command with a message, before any service starts)."""
+    from cloth.fabric import fabric as fabric_by_name
+
+    from .cloth_job import find_outfit
     from .cloth_service import OutfitSpec
 
+    if data is not None:
+        find_outfit(data, args.outfit)
+        if args.fabric:
+            fabric_by_name(args.fabric)
     return OutfitSpec(args.outfit, args.fabric, None if args.coarse_only else args.level)
 
 
@@ -192,6 +199,7 @@ def cmd_session(args) -> int:
     data = data_dir(args.data)
     session = check_session_name(args.session)
     clip = _clips(data, [args.clip])[0]
+    spec = _spec(args, data)
     cfg = bus_config_from_args(args)
     if args.serve and not args.listen:
         cfg.listen = ["tcp/0.0.0.0:7447"]  # remote displays and services connect here
@@ -202,7 +210,7 @@ def cmd_session(args) -> int:
     if args.serve:
         print(f"  serving: rerun viewer `rerun --connect rerun+http://<this-host>:{args.port}/proxy`; "
               f"zenoh displays connect to {cfg.listen[0]}; Ctrl-C to stop")
-    result = run_session(body, data, clip, session, Path(args.out), _spec(args), every=args.every,
+    result = run_session(body, data, clip, session, Path(args.out), spec, every=args.every,
                          max_frames=args.max_frames, bus_config=cfg,
                          serve_port=args.port if args.serve else None,
                          web_port=args.web_port if args.serve else None, record=not args.no_record,
@@ -265,9 +273,10 @@ def cmd_cloth_service(args) -> int:
         except ValueError as err:  # also a value that is not an integer
             raise SystemExit(f"tryon cloth-service: --pin-cores {args.pin_cores!r}: {err}") from None
     data = data_dir(args.data)
+    spec = _spec(args, data)  # the default outfit and fabric
     body = load_body(data)
     with bus_config_from_args(args).open() as bus:
-        svc = ClothService(bus, body, data, _spec(args), idle_seconds=args.idle, catch_up=args.catch_up,
+        svc = ClothService(bus, body, data, spec, idle_seconds=args.idle, catch_up=args.catch_up,
                            spin=args.spin_ms / 1000.0, cpus=cpus).start()
         print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)
         _wait()

@@ -46,6 +46,16 @@ GARMENT_COLORS = [(0.25, 0.42, 0.75), (0.78, 0.33, 0.28), (0.35, 0.6, 0.38), (0.
 START_FRAME = 1
 
 
+def find_outfit(data: Path, name: str | Path) -> Path:
+    """An outfit's folder: a path to one, or a folder name in <data>/garments. FileNotFoundError
+    naming where it looked and which outfits there are."""
+    folder = Path(name) if Path(name).is_dir() else Path(data) / "garments" / str(name)
+    if not folder.is_dir():
+        there = sorted(p.name for p in (Path(data) / "garments").glob("*") if p.is_dir())
+        raise FileNotFoundError(f"outfit {str(name)!r} not found (looked for {folder}); available: {there}")
+    return folder
+
+
 def smoothstep(t: float) -> float:
     return t * t * (3.0 - 2.0 * t)
 

@@ -37,7 +37,7 @@ from skinning.animate import BodyAnimator
 from skinning.body import Body, body_clothed_faces, body_regions
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
-from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, load_outfit_models
+from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, find_outfit, load_outfit_models
 from .heap import freeze_heap, reclaim_heap
 from .protocol import Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
@@ -257,9 +257,7 @@ class ClothService:
 
     def _outfit_models(self, spec: OutfitSpec):
         if spec not in self._models:
-            outfit_dir = Path(spec.outfit) if Path(spec.outfit).is_dir() else self.data / "garments" / spec.outfit
-            if not outfit_dir.is_dir():
-                raise FileNotFoundError(f"outfit {spec.outfit!r} not found (looked for {outfit_dir})")
+            outfit_dir = find_outfit(self.data, spec.outfit)
             fabrics = fabric_preset(spec.fabric) if spec.fabric else None
             outfit = load_outfit_models(self.body, self.animator, self.body_mesh, outfit_dir, fabrics)
             surfaces = None

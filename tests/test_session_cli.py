@@ -51,6 +51,22 @@ def test_session_writes_rrd_recording_and_snapshots(tmp_path, capsys):
     assert (np.abs(img[..., 2].astype(int) - img[..., 0].astype(int)) > 80).mean() > 0.005
 
 
+@pytest.mark.parametrize("argv, says", [
+    (["session", "--outfit", "no-such-outfit"], "outfit 'no-such-outfit' not found"),
+    (["session", "--fabric", "tweed"], "no fabric 'tweed'"),
+    (["cloth", "--outfit", "female_casualsuit01", "--outfit", "no-such-outfit"], "outfit 'no-such-outfit' not found"),
+    (["cloth-service", "--outfit", "no-such-outfit"], "outfit 'no-such-outfit' not found"),
+])
+def test_an_unknown_outfit_or_fabric_stops_the_command_before_it_starts(argv, says, tmp_path, capsys):
+    """A mistyped outfit or fabric is named at once, with what there is, and nothing is written
+    (before, `tryon session` ran the whole clip with every body frame rejected)."""
+    assert main([*argv, "--out", str(tmp_path)] if argv[0] != "cloth-service" else argv) == 2
+    err = capsys.readouterr().err
+    assert says in err and "available:" in err
+    assert "female_casualsuit01" in err or "denim" in err
+    assert not any(tmp_path.iterdir())
+
+
 def test_replay_rejects_a_truncated_recording(tmp_path):
     src = tmp_path / "x.mcap"
     src.write_bytes(b"\x89MCAP0\r\n" + b"\0" * 50)
