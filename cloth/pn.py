@@ -78,6 +78,9 @@ class Tessellation:
     # point), face by face, as detailed vertices: line k is line_ids[line_start[k]:line_start[k + 1]]
     line_start: np.ndarray  # (K + 1,) int32
     line_ids: np.ndarray  # (sum of lengths,) int32
+    # S104 steps 2-4's chains in one array: every coarse edge's edge_ids row, then line_ids
+    # (face line k starts at E (L + 1) + line_start[k])
+    chain_ids: np.ndarray  # (E (L + 1) + sum of lengths,) int32
     # S102 per face: the Bernstein weights of every lattice point (the same in every face) and
     # which of a face's lattice points it owns
     cubic: np.ndarray  # (10, P) float64, in the order of pn_control_points' ctrl
@@ -167,7 +170,8 @@ def build_tessellation(coarse_triangles: np.ndarray, n_coarse: int, level: int) 
     owned = (owner_face[face_ids] == np.arange(T, dtype=np.int32)[:, None]).astype(np.uint8)
     return Tessellation(L, n_coarse, tris, edges, face_ids, owner_face, owner_w, edge_ids, face_edges,
                         triangles.astype(np.int32), d_edges, lat, order, parents,
-                        np.array(interior, dtype=np.int32), line_start, line_ids, cubic, quadratic, owned)
+                        np.array(interior, dtype=np.int32), line_start, line_ids,
+                        np.concatenate([edge_ids.ravel(), line_ids]).astype(np.int32), cubic, quadratic, owned)
 
 
 def bernstein_weights(level: int) -> tuple[np.ndarray, np.ndarray]:

@@ -147,7 +147,9 @@ class SurfaceState:
         self.nctrl = np.zeros((T, 6, 3))
         self.pn_scratch = np.zeros((7, m.tess.cubic.shape[1]))
         self.n_deform = np.zeros((N, 3))
-        self.rates = np.zeros(L1)
+        Q = len(m.tess.chain_ids)
+        self.segments = np.zeros((3, Q), dtype=np.float32)  # S104 scratch: the chains' segments
+        self.rates = np.zeros(Q, dtype=np.float32)  # S104 transfer rates along the chains
         self.edge_heights = np.zeros(L1)  # S106 step 2 scratch: the heights along one coarse edge
         self.f1 = np.zeros(3)
         self.fn = np.zeros(3)
@@ -205,8 +207,8 @@ class DetailedSurface:
         np.negative(s.coarse_force, out=s.coarse_force)
         coarse_edge_forces(x, t.coarse_edges, m.edge_rest_coarse, c.fabric.stretch_stiffness,
                            c.fabric.compression_stiffness, s.edge_force)
-        elastic_forces(s.p, s.coarse_force, s.edge_force, t.edge_ids, t.line_start, t.line_ids, m.transfer_exponent,
-                       s.rates, s.f1, s.fn, s.ef)
+        elastic_forces(s.p, s.coarse_force, s.edge_force, t.edge_ids, t.line_start, t.chain_ids, m.transfer_exponent,
+                       s.segments, s.rates, s.f1, s.fn, s.ef)
         normal_force(s.p, s.ef, m.d_edges, s.vf)
         # S105: length displacement
         length_displacement(s.p, s.p_smoothed, t.edge_ids, m.edge_rest, t.coarse_triangles, t.owner_face,

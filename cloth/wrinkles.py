@@ -415,33 +415,58 @@ def transfer_curve(c, exponent):
     return c ** exponent
 
 
-@njit(cache=True, inline="always")
-def _line_rates(p, ids, count, exponent, rates):
-    """S104 step 2 along chain ids[0..count-1]: rates[m] = the mapped
-    c_m = (p_m - p_{m-1}).(p_{m+1} - p_m) / (|p_m - p_{m-1}| |p_{m+1} - p_m|) of each inner particle
-    (1 where a segment has no length); returns their sum. Each segment is formed once."""
-    i1 = ids[1]
-    ax, ay, az = p[i1, 0] - p[ids[0], 0], p[i1, 1] - p[ids[0], 1], p[i1, 2] - p[ids[0], 2]
-    la = ax * ax + ay * ay + az * az
-    total = 0.0
-    for m in range(1, count - 1):
-        i2 = ids[m + 1]
-        bx, by, bz = p[i2, 0] - p[i1, 0], p[i2, 1] - p[i1, 1], p[i2, 2] - p[i1, 2]
-        lb = bx * bx + by * by + bz * bz
-        den = math.sqrt(la * lb)
-        rate = 1.0 if den == 0.0 else transfer_curve((ax * bx + ay * by + az * bz) / den, exponent)
-        rates[m] = rate
-        total += rate
-        ax, ay, az, la, i1 = bx, by, bz, lb, i2
-    return total
+@kernel(fastmath=FAST_ARITHMETIC)
+def chain_segments(p, chain_ids, seg):
+    """seg[:, q] = p[chain_ids[q + 1]] - p[chain_ids[q]] for every position q of the chains
+    (across two chains' boundary: unused). The loads by particle index, apart from the
+    arithmetic of `chain_rates`, which vectorises (as the S101 springs do)."""
+    i = chain_ids[0]
+    x0, y0, z0 = p[i, 0], p[i, 1], p[i, 2]
+    for q in range(chain_ids.shape[0] - 1):
+        j = chain_ids[q + 1]
+        x1, y1, z1 = p[j, 0], p[j, 1], p[j, 2]
+        seg[0, q] = x1 - x0
+        seg[1, q] = y1 - y0
+        seg[2, q] = z1 - z0
+        x0, y0, z0 = x1, y1, z1
+
+
+@kernel(fastmath=FAST_ARITHMETIC)
+def chain_rates(seg, exponent, rates):
+    """S104 step 2 at every inner position q of a chain: the mapped
+    c_q = (p_q - p_{q-1}).(p_{q+1} - p_q) / (|p_q - p_{q-1}| |p_{q+1} - p_q|), max(c, 0)^exponent
+    (`transfer_curve`), 1 where a segment has no length. In float32, whose reciprocal square
+    root the loop runs eight or sixteen at a time: a transfer weight needs no more than its
+    seven digits, and the scalar square roots and divisions in float64 were two thirds of
+    the elastic forces' time. rates[0] and the chains' ends: unused."""
+    sx, sy, sz = seg[0], seg[1], seg[2]
+    for q in range(1, rates.shape[0]):
+        ax, ay, az = sx[q - 1], sy[q - 1], sz[q - 1]
+        bx, by, bz = sx[q], sy[q], sz[q]
+        ll = (ax * ax + ay * ay + az * az) * (bx * bx + by * by + bz * bz)
+        c = min(max(ax * bx + ay * by + az * bz, np.float32(0.0)) / math.sqrt(ll), np.float32(1.0))
+        rates[q] = c if ll > np.float32(0.0) else np.float32(1.0)
+    # the presets' exponents without a call to pow (1: the patent's plain cosine)
+    if exponent == 2.0:
+        for q in range(rates.shape[0]):
+            rates[q] = rates[q] * rates[q]
+    elif exponent == 0.5:
+        for q in range(rates.shape[0]):
+            rates[q] = math.sqrt(rates[q])
+    elif exponent != 1.0:
+        for q in range(rates.shape[0]):
+            rates[q] = transfer_curve(rates[q], exponent)
 
 
 @njit(cache=True, inline="always")
-def _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, weight, accumulate):
-    """S104 step 3 along one chain ids[0..count-1] whose end forces are f1, fn:
+def _interpolate_line(ids, rates, count, f1, fn, ef, weight, accumulate):
+    """S104 step 3 along one chain ids[0..count-1] whose end forces are f1, fn, with its
+    transfer rates (`chain_rates`):
     ef_i = f_1 + (Σ_{j=2}^{i-1} c_j + 0.5 c_i) / (Σ_{j=2}^{n-1} c_j) (f_n - f_1).
     accumulate: add weight * ef_i (face lines, averaged) instead of storing it (edges)."""
-    total = _line_rates(p, ids, count, exponent, rates)
+    total = 0.0
+    for m in range(1, count - 1):
+        total += rates[m]
     run = 0.0
     inv_total = 1.0 / total if total > 1e-12 else 0.0
     d0, d1, d2 = fn[0] - f1[0], fn[1] - f1[1], fn[2] - f1[2]
@@ -488,34 +513,39 @@ def coarse_edge_forces(x, edges, rest, k_stretch, k_compress, out):
 
 
 @kernel(fastmath=FAST_ARITHMETIC)
-def elastic_forces(p, coarse_force, edge_force, edge_ids, line_start, line_ids, exponent, rates, f1, fn, ef):
+def elastic_forces(p, coarse_force, edge_force, edge_ids, line_start, chain_ids, exponent, seg, rates, f1, fn, ef):
     """S104 steps 1-4: elastic force ef_i of every detailed particle.
 
     Coarse-vertex particles take the coarse elastic force (coarse_force, reaction sign);
     particles on a coarse edge interpolate between the edge's end forces with the transfer
     rates (step 3); face-interior particles (numbered after the edges' particles)
-    interpolate the same way along the lattice lines through them (line_start, line_ids: the
-    Tessellation's), from the edge values at the lines' ends, and average the three
+    interpolate the same way along the lattice lines through them (line_start; chain_ids:
+    the Tessellation's), from the edge values at the lines' ends, and average the three
     directions (step 4: a triangle's lattice has three grid directions).
-    rates (L + 1,), f1 (3,), fn (3,): scratch."""
+    seg (3, Q) float32, rates (Q,) float32 (Q = len(chain_ids)), f1 (3,), fn (3,): scratch."""
+    chain_segments(p, chain_ids, seg)
+    chain_rates(seg, exponent, rates)
     n_coarse = coarse_force.shape[0]
     for i in range(n_coarse):
         for a in range(3):
             ef[i, a] = coarse_force[i, a]
     L1 = edge_ids.shape[1]
     for e in range(edge_ids.shape[0]):
-        _interpolate_line(p, edge_ids[e], L1, edge_force[e, 0], edge_force[e, 1], exponent, rates, ef, 1.0, False)
+        o = e * L1
+        _interpolate_line(chain_ids[o:o + L1], rates[o:o + L1], L1, edge_force[e, 0], edge_force[e, 1], ef, 1.0,
+                          False)
     for i in range(n_coarse + edge_ids.shape[0] * (L1 - 2), ef.shape[0]):
         for a in range(3):
             ef[i, a] = 0.0
     third = 1.0 / 3.0
+    lines = edge_ids.shape[0] * L1  # where the face lines start in chain_ids
     for k in range(line_start.shape[0] - 1):
-        start, count = line_start[k], line_start[k + 1] - line_start[k]
-        ids = line_ids[start:start + count]
+        o, count = lines + line_start[k], line_start[k + 1] - line_start[k]
+        ids = chain_ids[o:o + count]
         for a in range(3):
             f1[a] = ef[ids[0], a]
             fn[a] = ef[ids[count - 1], a]
-        _interpolate_line(p, ids, count, f1, fn, exponent, rates, ef, third, True)
+        _interpolate_line(ids, rates[o:o + count], count, f1, fn, ef, third, True)
 
 
 @kernel(fastmath=FAST_ARITHMETIC)
@@ -523,15 +553,17 @@ def normal_force(p, ef, edges, vf):
     """S104 step 5: vf_i = Σ_j (p_i - p_j)/|p_i - p_j| . ef_j over the detailed neighbours j.
     vf > 0: pushed by its surroundings (relief grows); vf < 0: pulled (the surface flattens).
     Summed over the detailed edges (i, j), each giving its two terms: one square root per
-    edge instead of one per neighbour pair."""
+    edge instead of one per neighbour pair, and that one a float32 reciprocal square root (a
+    direction to seven digits; the float64 square root and division were an eighth of the
+    time)."""
     for i in range(vf.shape[0]):
         vf[i] = 0.0
     for e in range(edges.shape[0]):
         i, j = edges[e, 0], edges[e, 1]
         dx, dy, dz = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1], p[i, 2] - p[j, 2]
         d2 = dx * dx + dy * dy + dz * dz
-        if d2 > 0.0:
-            inv = 1.0 / math.sqrt(d2)
+        if d2 > 1e-30:  # (an edge under 1e-15 m has no direction in float32: as coincident ends)
+            inv = np.float32(1.0) / math.sqrt(np.float32(d2))
             vf[i] += (dx * ef[j, 0] + dy * ef[j, 1] + dz * ef[j, 2]) * inv
             vf[j] -= (dx * ef[i, 0] + dy * ef[i, 1] + dz * ef[i, 2]) * inv
 
