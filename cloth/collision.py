@@ -15,10 +15,9 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from .geometry import closest_point_triangle, morton_order, nearest_vertices
-from .jit import kernel
+from .jit import helper, kernel
 from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
 from .winding import WindingGrid, closed_faces, ray_crossing, winding_number
 
@@ -137,7 +136,7 @@ def face_normals(body_x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return out
 
 
-@njit(cache=True, inline="always")
+@helper
 def walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, mask):
     """Nearest body vertex to p by a local walk from `start` (S101: repeat while a neighbour is nearer),
     through vertices of the particle's body regions only (regions[u] & mask)."""
@@ -158,7 +157,7 @@ def walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, mask):
     return best
 
 
-@njit(cache=True, inline="always")
+@helper
 def deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
     """Signed distance of p to the incident-face plane it is least behind, and that face.
 
@@ -441,7 +440,7 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
             anchor[i, k] = a
 
 
-@njit(cache=True, inline="always")
+@helper
 def vertex_normal(tri_start, tri_ids, face_n, vtx):
     """Area-weighted unit normal of the body at vertex vtx; (0, 0, 0) when it has no usable face."""
     wx = wy = wz = 0.0
@@ -456,7 +455,7 @@ def vertex_normal(tri_start, tri_ids, face_n, vtx):
     return wx / wl, wy / wl, wz / wl
 
 
-@njit(cache=True, inline="always")
+@helper
 def feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t, feature):
     """The surface normal at a closest point on face t (`closest_feature`): the face normal inside
     the face, the two faces' normals summed on an edge, the angle-weighted vertex normal at a
@@ -494,7 +493,7 @@ def feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, t, featur
     return nx / nl, ny / nl, nz / nl
 
 
-@njit(cache=True, inline="always")
+@helper
 def signed(px, py, pz, qx, qy, qz, nx, ny, nz, d2):
     """The distance sqrt(d2) from p to its closest point q, negative when p is behind the
     surface normal (nx, ny, nz) there."""
@@ -502,7 +501,7 @@ def signed(px, py, pz, qx, qy, qz, nx, ny, nz, d2):
     return dist if (px - qx) * nx + (py - qy) * ny + (pz - qz) * nz >= 0.0 else -dist
 
 
-@njit(cache=True, inline="always")
+@helper
 def ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, vtx, face_n, q):
     """Signed distance from p to the faces around body vertex vtx (negative inside).
 
@@ -530,7 +529,7 @@ def ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
     return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
 
 
-@njit(cache=True, inline="always")
+@helper
 def in_vertex_region(px, py, pz, body_x, nbr_start, nbr_ids, vtx):
     """Whether body vertex vtx is the closest point to p on every face around it:
     (p - v).(u - v) <= 0 for every neighbour u (then each face's closest point is v)."""
@@ -547,7 +546,7 @@ FACE_WALK_STEPS = 48  # a face walk longer than this falls back to the vertex wa
 INSIDE_FACE = -1  # closest_feature: the point lies inside the triangle
 
 
-@njit(cache=True, inline="always")
+@helper
 def closest_feature(v, w):
     """Where a closest point with barycentric weights (1 - v - w, v, w) lies on triangle abc:
     INSIDE_FACE, edge 0 (a, b), 1 (b, c), 2 (c, a) (the index into tri_nbrs), or vertex 3 + k
@@ -569,7 +568,7 @@ def closest_feature(v, w):
     return INSIDE_FACE
 
 
-@njit(cache=True, inline="always")
+@helper
 def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start,
                        face_n, q):
     """Signed distance from p to the body (negative inside) by a walk over faces from `start`.
@@ -810,7 +809,7 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
                 break  # as far out as this place allows: a test would push it back into one side
 
 
-@njit(cache=True, inline="always")
+@helper
 def tree_ray_exit(px, py, pz, axis, sign, wind, reach, body_x, tris, box, child, first, count, order, stack, hit_t,
                   hit_s, hit_f):
     """How far along the ray from p along axis (0-2) towards sign (+-1) a point wrapped `wind`
@@ -874,14 +873,14 @@ MARCH_BISECTIONS = 10  # halvings of a winding-number march's last step (its fir
 MARCH_FIRST_STEP = 0.001  # m
 
 
-@njit(cache=True, inline="always")
+@helper
 def outside_at(px, py, pz, dx, dy, dz, s, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
     """Whether the point s along d from p is outside the body as a whole (winding number 0)."""
     return winding_number(px + s * dx, py + s * dy, pz + s * dz, body_x, wfaces, wlo, wstart, wids, wspan,
                           wextent) == 0
 
 
-@njit(cache=True, inline="always")
+@helper
 def march_exit(px, py, pz, dx, dy, dz, reach, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
     """How far from p (inside the body) along the unit direction d the body first ends, by
     winding numbers: steps doubling from MARCH_FIRST_STEP, then bisection; inf if not within
@@ -1114,7 +1113,7 @@ class VertexGrid:
         return self.cell, self.start, self.ids, self.x, self.regions, self.parts
 
 
-@njit(cache=True, inline="always")
+@helper
 def _cell_hash(i, j, k, mask):
     return ((i * 73856093) ^ (j * 19349663) ^ (k * 83492791)) & mask
 
@@ -1149,7 +1148,7 @@ def build_vertex_grid(body_x, regions, cell, start, ids, counts, grid_x, grid_re
         counts[c] += 1
 
 
-@njit(cache=True, inline="always")
+@helper
 def _cell_block(px, py, pz, r, cell):
     """The grid cells (i0..i1, j0..j1, k0..k1) that the box of half-width r around p overlaps."""
     return (int(math.floor((px - r) / cell)), int(math.floor((px + r) / cell)),
@@ -1163,7 +1162,7 @@ def part_scratch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.zeros(8, dtype=np.uint8), np.zeros(8, dtype=np.int32), np.zeros(8)
 
 
-@njit(cache=True, inline="always")
+@helper
 def grid_nearest_per_part(px, py, pz, grid_x, grid_regions, parts, cell, start, ids, radius, own, part, best,
                           best_d2):
     """The nearest body vertex of every body part (a distinct region bit) other than `own`
@@ -1203,7 +1202,7 @@ def grid_nearest_per_part(px, py, pz, grid_x, grid_regions, parts, cell, start, 
     return n
 
 
-@njit(cache=True, inline="always")
+@helper
 def grid_nearest(px, py, pz, grid_x, cell, start, ids, best, best_d2):
     """Nearest body vertex to p within one grid cell of it, if nearer than best_d2 (returns
     (vertex, squared distance); (best, best_d2) when none is nearer). Only the cells that the
@@ -1332,7 +1331,7 @@ def refit_face_tree(body_x, tris, order, child, first, count, box):
                 box[node, 3 + k] = max(box[a, 3 + k], box[b, 3 + k])
 
 
-@njit(cache=True, inline="always")
+@helper
 def _box_d2(px, py, pz, box, node):
     """Squared distance from p to the node's box (0 inside)."""
     dx = max(box[node, 0] - px, 0.0, px - box[node, 3])
@@ -1341,7 +1340,7 @@ def _box_d2(px, py, pz, box, node):
     return dx * dx + dy * dy + dz * dz
 
 
-@njit(cache=True, inline="always")
+@helper
 def tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, first, count, order, parent, leaf, start,
                       skip, stack, best_d2, front, q):
     """The body face nearest to p among those p is less than `front` in front of (by its plane),

@@ -7,15 +7,15 @@ import math
 import numpy as np
 from numba import njit
 
-from .jit import kernel
+from .jit import helper, kernel
 
 
-@njit(cache=True, inline="always")
+@helper
 def dot3(a0, a1, a2, b0, b1, b2):
     return a0 * b0 + a1 * b1 + a2 * b2
 
 
-@njit(cache=True, inline="always")
+@helper
 def closest_point_triangle(px, py, pz, x, a, b, c, out):
     """Closest point to p on triangle (x[a], x[b], x[c]) (Ericson, Real-Time Collision Detection 5.1.5).
 
@@ -118,7 +118,7 @@ def nearest_vertices(points, vertices, out, regions, masks):
                 out[i] = j
 
 
-@njit(cache=True, inline="always")
+@helper
 def add_face_normal(x, triangles, t, out):
     """Add triangle t's area-weighted normal (the cross product of two edges) to its three corners' rows of out."""
     a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]

@@ -18,10 +18,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
 from .geometry import vertex_normals
-from .jit import kernel
+from .jit import helper, kernel
 from .topology import unique_edges
 
 
@@ -245,7 +244,7 @@ def pn_control_points(x, normals, triangles, ctrl, nctrl):
         _edge_normal(x, normals, i3, i1, nctrl, t, 5)
 
 
-@njit(cache=True, inline="always")
+@helper
 def _edge_point(x, normals, i, j, ctrl, t, slot):
     w = ((x[j, 0] - x[i, 0]) * normals[i, 0] + (x[j, 1] - x[i, 1]) * normals[i, 1]
          + (x[j, 2] - x[i, 2]) * normals[i, 2])
@@ -253,7 +252,7 @@ def _edge_point(x, normals, i, j, ctrl, t, slot):
         ctrl[t, slot, k] = (2.0 * x[i, k] + x[j, k] - w * normals[i, k]) / 3.0
 
 
-@njit(cache=True, inline="always")
+@helper
 def _edge_normal(x, normals, i, j, nctrl, t, slot):
     """n_ij = normalize(N_i + N_j - v_ij (P_j - P_i)), v_ij = 2 (P_j - P_i).(N_i + N_j) / |P_j - P_i|²."""
     dx, dy, dz = x[j, 0] - x[i, 0], x[j, 1] - x[i, 1], x[j, 2] - x[i, 2]

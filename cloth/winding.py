@@ -40,9 +40,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
-from .jit import kernel
+from .jit import helper, kernel
 from .topology import boundary_loops
 
 U, V, W = 0, 1, 2  # the columns lie across x and y; the rays run along +z, through the body's thin side
@@ -118,7 +117,7 @@ def build_winding_grid(body_x, tris, cell, lo, start, ids, span, vertex_column, 
     return total
 
 
-@njit(cache=True, inline="always")
+@helper
 def edge_side(x, a, b, pu, pv, u, v):
     """Twice the signed area of (a, b, p) across a ray along the third axis (u, v: the axes
     across it), computed from the lower vertex index, so that the two faces on an edge get
@@ -128,7 +127,7 @@ def edge_side(x, a, b, pu, pv, u, v):
     return s if a == lo else -s
 
 
-@njit(cache=True, inline="always")
+@helper
 def owns_edge(x, a, b, flip, u, v):
     """Top-left rule: which of the two faces on an edge counts a point exactly on it (the edge
     a -> b as the face, turned counter-clockwise across the ray, runs along it)."""
@@ -139,7 +138,7 @@ def owns_edge(x, a, b, flip, u, v):
     return dv > 0.0 or (dv == 0.0 and du < 0.0)
 
 
-@njit(cache=True, inline="always")
+@helper
 def ray_crossing(x, tris, t, pu, pv, u, v, w):
     """Where the line along axis w through (pu, pv) (its coordinates on axes u, v; (u, v, w) a
     cyclic order of (0, 1, 2)) crosses face t: (its coordinate along w, +1 where the face's
@@ -164,7 +163,7 @@ def ray_crossing(x, tris, t, pu, pv, u, v, w):
     return h, (-1 if flip else 1)
 
 
-@njit(cache=True, inline="always")
+@helper
 def winding_number(px, py, pz, body_x, tris, lo, start, ids, span, extent):
     """How many times the body's surface wraps p: the signed crossings of the ray from p (see
     module). lo, start, ids, span, extent: a `WindingGrid` of this pose (`WindingGrid.arrays()`).

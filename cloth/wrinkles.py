@@ -10,11 +10,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from .collision import deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
 from .geometry import add_face_normal
-from .jit import FAST_ARITHMETIC, kernel
+from .jit import FAST_ARITHMETIC, helper, kernel
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -75,7 +74,7 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
                               face, face_n, q)
 
 
-@njit(cache=True, inline="always")
+@helper
 def _parent_hint(p, vid, other, face_ids, f, parents, loc):
     """A lower bound on detailed particle vid's distance to the other body parts, from its
     parents' (lattice point loc of coarse face f): max over them of other[parent] minus the
@@ -92,7 +91,7 @@ def _parent_hint(p, vid, other, face_ids, f, parents, loc):
     return hint
 
 
-@njit(cache=True, inline="always")
+@helper
 def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, other_d, face_ids, f_face, parents,
                             loc, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
                             part_face, face_n, q):
@@ -102,7 +101,7 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
     point. The walk is local; when it is new (body_face[i] < 0) or its answer is farther than
     `seed` (the coarse particle's nearest body vertex, a point of the body), it starts again
     from the face around the nearest vertex to p, found by a vertex walk from `seed`, whose
-    plane p is least behind. (One call site of the walk: numba inlines it, and each copy
+    plane p is least behind. (One call site of the walk: LLVM inlines it, and each copy
     lengthens compilation.)
     A walk ends at a local minimum of the distance: where another body part comes near (an arm
     inside a sleeve beside the torso) it can stop on the torso while p is inside the arm. So a
@@ -216,7 +215,7 @@ def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hin
                                    part_face, face_n, q)
 
 
-@njit(cache=True, inline="always")
+@helper
 def _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift):
     dh[vid] += lift - dh_pen[vid]
     dh_pen[vid] = lift
@@ -399,7 +398,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
 
 # ---------------------------------------------------------------- S104 normal force
 
-@njit(cache=True, inline="always")
+@helper
 def transfer_curve(c, exponent):
     """S104 step 2's mapping of c = cos θ to a transfer rate: max(c, 0)^exponent (exponent 1:
     the patent's plain cosine)."""
@@ -458,7 +457,7 @@ def chain_rates(seg, exponent, rates):
             rates[q] = transfer_curve(rates[q], exponent)
 
 
-@njit(cache=True, inline="always")
+@helper
 def _interpolate_line(ids, rates, count, f1, fn, ef, weight, accumulate):
     """S104 step 3 along one chain ids[0..count-1] whose end forces are f1, fn, with its
     transfer rates (`chain_rates`):
@@ -662,7 +661,7 @@ def deformation_heights(vf, dh, required, edges, n_coarse, k_out, dt, expected, 
         out[i] = h_length if abs(h_length) < abs(h_force) else h_force
 
 
-@njit(cache=True, inline="always")
+@helper
 def _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s):
     """Particle i's height with its S106 step scaled by s, through the force clamp (step 4)
     and the floor and ceiling of step 5, as they will apply."""
@@ -671,7 +670,7 @@ def _scaled_height(dh, dh_def, floor, vf, k_out, dt, ceiling, i, s):
     return max(floor[i], min(dh[i] + step, ceiling[i]))
 
 
-@njit(cache=True, inline="always")
+@helper
 def _lower_within(p_smoothed, n_pn, i, j, h, floor_i, qx, qy, qz, seg_max, allowance):
     """Particle i's height h, lowered (never below floor_i) until it is within the limit of its
     neighbour j, standing at q, as S106 step 5 brings the higher end of an over-long edge down
@@ -687,7 +686,7 @@ def _lower_within(p_smoothed, n_pn, i, j, h, floor_i, qx, qy, qz, seg_max, allow
     return max(floor_i, min(h, t))
 
 
-@njit(cache=True, inline="always")
+@helper
 def _arc_at_scale(p_smoothed, n_pn, dh, dh_def, floor, vf, k_out, dt, ceiling, edge_ids, edge_seg_max, allowance, e,
                   s, heights):
     """Detailed arc length along coarse edge e with its interior particles' steps scaled by s,
@@ -881,7 +880,7 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges
                                     allowance, moved, stamp, start_h, fold, max_height, p)
 
 
-@njit(cache=True, inline="always")
+@helper
 def _keep_changed(listed, count, dh, start_h):
     """Compact a round's list of moved particles to those whose height differs from the one
     they had when first moved in that round; returns the new length."""
@@ -894,12 +893,12 @@ def _keep_changed(listed, count, dh, start_h):
     return kept
 
 
-@njit(cache=True, inline="always")
+@helper
 def _dist2(p, i, j):
     return (p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2
 
 
-@njit(cache=True, inline="always")
+@helper
 def _limit2(p_smoothed, i, j, d_max, allowance):
     """S106 step 5's squared limit on the distance of neighbours i and j: d_max², or (Decision)
     where the reference surface alone parts them beyond d_max, as far as on the edge at rest
@@ -909,7 +908,7 @@ def _limit2(p_smoothed, i, j, d_max, allowance):
     return ref2 + allowance * lim2 if ref2 > lim2 else lim2
 
 
-@njit(cache=True, inline="always")
+@helper
 def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max, allowance, moved, stamp, start_h,
                 fold, max_height, p):
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than its limit
@@ -961,14 +960,14 @@ def offset_along_normals(p_smoothed, n_pn, dh, p):
             p[i, a] = p_smoothed[i, a] + dh[i] * n_pn[i, a]
 
 
-@njit(cache=True, inline="always")
+@helper
 def _set_height(p_smoothed, n_pn, dh, p, i, h):
     dh[i] = h
     for a in range(3):
         p[i, a] = p_smoothed[i, a] + h * n_pn[i, a]
 
 
-@njit(cache=True, inline="always")
+@helper
 def _move(p_smoothed, n_pn, dh, p, i, h, r, moved, stamp, start_h, count):
     """Particle i to height h in round r, listed in moved[r % 2] with the height it had
     (start_h) unless it already is this round (stamp); returns the list's new length."""
@@ -981,7 +980,7 @@ def _move(p_smoothed, n_pn, dh, p, i, h, r, moved, stamp, start_h, count):
     return count
 
 
-@njit(cache=True, inline="always")
+@helper
 def _height_at_distance(p_smoothed, n_pn, i, qx, qy, qz, lim, current):
     """The height t of particle i along its normal with |p_s,i + t n_i - q| = lim, the root
     nearest `current`, and True; if none exists (q is farther than lim from the whole normal

@@ -210,7 +210,7 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, corners, stamp, ray, inv_cell, 
     return best_t, best, far_t <= best_t
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, forceinline=True)
 def _lens_depth(i, x, normals, verts, which, corners, stamp, first_ray, rest, rest_normals, rest_centroid, reach,
                 margin, across, inv_cell, mask, start, ids, depth, trigger):
     k = which[i]
