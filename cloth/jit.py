@@ -28,6 +28,8 @@ from numba import njit
 from numba.core.options import DefaultOptions
 
 NO_REFCOUNT = {"_nrt": False} if hasattr(DefaultOptions, "_nrt") else {}
+# LLVM's inlining of the helpers where numba offers it, numba's own otherwise (see `helper`)
+INLINE = {"forceinline": True} if hasattr(DefaultOptions, "forceinline") else {"inline": "always"}
 
 # fastmath without the no-NaN and no-inf assumptions: reassociation, fused multiply-add,
 # reciprocals and approximate functions, for kernels whose sums and products need no fixed order
@@ -56,7 +58,7 @@ def helper(fn=None, **options):
     compiling against 84 s now. One difference: a helper keeps its own fastmath flags where
     numba's inlining gave it its caller's (`geometry.add_face_normal` in `shading_normals`
     rounds in the last bits as `vertex_normals` does)."""
-    opts = {"cache": True, "nogil": True, "error_model": "numpy", "forceinline": True, **NO_REFCOUNT, **options}
+    opts = {"cache": True, "nogil": True, "error_model": "numpy", **INLINE, **NO_REFCOUNT, **options}
     if fn is None:
         return njit(**opts)
     return njit(**opts)(fn)

@@ -23,10 +23,14 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import get_num_threads, get_thread_id, njit, prange
+from numba.core.options import DefaultOptions
 
 from .body import Body, body_clothed_faces
 from .skin import MeshNormals
 
+# the lens test inlined by LLVM where numba offers it (a first run compiles far faster than with
+# numba's own inlining; the same machine code), by numba otherwise
+_INLINE = {"forceinline": True} if hasattr(DefaultOptions, "forceinline") else {"inline": "always"}
 _HASH_BITS = 15
 MIN_T = 1e-9  # m
 PARALLEL_RAYS = 256  # a flood ring with fewer rays is cast on one thread
@@ -210,7 +214,7 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, corners, stamp, ray, inv_cell, 
     return best_t, best, far_t <= best_t
 
 
-@njit(cache=True, nogil=True, forceinline=True)
+@njit(cache=True, nogil=True, **_INLINE)
 def _lens_depth(i, x, normals, verts, which, corners, stamp, first_ray, rest, rest_normals, rest_centroid, reach,
                 margin, across, inv_cell, mask, start, ids, depth, trigger):
     k = which[i]
