@@ -74,11 +74,10 @@ class Tessellation:
     parents: np.ndarray  # (P, 3) int32 local indices
     interior_local: np.ndarray  # (I,) int32 local indices of face-interior lattice points
     # S104 step 4: every face's interior lattice lines (constant a, b or c, at least one interior
-    # point), face by face, as detailed vertices: line k is line_ids[line_start[k]:line_start[k + 1]]
+    # point), face by face, as detailed vertices. S104 steps 2-4 walk them after the coarse edges,
+    # all as one array of chains: every coarse edge's edge_ids row, then the face lines, line k
+    # at chain_ids[E (L + 1) + line_start[k] : E (L + 1) + line_start[k + 1]]
     line_start: np.ndarray  # (K + 1,) int32
-    line_ids: np.ndarray  # (sum of lengths,) int32
-    # S104 steps 2-4's chains in one array: every coarse edge's edge_ids row, then line_ids
-    # (face line k starts at E (L + 1) + line_start[k])
     chain_ids: np.ndarray  # (E (L + 1) + sum of lengths,) int32
     # S102 per face: the Bernstein weights of every lattice point (the same in every face) and
     # which of a face's lattice points it owns
@@ -169,7 +168,7 @@ def build_tessellation(coarse_triangles: np.ndarray, n_coarse: int, level: int) 
     owned = (owner_face[face_ids] == np.arange(T, dtype=np.int32)[:, None]).astype(np.uint8)
     return Tessellation(L, n_coarse, tris, edges, face_ids, owner_face, owner_w, edge_ids, face_edges,
                         triangles.astype(np.int32), d_edges, lat, order, parents,
-                        np.array(interior, dtype=np.int32), line_start, line_ids,
+                        np.array(interior, dtype=np.int32), line_start,
                         np.concatenate([edge_ids.ravel(), line_ids]).astype(np.int32), cubic, quadratic, owned)
 
 
