@@ -128,6 +128,45 @@ def body_face_normals(body_x, tris, face_n):
         face_n[t, 3] = area2
 
 
+@kernel
+def face_tip_heights(body_x, tris, nbr_start, nbr_ids, tri_start, tri_ids, face_n, vertices, faces, vertex_tip,
+                     face_tip):
+    """How far each body vertex of `vertices` stands out of its ring: (x_v - mean of its
+    neighbours) . n_v, n_v the area-weighted vertex normal (0 where it is lower than its ring);
+    face_tip[t] for each face t of `faces`: the highest of its corners (the others are left as
+    they are). A coarse body mesh (the MakeHuman thighs' edges are 2-3 cm) has vertices standing
+    2-7 mm out of their rings, and more where a pose bends it, where a detailed triangle whose
+    corners are all the clearance away from the body's faces still lets the vertex through
+    between them (S103 tests particles). Once per pose, shared by every garment."""
+    for k in range(vertices.shape[0]):
+        v = vertices[k]
+        nx = ny = nz = 0.0
+        for m in range(tri_start[v], tri_start[v + 1]):
+            t = tri_ids[m]
+            nx += face_n[t, 0] * face_n[t, 3]
+            ny += face_n[t, 1] * face_n[t, 3]
+            nz += face_n[t, 2] * face_n[t, 3]
+        norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+        count = nbr_start[v + 1] - nbr_start[v]
+        if norm == 0.0 or count == 0:
+            vertex_tip[v] = 0.0
+            continue
+        mx = my = mz = 0.0
+        for m in range(nbr_start[v], nbr_start[v + 1]):
+            u = nbr_ids[m]
+            mx += body_x[u, 0]
+            my += body_x[u, 1]
+            mz += body_x[u, 2]
+        inv = 1.0 / count
+        h = ((body_x[v, 0] - mx * inv) * nx + (body_x[v, 1] - my * inv) * ny + (body_x[v, 2] - mz * inv) * nz) / norm
+        vertex_tip[v] = h if h > 0.0 else 0.0
+    for k in range(faces.shape[0]):
+        t = faces[k]
+        a, b, c = vertex_tip[tris[t, 0]], vertex_tip[tris[t, 1]], vertex_tip[tris[t, 2]]
+        m = a if a > b else b
+        face_tip[t] = m if m > c else c
+
+
 def face_normals(body_x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """(m, 4) float64: unit normal and twice the area of each face (allocating; see body_face_normals)."""
     out = np.zeros((len(triangles), 4))
@@ -1015,23 +1054,30 @@ def leave_body_union(x, v, body_vel, body_x, face_n, wfaces, wlo, wstart, wids, 
 class BodyPose:
     """What every garment reads from one body pose, computed once per pose and shared: the
     vertices (float64, contiguous), the face normals, the vertex grid, the face tree (of the
-    faces clothes can touch, `BodyMesh.clothed_faces`) and the winding grid (the body as a
-    whole: `leave_body_union`).
+    faces clothes can touch, `BodyMesh.clothed_faces`), the winding grid (the body as a
+    whole: `leave_body_union`) and how far each face's corners stand out (`face_tip_heights`,
+    for S103).
 
     `update()` computes all of it. A caller that steps garments on several threads can split it:
     `update_surface()` (vertices, face normals: what a step needs from its start), then
     `update_queries()` (grids, face tree: needed only by the contact passes at the end of S101)
     while the garments start; `ClothSim` calls `wait_queries()` before its contact passes."""
 
-    def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False):
+    def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False, tips: bool = False):
         """face_tree: keep the face tree (the contact pass's nearest-face query and the union
         pass read it; False when no garment on the body needs it, `SimSettings.needs_face_tree`).
         winding: keep the winding grid (`leave_body_union`, when a garment on the body has
-        `SimSettings.union_passes`)."""
+        `SimSettings.union_passes`). tips: keep the faces' tip heights (`face_tip`, for S103 when
+        a detailed surface has `SurfaceSettings.tip_share`; else they stay 0)."""
         self.body = body
         self.x = np.zeros((body.n_vertices, 3))  # m
         self.face_n = np.zeros((len(body.triangles), 4))  # see body_face_normals
         self.grid = VertexGrid(body.n_vertices)
+        self.vertex_tip = np.zeros(body.n_vertices)  # m: see face_tip_heights
+        self.face_tip = np.zeros(len(body.triangles))  # m: S103's extra clearance per face is a share of it
+        # the faces clothes can touch and their corners (the head and hands, finely meshed, keep 0)
+        self._tip_faces = np.flatnonzero(body.clothed_faces if tips else np.zeros(0, bool)).astype(np.int32)
+        self._tip_vertices = np.unique(body.triangles[self._tip_faces]).astype(np.int32)
         self.faces = FaceTree(body.triangles, np.flatnonzero(body.clothed_faces), body.regions) if face_tree else None
         self.winding = WindingGrid(body.winding_faces, body.n_vertices) if winding else None
         self._queries = threading.Event()  # set: grid and tree are this pose's
@@ -1056,11 +1102,16 @@ class BodyPose:
         body_face_normals(self.x, self.body.triangles, self.face_n)
 
     def update_queries(self) -> None:
-        """The vertex grid, the winding grid and the face tree's boxes for the pose
-        `update_surface()` set."""
+        """The vertex grid, the faces' tip heights, the winding grid and the face tree's boxes
+        for the pose `update_surface()` set (S103 reads the tips after S101's contact passes
+        waited for these)."""
         self._queries_failed = True
         try:
             self.grid.update(self.x, self.body.regions)
+            b = self.body
+            if len(self._tip_faces):
+                face_tip_heights(self.x, b.triangles, b.nbr_start, b.nbr_ids, b.tri_start, b.tri_ids, self.face_n,
+                                 self._tip_vertices, self._tip_faces, self.vertex_tip, self.face_tip)
             if self.winding is not None:
                 self.winding.update(self.x)
             if self.faces is not None:

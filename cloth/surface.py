@@ -30,6 +30,10 @@ from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coa
 class SurfaceSettings:
     level: int = 6  # PN tessellation level L: L² detailed triangles per coarse triangle
     clearance: float = 0.001  # m: S103 lifts a detailed particle this far out of the body
+    # S103 counts this share of how far the nearest body face's corners stand out of their rings
+    # off a particle's distance (`wrinkles.tip_allowance`): a coarse body's vertices stand 2-7 mm
+    # out, and came through the detailed triangles between particles the clearance away (0: off)
+    tip_share: float = 0.25
     contact_margin: float = 0.005  # m: S103 tests a finer particle only near a particle this close
     # m: S103 tests a coarse face, and its first subdivision, only if a corner is this close
     # (wider than contact_margin: a face whose corners stand off a convex part can cut into it)
@@ -154,6 +158,7 @@ class SurfaceState:
         self.f1 = np.zeros(3)
         self.fn = np.zeros(3)
         self.q = np.zeros(3)
+        self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
 
 class DetailedSurface:
@@ -165,7 +170,7 @@ class DetailedSurface:
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
              body: BodyMesh | None, face_n: np.ndarray | None, dt: float,
-             grid: VertexGrid | None = None) -> tuple[np.ndarray, np.ndarray]:
+             grid: VertexGrid | None = None, face_tip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """One frame of S102-S106 from the coarse positions x (n, 3); returns (positions, normals)
         of the detailed mesh (views of the state arrays, valid until the next step).
 
@@ -173,7 +178,9 @@ class DetailedSurface:
         coarse_nearest: each coarse particle's nearest body vertex (the S103 walk seeds);
         face_n: the body's face normals for this pose (see collision.body_face_normals);
         grid: the body's vertex grid for this pose, through which S103 finds the other body
-        parts near each coarse particle (None: S103 walks from the nearest vertex only)."""
+        parts near each coarse particle (None: S103 walks from the nearest vertex only);
+        face_tip: how far each body face's corners stand out of their rings (`BodyPose.face_tip`;
+        None: not at all)."""
         m, s, t, st = self.model, self.state, self.model.tess, self.model.settings
         c = m.cloth
         t0 = time.perf_counter()
@@ -193,11 +200,16 @@ class DetailedSurface:
             else:
                 other_part_seeds(x, coarse_nearest, body_x, body.regions, *grid.arrays(), s.part, s.part_vertex,
                                  s.part_d2, s.part_seeds, s.seed_reach, s.seed_count)
+            if face_tip is None:
+                if len(s.no_tips) != len(body.triangles):
+                    s.no_tips = np.zeros(len(body.triangles))
+                face_tip = s.no_tips
             self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, s.facing, s.other, t.face_ids, t.order,
                                             t.parents, x, coarse_nearest, find_parts, s.part_seeds, s.seed_reach,
                                             s.seed_count, s.parts, s.reach, body_x, body.nbr_start, body.nbr_ids,
                                             body.regions, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
-                                            s.body_face, s.part_face, face_n, s.q, st.clearance, st.contact_margin,
+                                            s.body_face, s.part_face, face_n, s.q, face_tip, st.tip_share,
+                                            st.clearance, st.contact_margin,
                                             st.face_margin, st.penetration_iterations, st.max_lift, st.max_height)
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.max_height, s.floor, s.ceiling)
         t2 = time.perf_counter()

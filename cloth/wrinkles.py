@@ -203,16 +203,45 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
     return d, nx, ny, nz, qx, qy, qz, other
 
 
+# m: the most S103 counts off a distance for the body's tips (a ridge where the skin contact
+# brings two skins together can stand 10 mm out of its ring)
+MAX_TIP_ALLOWANCE = 0.002
+
+
+# m: S103 counts nothing off for the body's tips where another body part is nearer than this
+TIP_OTHER_CLEAR = 0.01
+
+
+@helper
+def tip_allowance(body_face, i, face_tip, tip_share, normals, bx, by, bz, other):
+    """What S103 counts off particle i's distance to the body: a share of how far the corners of
+    the face its walk ended on stand out of their rings (`collision.face_tip_heights`), at most
+    MAX_TIP_ALLOWANCE, so that a body vertex standing out between detailed particles stays under
+    the triangles between them (Decision: S103 tests particles, not triangles). Only where the
+    body lies below the particle along n_i (n_i . n_body >= 0: a lift) and no other body part
+    is within TIP_OTHER_CLEAR (`other`, the particle's distance to them as far as S103 knows
+    it): in a crease between two skins a further lift or lowering went into the other skin."""
+    f = body_face[i]
+    if f < 0 or other < TIP_OTHER_CLEAR or normals[i, 0] * bx + normals[i, 1] * by + normals[i, 2] * bz < 0.0:
+        return 0.0
+    return min(tip_share * face_tip[f], MAX_TIP_ALLOWANCE)
+
+
 @kernel
 def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, body_x, nbr_start, nbr_ids, regions,
-                           tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
+                           tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, normals, face_tip,
+                           tip_share):
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
     particles a frame), where the call costs little and more inlined copies would cost
-    compilation time. The lifts pass hint itself (loc -1: the parents' arrays after it are not
-    read, and any of the right types will do)."""
-    return _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, reach, parts, 0, parts, -1,
-                                   body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
-                                   part_face, face_n, q)
+    compilation time; less `tip_allowance`, as in `avoid_penetration`. The lifts pass hint
+    itself (loc -1: the parents' arrays after it are not read, and any of the right types will
+    do)."""
+    d, nx, ny, nz, qx, qy, qz, other = _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint,
+                                                               reach, parts, 0, parts, -1, body_x, nbr_start, nbr_ids,
+                                                               regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
+                                                               part_face, face_n, q)
+    d -= tip_allowance(body_face, i, face_tip, tip_share, normals, nx, ny, nz, other)
+    return d, nx, ny, nz, qx, qy, qz, other
 
 
 @helper
@@ -226,10 +255,11 @@ def _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 
 @kernel
 def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
-              nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, clearance,
-              max_iterations, up_cap, down_cap):
+              nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip,
+              tip_share, clearance, max_iterations, up_cap, down_cap):
     """The smallest move along n_i that puts particle vid `clearance` outside the body (S103):
-    a lift of at most up_cap, or (Decision) a lowering of at most down_cap.
+    a lift of at most up_cap, or (Decision) a lowering of at most down_cap. Distances are less
+    `tip_allowance`, as in `avoid_penetration`.
 
     Along n_i the signed distance grows at the rate n_i . n_body, so where the body faces n_i
     one step of (clearance - d) / rate reaches the surface of a locally flat body and a few
@@ -256,7 +286,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
         d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
                                                               -np.inf, body_x, nbr_start, nbr_ids, regions, tris,
                                                               tri_start, tri_ids, tri_nbrs, body_face, part_face,
-                                                              face_n, q)
+                                                              face_n, q, normals, face_tip, tip_share)
         rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
         it += 1
     if d >= enough:
@@ -275,7 +305,8 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
             d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
                                                                   part_face[vid], -np.inf, body_x, nbr_start, nbr_ids,
                                                                   regions, tris, tri_start, tri_ids, tri_nbrs,
-                                                                  body_face, part_face, face_n, q)
+                                                                  body_face, part_face, face_n, q, normals, face_tip,
+                                                                  tip_share)
             if d >= enough:
                 found = True
                 break
@@ -287,7 +318,8 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
                 dm, mx, my, mz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
                                                                        part_face[vid], -np.inf, body_x, nbr_start,
                                                                        nbr_ids, regions, tris, tri_start, tri_ids,
-                                                                       tri_nbrs, body_face, part_face, face_n, q)
+                                                                       tri_nbrs, body_face, part_face, face_n, q,
+                                                                       normals, face_tip, tip_share)
                 if dm >= enough:
                     hi = mid
                     d, bx, by, bz = dm, mx, my, mz
@@ -298,15 +330,16 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
     _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
     d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
                                                           -np.inf, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
-                                                          tri_ids, tri_nbrs, body_face, part_face, face_n, q)
+                                                          tri_ids, tri_nbrs, body_face, part_face, face_n, q, normals,
+                                                          face_tip, tip_share)
     return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
 
 
 @kernel
 def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, x, coarse_nearest,
                       find_parts, part_seeds, seed_reach, seed_count, parts, reach, body_x, nbr_start, nbr_ids, regions,
-                      tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, clearance, margin,
-                      face_margin, max_iterations, max_lift, max_height):
+                      tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip, tip_share,
+                      clearance, margin, face_margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
@@ -327,7 +360,11 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     positions; find_parts False: none are); parts (3 (MAX_PART_SEEDS + 1), 3) int32, reach
     (3 (MAX_PART_SEEDS + 1),): scratch; body_face: the body face each particle's last distance
     walk ended on (-1: none yet), and part_face the face its last walk in another body part
-    ended on, both carried between frames.
+    ended on, both carried between frames. face_tip, tip_share: where the body lies below it, a
+    particle's distance counts tip_share x face_tip of the face its walk ended on less
+    (`tip_allowance`; Decision: a body vertex standing out of its ring would come through the
+    detailed triangles between particles that are only the clearance away from the faces
+    around it).
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
     `_lift_out` for the other cases). Returns the number of particles tested."""
@@ -381,6 +418,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                                                                                 nbr_start, nbr_ids, regions, tris,
                                                                                 tri_start, tri_ids, tri_nbrs, body_face,
                                                                                 part_face, face_n, q)
+                d -= tip_allowance(body_face, vid, face_tip, tip_share, normals, bx, by, bz, other[vid])
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 if d < clearance - LIFT_TOLERANCE:
                     # |Δh| never exceeds max_height
@@ -388,7 +426,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                     down = max(0.0, min(max_lift, max_height + dh[vid]))
                     d, rate = _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh,
                                         dh_pen, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                                        body_face, part_face, face_n, q, clearance, max_iterations, up, down)
+                                        body_face, part_face, face_n, q, face_tip, tip_share, clearance,
+                                        max_iterations, up, down)
                 sd[vid] = d
                 facing[vid] = rate
             if parents[loc, 0] < 0 and sd[vid] < face_margin:

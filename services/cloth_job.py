@@ -145,7 +145,8 @@ class OutfitSession:
         self.surface_seconds = np.zeros((len(self.sims), 3))
         # the frame's body: face normals, vertex grid, face tree; shared by the garments
         self.pose = BodyPose(body_mesh, any(m.settings.needs_face_tree for m in outfit.models),
-                             any(m.settings.union_passes > 0 for m in outfit.models))
+                             any(m.settings.union_passes > 0 for m in outfit.models),
+                             any(sf.model.settings.tip_share > 0 for sf in self.surfaces))
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))
@@ -209,7 +210,7 @@ class OutfitSession:
         if surface:
             st, surf = sim.state, self.surfaces[k]
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
-                                          surface_dt, self.pose.grid)
+                                          surface_dt, self.pose.grid, self.pose.face_tip)
             self.surface_seconds[k] = surf.stage_seconds
         if on_garment is not None:
             on_garment(k, x)

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from cloth.coarsen import CoarseMesh
-from cloth.collision import BodyMesh, VertexGrid, face_normals
+from cloth.collision import BodyMesh, BodyPose, VertexGrid, face_normals
 from cloth.fabric import fabric
 from cloth.garment import Garment
 from cloth.model import SimSettings, build_cloth_model
@@ -588,3 +588,78 @@ def test_wrinkles_under_another_body_part_stay_out_of_it():
     assert under.sum() > 20
     assert p[under, 1].max() == pytest.approx(0.003, abs=1e-9)
     assert p[~under, 1].max() > 0.004
+
+
+def raised_box_top(height, shift=0.0):
+    """A box whose top face lies 0.5 mm under the sheet of `sheet_model()` and whose top vertex
+    nearest the sheet's middle is raised by `height` (a vertex standing out of its ring, as on
+    a coarse body mesh), the box shifted by `shift` along x and z. Returns (vertices, triangles,
+    the raised vertex)."""
+    bv, bt = box(half=0.1, n=10)
+    bv = bv + [0.08 + shift, -0.1005, 0.04 + shift]
+    top = np.flatnonzero(np.isclose(bv[:, 1], -0.0005))
+    apex = top[np.argmin(np.linalg.norm(bv[top][:, [0, 2]] - [0.08 + shift, 0.04 + shift], axis=1))]
+    bv[apex, 1] += height
+    return np.ascontiguousarray(bv), bt, apex
+
+
+def test_face_tip_heights_measure_a_vertex_standing_out_of_its_ring():
+    """A vertex of a flat box top raised by 8 mm stands 8 mm out of its flat ring (along a
+    vertex normal within a few degrees of +y); the faces around it carry that, the flat top
+    away from it and from the box's edges nothing (its neighbours lie under their ring: 0)."""
+    bv, bt, apex = raised_box_top(0.008)
+    pose = BodyPose(body_mesh_of(bv, bt), face_tree=False, tips=True)
+    pose.update(bv)
+    assert pose.vertex_tip[apex] == pytest.approx(0.008, rel=0.02)
+    around = np.any(bt == apex, axis=1)
+    np.testing.assert_allclose(pose.face_tip[around], pose.vertex_tip[apex], rtol=1e-12)
+    centre = bv[apex] - [0.0, 0.008, 0.0]
+    flat = np.all(np.isclose(bv[bt][:, :, 1], -0.0005), axis=1) & ~around
+    inner = flat & np.all(np.abs(bv[bt][:, :, [0, 2]] - centre[[0, 2]]) < 0.07, axis=(1, 2))
+    inner &= ~np.any(np.isin(bt, np.flatnonzero(np.linalg.norm(bv - bv[apex], axis=1) < 0.021)), axis=1)
+    assert inner.sum() > 50
+    np.testing.assert_array_equal(pose.face_tip[inner], 0.0)
+
+
+@pytest.mark.parametrize("tip_share", [0.0, SurfaceSettings().tip_share])
+def test_a_body_vertex_standing_out_between_particles_stays_under_the_surface(tip_share):
+    """Decision (S103 tests particles, not triangles): a body vertex 8 mm out of its ring (2 cm
+    around) lies in the middle of a square of detailed particles (4.7 mm from each). Lifted
+    the clearance off the faces around it, those particles stand 7.7 mm over the flat top,
+    and the vertex comes 0.3 mm through the detailed triangle over it. With a share of its
+    tip height counted off their distance (tip_share 0.25: 2 mm) they stand 9.9 mm over it,
+    and the vertex stays 1.9 mm under the surface."""
+    lattice = 0.04 / 6
+    bv, bt, apex = raised_box_top(0.008, shift=lattice / 2)
+    body = body_mesh_of(bv, bt)
+    pose = BodyPose(body, face_tree=False, tips=True)
+    pose.update(bv)
+    verts, faces = grid_sheet()
+    coarse = CoarseMesh(verts, faces, np.zeros(0, np.int32), np.zeros((0, 3)))
+    cloth = build_cloth_model(Garment("sheet", verts, faces, np.arange(len(verts))), fabric("cotton"), SimSettings(),
+                              verts, coarse)
+    surf = DetailedSurface(build_surface_model(cloth, SurfaceSettings(tip_share=tip_share)))
+    x = cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
+    p, _ = surf.step(x, nearest, pose.x, body, pose.face_n, DT, face_tip=pose.face_tip)
+    # the surface's height over the raised vertex: the detailed triangle under it in x-z
+    a = bv[apex]
+    tri = surf.model.tess.triangles
+    u, v, w = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
+
+    def cross2(o, s, t):
+        return (s[:, 0] - o[:, 0]) * (t[:, 2] - o[:, 2]) - (s[:, 2] - o[:, 2]) * (t[:, 0] - o[:, 0])
+
+    q = np.broadcast_to(a, u.shape)
+    area = cross2(u, v, w)
+    l0, l1, l2 = cross2(v, w, q) / area, cross2(w, u, q) / area, cross2(u, v, q) / area
+    under = np.flatnonzero((l0 >= 0) & (l1 >= 0) & (l2 >= 0))
+    assert len(under) >= 1
+    k = under[0]
+    height = l0[k] * u[k, 1] + l1[k] * v[k, 1] + l2[k] * w[k, 1]
+    corner_distance = np.linalg.norm((p[tri[k]] - a)[:, [0, 2]], axis=1)
+    np.testing.assert_allclose(corner_distance, lattice / np.sqrt(2), rtol=1e-6)  # the square's middle
+    if tip_share == 0.0:
+        assert a[1] - height > 0.0002  # through the surface (by 0.26 mm)
+    else:
+        assert height - a[1] > 0.0015  # under it (by 1.9 mm)
