@@ -1060,8 +1060,8 @@ class BodyPose:
 
     `update()` computes all of it. A caller that steps garments on several threads can split it:
     `update_surface()` (vertices, face normals: what a step needs from its start), then
-    `update_queries()` (grids, face tree: needed only by the contact passes at the end of S101)
-    while the garments start; `ClothSim` calls `wait_queries()` before its contact passes."""
+    `update_queries()` (grids, face tree, tips: needed from the contact passes at the end of S101
+    on) while the garments start; `ClothSim` calls `wait_queries()` before its contact passes."""
 
     def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False, tips: bool = False):
         """face_tree: keep the face tree (the contact pass's nearest-face query and the union
