@@ -1058,10 +1058,14 @@ class BodyPose:
     whole: `leave_body_union`) and how far each face's corners stand out (`face_tip_heights`,
     for S103).
 
-    `update()` computes all of it. A caller that steps garments on several threads can split it:
+    `update()` computes all of it but the tips. A caller that steps garments on several threads
+    can split it:
     `update_surface()` (vertices, face normals: what a step needs from its start), then
-    `update_queries()` (grids, face tree, tips: needed from the contact passes at the end of S101
-    on) while the garments start; `ClothSim` calls `wait_queries()` before its contact passes."""
+    `update_queries()` (grids, face tree: needed only by the contact passes at the end of S101)
+    while the garments start; `ClothSim` calls `wait_queries()` before its contact passes. The
+    tips are computed by the first garment that asks for them (`face_tips()`, before its S103):
+    usually a helper's, which started before the queries' update, not the thread that updated
+    them and stepped its own garment after them."""
 
     def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False, tips: bool = False):
         """face_tree: keep the face tree (the contact pass's nearest-face query and the union
@@ -1082,6 +1086,9 @@ class BodyPose:
         self.winding = WindingGrid(body.winding_faces, body.n_vertices) if winding else None
         self._queries = threading.Event()  # set: grid and tree are this pose's
         self._queries_failed = False
+        self._tips_lock = threading.Lock()
+        self._poses = 0  # poses set by update_surface, and the one the tips are of
+        self._tips_of = -1
 
     def update(self, body_vertices: np.ndarray) -> None:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
@@ -1092,6 +1099,7 @@ class BodyPose:
         """The vertices and face normals of this pose; the grid and tree are stale until
         `update_queries()`."""
         self._queries.clear()
+        self._poses += 1
         if self.body.vertex_order is None:
             self.x[:] = body_vertices[: self.body.n_vertices]
         else:
@@ -1102,16 +1110,11 @@ class BodyPose:
         body_face_normals(self.x, self.body.triangles, self.face_n)
 
     def update_queries(self) -> None:
-        """The vertex grid, the faces' tip heights, the winding grid and the face tree's boxes
-        for the pose `update_surface()` set (S103 reads the tips after S101's contact passes
-        waited for these)."""
+        """The vertex grid, the winding grid and the face tree's boxes for the pose
+        `update_surface()` set."""
         self._queries_failed = True
         try:
             self.grid.update(self.x, self.body.regions)
-            b = self.body
-            if len(self._tip_faces):
-                face_tip_heights(self.x, b.triangles, b.nbr_start, b.nbr_ids, b.tri_start, b.tri_ids, self.face_n,
-                                 self._tip_vertices, self._tip_faces, self.vertex_tip, self.face_tip)
             if self.winding is not None:
                 self.winding.update(self.x)
             if self.faces is not None:
@@ -1119,6 +1122,17 @@ class BodyPose:
             self._queries_failed = False
         finally:  # a waiting garment is released either way, and told if this failed
             self._queries.set()
+
+    def face_tips(self) -> np.ndarray:
+        """`face_tip` for this pose (`face_tip_heights`; zeros unless built with tips=True),
+        computed by the first caller, the others waiting for it (thread-safe)."""
+        with self._tips_lock:
+            if self._tips_of != self._poses and len(self._tip_faces):
+                b = self.body
+                face_tip_heights(self.x, b.triangles, b.nbr_start, b.nbr_ids, b.tri_start, b.tri_ids, self.face_n,
+                                 self._tip_vertices, self._tip_faces, self.vertex_tip, self.face_tip)
+            self._tips_of = self._poses
+        return self.face_tip
 
     def wait_queries(self) -> None:
         """Block until the grid and the face tree are this pose's (`update_queries()` on another

@@ -210,7 +210,7 @@ class OutfitSession:
         if surface:
             st, surf = sim.state, self.surfaces[k]
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
-                                          surface_dt, self.pose.grid, self.pose.face_tip)
+                                          surface_dt, self.pose.grid, self.pose.face_tips())
             self.surface_seconds[k] = surf.stage_seconds
         if on_garment is not None:
             on_garment(k, x)

@@ -610,6 +610,7 @@ def test_face_tip_heights_measure_a_vertex_standing_out_of_its_ring():
     bv, bt, apex = raised_box_top(0.008)
     pose = BodyPose(body_mesh_of(bv, bt), face_tree=False, tips=True)
     pose.update(bv)
+    pose.face_tips()
     assert pose.vertex_tip[apex] == pytest.approx(0.008, rel=0.02)
     around = np.any(bt == apex, axis=1)
     np.testing.assert_allclose(pose.face_tip[around], pose.vertex_tip[apex], rtol=1e-12)
@@ -641,7 +642,7 @@ def test_a_body_vertex_standing_out_between_particles_stays_under_the_surface(ti
     surf = DetailedSurface(build_surface_model(cloth, SurfaceSettings(tip_share=tip_share)))
     x = cloth.rest_positions.copy()
     nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
-    p, _ = surf.step(x, nearest, pose.x, body, pose.face_n, DT, face_tip=pose.face_tip)
+    p, _ = surf.step(x, nearest, pose.x, body, pose.face_n, DT, face_tip=pose.face_tips())
     # the surface's height over the raised vertex: the detailed triangle under it in x-z
     a = bv[apex]
     tri = surf.model.tess.triangles
