@@ -140,12 +140,7 @@ def face_tip_heights(body_x, tris, nbr_start, nbr_ids, tri_start, tri_ids, face_
     between them (S103 tests particles). Once per pose, shared by every garment."""
     for k in range(vertices.shape[0]):
         v = vertices[k]
-        nx = ny = nz = 0.0
-        for m in range(tri_start[v], tri_start[v + 1]):
-            t = tri_ids[m]
-            nx += face_n[t, 0] * face_n[t, 3]
-            ny += face_n[t, 1] * face_n[t, 3]
-            nz += face_n[t, 2] * face_n[t, 3]
+        nx, ny, nz = area_weighted_normal(tri_start, tri_ids, face_n, v)
         norm = math.sqrt(nx * nx + ny * ny + nz * nz)
         count = nbr_start[v + 1] - nbr_start[v]
         if norm == 0.0 or count == 0:
@@ -480,14 +475,21 @@ def follow_body(x, body_x, tris, fixed, face, bary, height, anchor, body_vel, ca
 
 
 @helper
-def vertex_normal(tri_start, tri_ids, face_n, vtx):
-    """Area-weighted unit normal of the body at vertex vtx; (0, 0, 0) when it has no usable face."""
+def area_weighted_normal(tri_start, tri_ids, face_n, vtx):
+    """The sum of the face normals around body vertex vtx, each times twice its face's area (not unit)."""
     wx = wy = wz = 0.0
     for k in range(tri_start[vtx], tri_start[vtx + 1]):
         t = tri_ids[k]
         wx += face_n[t, 3] * face_n[t, 0]
         wy += face_n[t, 3] * face_n[t, 1]
         wz += face_n[t, 3] * face_n[t, 2]
+    return wx, wy, wz
+
+
+@helper
+def vertex_normal(tri_start, tri_ids, face_n, vtx):
+    """Area-weighted unit normal of the body at vertex vtx; (0, 0, 0) when it has no usable face."""
+    wx, wy, wz = area_weighted_normal(tri_start, tri_ids, face_n, vtx)
     wl = math.sqrt(wx * wx + wy * wy + wz * wz)
     if wl == 0.0:
         return 0.0, 0.0, 0.0

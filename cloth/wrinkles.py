@@ -213,16 +213,16 @@ TIP_OTHER_CLEAR = 0.01
 
 
 @helper
-def tip_allowance(body_face, i, face_tip, tip_share, normals, bx, by, bz, other):
+def tip_allowance(body_face, i, face_tip, tip_share, rate, other):
     """What S103 counts off particle i's distance to the body: a share of how far the corners of
     the face its walk ended on stand out of their rings (`collision.face_tip_heights`), at most
     MAX_TIP_ALLOWANCE, so that a body vertex standing out between detailed particles stays under
     the triangles between them (Decision: S103 tests particles, not triangles). Only where the
-    body lies below the particle along n_i (n_i . n_body >= 0: a lift) and no other body part
+    body lies below the particle along n_i (rate = n_i . n_body >= 0: a lift) and no other body part
     is within TIP_OTHER_CLEAR (`other`, the particle's distance to them as far as S103 knows
     it): in a crease between two skins a further lift or lowering went into the other skin."""
     f = body_face[i]
-    if f < 0 or other < TIP_OTHER_CLEAR or normals[i, 0] * bx + normals[i, 1] * by + normals[i, 2] * bz < 0.0:
+    if f < 0 or other < TIP_OTHER_CLEAR or rate < 0.0:
         return 0.0
     return min(tip_share * face_tip[f], MAX_TIP_ALLOWANCE)
 
@@ -240,7 +240,8 @@ def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hin
                                                                reach, parts, 0, parts, -1, body_x, nbr_start, nbr_ids,
                                                                regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
                                                                part_face, face_n, q)
-    d -= tip_allowance(body_face, i, face_tip, tip_share, normals, nx, ny, nz, other)
+    rate = normals[i, 0] * nx + normals[i, 1] * ny + normals[i, 2] * nz
+    d -= tip_allowance(body_face, i, face_tip, tip_share, rate, other)
     return d, nx, ny, nz, qx, qy, qz, other
 
 
@@ -418,8 +419,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                                                                                 nbr_start, nbr_ids, regions, tris,
                                                                                 tri_start, tri_ids, tri_nbrs, body_face,
                                                                                 part_face, face_n, q)
-                d -= tip_allowance(body_face, vid, face_tip, tip_share, normals, bx, by, bz, other[vid])
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
+                d -= tip_allowance(body_face, vid, face_tip, tip_share, rate, other[vid])
                 if d < clearance - LIFT_TOLERANCE:
                     # |Δh| never exceeds max_height
                     up = max(0.0, min(max_lift, max_height - dh[vid]))
