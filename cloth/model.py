@@ -63,6 +63,29 @@ class SimSettings:
     target_particles: int = 320  # coarse model size (SPEC.md table: 322-430)
 
     def __post_init__(self):
+        """A setting out of its range is named here, not met as a NaN or a stalled loop in a kernel."""
+        if self.substeps is not None and (isinstance(self.substeps, bool) or self.substeps < 1
+                                          or not isinstance(self.substeps, (int, np.integer))):
+            raise ValueError(f"SimSettings.substeps must be None or an integer >= 1, got {self.substeps!r}")
+        for key, low in (("collide_every", 1), ("limit_passes", 0), ("slide_passes", 0),
+                         ("contact_limit_passes", 0), ("target_particles", 4)):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+                raise ValueError(f"SimSettings.{key} must be an integer >= {low}, got {value!r}")
+        for key in ("frame_rate", "max_speed"):
+            if not 0 < getattr(self, key) < math.inf:
+                raise ValueError(f"SimSettings.{key} must be > 0 and finite, got {getattr(self, key)!r}")
+        for key in ("follow_near", "follow_easing"):
+            if not 0 <= getattr(self, key) < math.inf:
+                raise ValueError(f"SimSettings.{key} must be >= 0 and finite, got {getattr(self, key)!r}")
+        if not self.follow_near < self.follow_far < math.inf:
+            raise ValueError(f"SimSettings.follow_far must be > follow_near ({self.follow_near!r} m) and finite, "
+                             f"got {self.follow_far!r}")
+        if not 1 < self.max_stretch < math.inf:
+            raise ValueError(f"SimSettings.max_stretch must be > 1 (a ratio to the rest length), "
+                             f"got {self.max_stretch!r}")
+        if not math.isfinite(self.gravity):
+            raise ValueError(f"SimSettings.gravity must be finite, got {self.gravity!r}")
         if self.union_passes not in (0, 1, 2):
             raise ValueError(f"SimSettings.union_passes must be 0, 1 or 2, got {self.union_passes!r}")
         if not self.nearest_face_radius >= 0:

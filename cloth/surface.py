@@ -11,6 +11,7 @@ and shading normals. Δh carries to the next frame.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -54,6 +55,22 @@ class SurfaceSettings:
     # S106 step 5: a wrinkle on a compressed coarse edge widens into a fold to keep the maximum
     # neighbour distance (its neighbours rise), rather than coming down (Decision)
     widen_folds: bool = True
+
+    def __post_init__(self):
+        """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
+        for key in ("level", "penetration_iterations", "constraint_passes", "length_iterations"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"SurfaceSettings.{key} must be an integer >= 1, got {value!r}")
+        for key in ("clearance", "tip_share", "face_margin"):
+            if not 0 <= getattr(self, key) < math.inf:  # (NaN fails too)
+                raise ValueError(f"SurfaceSettings.{key} must be >= 0 and finite, got {getattr(self, key)!r}")
+        for key in ("contact_margin", "max_lift", "max_height", "length_tolerance"):
+            if not 0 < getattr(self, key) < math.inf:
+                raise ValueError(f"SurfaceSettings.{key} must be > 0 and finite, got {getattr(self, key)!r}")
+        if not 1 <= self.max_step_scale < math.inf:
+            raise ValueError(f"SurfaceSettings.max_step_scale must be >= 1 (the patent's step) and finite, "
+                             f"got {self.max_step_scale!r}")
 
 
 @dataclass

@@ -64,6 +64,19 @@ def _ik(args):
     return ik
 
 
+def _level(text: str) -> int:
+    """--level: a PN tessellation level the cloth service serves (1 to MAX_LEVEL)."""
+    from .protocol import MAX_LEVEL
+
+    try:
+        level = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer 1-{MAX_LEVEL}, got {text!r}") from None
+    if not 1 <= level <= MAX_LEVEL:
+        raise argparse.ArgumentTypeError(f"must be an integer 1-{MAX_LEVEL}, got {level}")
+    return level
+
+
 def _frame_list(text: str) -> list[int]:
     try:
         frames = [int(f) for f in text.split(",") if f.strip()]
@@ -382,7 +395,7 @@ def cmd_router(args) -> int:
 def _outfit_arguments(p, level_default: int = 6) -> None:
     p.add_argument("--outfit", default="female_casualsuit01", help="outfit folder in <data>/garments or a path")
     p.add_argument("--fabric", help="one fabric preset for every garment (default: a preset per garment)")
-    p.add_argument("--level", type=int, default=level_default, help="PN tessellation level (default 6)")
+    p.add_argument("--level", type=_level, default=level_default, help="PN tessellation level (default 6)")
     p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
 
 
@@ -402,7 +415,8 @@ def main(argv: list[str] | None = None) -> int:
     _body_arguments(p)
     p.set_defaults(func=cmd_body)
     p = sub.add_parser("cloth", help="cloth (S101-S106) of outfits on motion clips; timings and PNG snapshots")
-    p.add_argument("--level", type=int, default=6, help="PN tessellation level of the detailed surface (default 6)")
+    p.add_argument("--level", type=_level, default=6,
+                   help="PN tessellation level of the detailed surface (default 6)")
     p.add_argument("--coarse-only", action="store_true", help="only the coarse cloth (S101), no detailed surface")
     p.add_argument("--outfit", action="append", help="outfit folder name in <data>/garments or a path (default all)")
     p.add_argument("--clip", action="append", help="clip name in <data>/mocap or a BVH path (default all)")

@@ -39,7 +39,7 @@ from skinning.body import Body, body_clothed_faces, body_regions
 from .bus import Latched, Stats, fetch_latched, key, parse_key
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, find_outfit, load_outfit_models
 from .heap import freeze_heap, reclaim_heap
-from .protocol import Message, MessageError, decode, encode
+from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
 
 log = logging.getLogger("tryon.cloth")
@@ -60,8 +60,8 @@ class OutfitSpec:
             raise MessageError(key_expr, f"session 'outfit' must be a name, got {outfit!r}")
         if fabric is not None and not isinstance(fabric, str):
             raise MessageError(key_expr, f"session 'fabric' must be a preset name or null, got {fabric!r}")
-        if level is not None and (not isinstance(level, int) or not 1 <= level <= 16):
-            raise MessageError(key_expr, f"session 'level' must be an integer 1-16 or null, got {level!r}")
+        if level is not None and (isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= MAX_LEVEL):
+            raise MessageError(key_expr, f"session 'level' must be an integer 1-{MAX_LEVEL} or null, got {level!r}")
         return OutfitSpec(outfit, fabric, level)
 
 

@@ -36,6 +36,7 @@ import numpy as np
 
 MAGIC = b"TRYN"
 SCHEMA_VERSION = 2
+MAX_LEVEL = 16  # the finest PN tessellation level a session description may ask for
 # versions this build reads. Version 1 differs only in the body message, which had to carry the
 # skin's vertex normals: half its bytes, read by no service (a display computes them from the
 # latched topology); a version 1 recording still replays.

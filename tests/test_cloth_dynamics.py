@@ -3,6 +3,8 @@
 import dataclasses
 import math
 
+import re
+
 import numpy as np
 import pytest
 
@@ -905,6 +907,23 @@ def test_nearest_face_query_off_keeps_no_face_tree():
         SimSettings(nearest_face_radius=-0.01)
     with pytest.raises(ValueError, match="union_passes must be 0, 1 or 2"):
         SimSettings(union_passes=3)
+
+
+@pytest.mark.parametrize("kwargs, says", [
+    ({"substeps": 0}, "SimSettings.substeps must be None or an integer >= 1, got 0"),
+    ({"collide_every": 0}, "SimSettings.collide_every must be an integer >= 1, got 0"),
+    ({"limit_passes": -1}, "SimSettings.limit_passes must be an integer >= 0, got -1"),
+    ({"target_particles": 2.5}, "SimSettings.target_particles must be an integer >= 4, got 2.5"),
+    ({"frame_rate": 0.0}, "SimSettings.frame_rate must be > 0 and finite, got 0.0"),
+    ({"follow_easing": -0.01}, "SimSettings.follow_easing must be >= 0 and finite, got -0.01"),
+    ({"follow_far": 0.005}, "SimSettings.follow_far must be > follow_near (0.01 m) and finite, got 0.005"),
+    ({"max_stretch": 1.0}, "SimSettings.max_stretch must be > 1"),
+    ({"gravity": float("nan")}, "SimSettings.gravity must be finite, got nan"),
+])
+def test_sim_settings_name_a_value_out_of_range(kwargs, says):
+    with pytest.raises(ValueError, match=re.escape(says)):
+        SimSettings(**kwargs)
+    SimSettings(substeps=8, follow_easing=0.0)  # and values in range are taken
 
 
 def canonical_triangles(v, t):

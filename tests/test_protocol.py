@@ -8,8 +8,8 @@ import pytest
 
 from services.bus import check_session_name, key, parse_key
 from services.ingest import matrices_to_quaternions, quaternions_to_matrices
-from services.protocol import (MAGIC, PREFIX, SCHEMA_VERSION, Message, MessageError, decode, encode, peek_frame,
-                               retag)
+from services.protocol import (MAGIC, MAX_LEVEL, PREFIX, SCHEMA_VERSION, Message, MessageError, decode, encode,
+                               peek_frame, retag)
 
 KEY = "tryon/s1/body"
 
@@ -147,3 +147,15 @@ def test_a_display_shades_a_mesh_sent_without_normals():
     assert triangles_problem(tris, 4) is None
     assert "outside 0..2" in triangles_problem(tris, 3)
     assert "n_vertices" in triangles_problem(tris, "4")
+
+
+@pytest.mark.parametrize("level", [0, MAX_LEVEL + 1, True, 6.0, "6"])
+def test_a_session_description_with_a_level_out_of_range_is_refused(level):
+    from services.cloth_service import OutfitSpec
+
+    default = OutfitSpec("female_casualsuit01")
+    says = rf"tryon/s/session: session 'level' must be an integer 1-{MAX_LEVEL} or null"
+    with pytest.raises(MessageError, match=says):
+        OutfitSpec.from_description({"level": level}, default, "tryon/s/session")
+    assert OutfitSpec.from_description({"level": None}, default, "tryon/s/session").level is None
+    assert OutfitSpec.from_description({}, default, "tryon/s/session").level == 6

@@ -67,6 +67,20 @@ def test_an_unknown_outfit_or_fabric_stops_the_command_before_it_starts(argv, sa
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("command", ["session", "cloth", "cloth-service"])
+@pytest.mark.parametrize("level", ["0", "17", "six"])
+def test_a_level_the_cloth_service_would_refuse_stops_the_command_at_once(command, level, tmp_path, capsys):
+    """--level out of 1-16 (what a session description may ask for) is named by the option
+    parser; before, `tryon session --level 0` ran the whole clip with every body frame rejected."""
+    with pytest.raises(SystemExit) as stop:
+        main([command, "--level", level, *(["--out", str(tmp_path)] if command != "cloth-service" else [])])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    got = level if level.isdigit() else repr(level)
+    assert f"argument --level: must be an integer 1-16, got {got}" in err
+    assert not any(tmp_path.iterdir())
+
+
 def test_replay_rejects_a_truncated_recording(tmp_path):
     src = tmp_path / "x.mcap"
     src.write_bytes(b"\x89MCAP0\r\n" + b"\0" * 50)

@@ -1,6 +1,8 @@
 """S102-S106 on cases whose answers are known: PN triangles, flat and compressed sheets,
 stretched faces, penetration avoidance against a box and a sphere."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -41,6 +43,22 @@ def evaluate(tess, x, normals):
     p, n = np.zeros((tess.n_vertices, 3)), np.zeros((tess.n_vertices, 3))
     pn_evaluate(ctrl, nctrl, tess.owner_face, tess.owner_weights, p, n)
     return p, n, ctrl, nctrl
+
+
+@pytest.mark.parametrize("key, value, says", [
+    ("level", 0, "SurfaceSettings.level must be an integer >= 1, got 0"),
+    ("level", 6.0, "SurfaceSettings.level must be an integer >= 1, got 6.0"),
+    ("constraint_passes", 0, "SurfaceSettings.constraint_passes must be an integer >= 1"),
+    ("clearance", -0.001, "SurfaceSettings.clearance must be >= 0 and finite, got -0.001"),
+    ("tip_share", float("nan"), "SurfaceSettings.tip_share must be >= 0 and finite, got nan"),
+    ("max_height", 0.0, "SurfaceSettings.max_height must be > 0 and finite, got 0.0"),
+    ("max_lift", float("inf"), "SurfaceSettings.max_lift must be > 0 and finite, got inf"),
+    ("max_step_scale", 0.5, "SurfaceSettings.max_step_scale must be >= 1"),
+])
+def test_surface_settings_name_a_value_out_of_range(key, value, says):
+    with pytest.raises(ValueError, match=re.escape(says)):
+        SurfaceSettings(**{key: value})
+    SurfaceSettings()  # the defaults are valid
 
 
 def test_tessellation_counts_and_shared_vertices():
