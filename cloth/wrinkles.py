@@ -856,6 +856,11 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges
     flat_edge (E,) uint8: scratch.
     Neighbours no farther apart than d_max (per detailed edge): the higher one comes down
     towards its floor, and if that is not enough the lower one goes up (`passes` rounds).
+    Decision (across the normals): where neither move can bring them within the limit — the
+    edge runs across both normals, as on the top of a fold over a curved limb, where raised
+    particles stand farther apart than on the reference surface — both come down together,
+    by one factor on their heights above their floors (`_common_factor`): on the walk's jeans
+    these were most of the edges left too long with neither end at a bound.
     Decision (stretched edges): where the reference surface alone already parts an edge's ends
     beyond d_max (the coarse cloth is stretched past the ratio there), no height can meet the
     limit; the heights may then part them as far as on the edge at rest,
@@ -955,7 +960,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
     (d_max[e], or on an edge the reference surface stretches beyond it, see apply_constraints),
     the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
     still too far, the higher one comes down towards its floor, and if that is not enough the
-    lower one goes up. A particle whose height changed is listed once per round in
+    lower one goes up, and if that is not enough either, both come down by one factor. A particle whose height changed is listed once per round in
     moved[r % 2] (stamp: the round it was listed in; one held at its floor by an edge no height
     can shorten is not, or every later round would revisit it for nothing); returns the new
     length of that list."""
@@ -989,7 +994,37 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
         t = min(t, ceiling[lo])
     if t > dh[lo]:
         count = _move(p_smoothed, n_pn, dh, p, lo, t, r, moved, stamp, start_h, count)
+    if _dist2(p, i, j) > lim * lim * (1.0 + 1e-9):
+        # neither end alone reaches: the edge runs across both normals (on a fold's top over a
+        # curved limb the raised particles stand farther apart than on the reference surface):
+        # both come down together, by one factor on their heights above their floors
+        s = _common_factor(p_smoothed, n_pn, dh, floor, hi, lo, lim * lim)
+        if s < 1.0:
+            count = _move(p_smoothed, n_pn, dh, p, hi, floor[hi] + s * (dh[hi] - floor[hi]), r, moved, stamp,
+                          start_h, count)
+            count = _move(p_smoothed, n_pn, dh, p, lo, floor[lo] + s * (dh[lo] - floor[lo]), r, moved, stamp,
+                          start_h, count)
     return count
+
+
+@helper
+def _common_factor(p_smoothed, n_pn, dh, floor, i, j, lim2):
+    """The largest s in [0, 1] with |q_i - q_j|² <= lim2, q_k = p_s,k + (floor_k + s (Δh_k - floor_k)) n_k:
+    particles i and j brought down towards their floors by one factor (S106 step 5, Decision);
+    1 where even their floors stand farther apart (no common factor helps), or i and j are not
+    above their floors."""
+    a2 = b1 = c2 = 0.0
+    for k in range(3):
+        qa = p_smoothed[i, k] + floor[i] * n_pn[i, k] - p_smoothed[j, k] - floor[j] * n_pn[j, k]
+        qb = (dh[i] - floor[i]) * n_pn[i, k] - (dh[j] - floor[j]) * n_pn[j, k]
+        a2 += qb * qb
+        b1 += qa * qb
+        c2 += qa * qa
+    c2 -= lim2
+    if c2 > 0.0 or a2 <= 0.0:
+        return 1.0
+    # a2 s² + 2 b1 s + c2 = 0, c2 <= 0: one root >= 0
+    return min(1.0, max(0.0, (-b1 + math.sqrt(b1 * b1 - a2 * c2)) / a2))
 
 
 @kernel

@@ -448,6 +448,32 @@ def test_an_edge_stretched_beyond_the_limit_keeps_the_slope_allowed_at_rest():
     assert np.abs(dh[others]).max() < 0.006 - 0.75 * spacing  # the lift spreads no farther than it must
 
 
+def test_a_fold_over_a_curved_limb_comes_down_where_its_top_stands_too_wide():
+    """S106 step 5 (Decision): two neighbours on a cylinder of radius 5 cm, 0.2 rad apart (9.98 mm
+    on the reference surface), both 20 mm up along their radial normals: 13.98 mm apart, beyond
+    d_max (12 mm). Neither can meet the limit alone: along one's normal the other stays at least
+    r sin 0.2 = 13.9 mm away. Both come down together until the edge is d_max long, and no
+    further; before the Decision the edge stayed too long."""
+    from cloth.wrinkles import apply_constraints
+
+    radius, angle, d_max = 0.05, 0.2, 0.012
+    phi = np.array([-angle / 2, angle / 2])
+    n = np.stack([np.sin(phi), np.cos(phi), np.zeros(2)], axis=1)
+    ps = radius * n
+    dh = np.full(2, 0.02)
+    assert (radius + dh[0]) * np.sin(angle) > d_max  # out of reach of either end alone
+    p = np.zeros((2, 3))
+    no_faces = np.zeros((0, 28), np.int32)
+    apply_constraints(ps, n, dh, np.zeros(2), np.full(2, 0.03), no_faces, np.zeros((0, 3), np.int32), np.zeros(0),
+                      np.zeros(0), np.zeros((0, 7), np.int32), np.zeros(0, np.int32), np.array([[0, 1]], np.int32),
+                      np.array([d_max]), 1 - 1 / 1.25**2, np.array([0, 1, 2], np.int64), np.zeros(2, np.int32), 4,
+                      0.03, np.zeros(0, np.uint8), np.zeros((2, 2), np.int32), np.zeros(2, np.int32), np.zeros(2),
+                      True, np.zeros(2, np.uint8), p)
+    np.testing.assert_allclose(np.linalg.norm(p[0] - p[1]), d_max, rtol=1e-9)
+    assert np.all(dh > 0.009)  # about half their height left
+    np.testing.assert_allclose(p, ps + dh[:, None] * n, atol=1e-15)
+
+
 def body_mesh_of(verts, tris):
     return BodyMesh.build(tris, len(verts))
 
