@@ -64,9 +64,9 @@ class SimSettings:
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or a stalled loop in a kernel."""
-        if self.substeps is not None and (isinstance(self.substeps, bool) or self.substeps < 1
-                                          or not isinstance(self.substeps, (int, np.integer))):
-            raise ValueError(f"SimSettings.substeps must be None or an integer >= 1, got {self.substeps!r}")
+        sub = self.substeps
+        if sub is not None and (isinstance(sub, bool) or not isinstance(sub, (int, np.integer)) or sub < 1):
+            raise ValueError(f"SimSettings.substeps must be None or an integer >= 1, got {sub!r}")
         for key, low in (("collide_every", 1), ("limit_passes", 0), ("slide_passes", 0),
                          ("contact_limit_passes", 0), ("target_particles", 4)):
             value = getattr(self, key)

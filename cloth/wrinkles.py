@@ -959,11 +959,11 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
     """S106 step 5 on detailed edge e in round r: if its ends are farther apart than its limit
     (d_max[e], or on an edge the reference surface stretches beyond it, see apply_constraints),
     the lower one rises if the higher is in a fold and it is not (it joins the fold); then if
-    still too far, the higher one comes down towards its floor, and if that is not enough the
-    lower one goes up, and if that is not enough either, both come down by one factor. A particle whose height changed is listed once per round in
-    moved[r % 2] (stamp: the round it was listed in; one held at its floor by an edge no height
-    can shorten is not, or every later round would revisit it for nothing); returns the new
-    length of that list."""
+    still too far, the higher one comes down towards its floor, if that is not enough the lower
+    one goes up, and if neither reaches, both come down by one factor. A particle whose height
+    changed is listed once per round in moved[r % 2] (stamp: the round it was listed in; one
+    held at its floor by an edge no height can shorten is not, or every later round would
+    revisit it for nothing); returns the new length of that list."""
     i, j = d_edges[e, 0], d_edges[e, 1]
     d2 = _dist2(p, i, j)
     if d2 <= d_max[e] * d_max[e]:

@@ -911,6 +911,7 @@ def test_nearest_face_query_off_keeps_no_face_tree():
 
 @pytest.mark.parametrize("kwargs, says", [
     ({"substeps": 0}, "SimSettings.substeps must be None or an integer >= 1, got 0"),
+    ({"substeps": "8"}, "SimSettings.substeps must be None or an integer >= 1, got '8'"),
     ({"collide_every": 0}, "SimSettings.collide_every must be an integer >= 1, got 0"),
     ({"limit_passes": -1}, "SimSettings.limit_passes must be an integer >= 0, got -1"),
     ({"target_particles": 2.5}, "SimSettings.target_particles must be an integer >= 4, got 2.5"),
