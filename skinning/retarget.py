@@ -120,6 +120,19 @@ class IKSettings:
     # (`hands.HandClearance`, applied by `BodyAnimator`); None: the hands stay where the arms put them.
     hand_clearance: HandSettings | None = field(default_factory=HandSettings)
 
+    def __post_init__(self):
+        if isinstance(self.max_iterations, bool) or not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise ValueError(f"IKSettings.max_iterations must be an integer >= 1, got {self.max_iterations!r}")
+        for key in ("position_tolerance", "rotation_tolerance", "damping", "rotation_weight", "max_step"):
+            if not 0 < getattr(self, key) < np.inf:
+                raise ValueError(f"IKSettings.{key} must be > 0 and finite, got {getattr(self, key)!r}")
+        if not 0 <= self.posture_gain <= 1:
+            raise ValueError(f"IKSettings.posture_gain must be in [0, 1], got {self.posture_gain!r}")
+        if not -90 < self.knee_bias_deg < 90:
+            raise ValueError(f"IKSettings.knee_bias_deg must be in (-90, 90), got {self.knee_bias_deg!r}")
+        if not 0 <= self.arm_clearance_deg < 90:
+            raise ValueError(f"IKSettings.arm_clearance_deg must be in [0, 90), got {self.arm_clearance_deg!r}")
+
 
 @dataclass
 class RetargetFrame:

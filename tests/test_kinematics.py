@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -5,7 +7,7 @@ import pytest
 from skinning.animate import BodyAnimator
 from skinning.character import Character
 from skinning.kinematics import rotation_between
-from skinning.retarget import Retargeter, alignment_rotations
+from skinning.retarget import IKSettings, Retargeter, alignment_rotations
 from skinning.skeleton import CMU_BONES
 
 
@@ -174,8 +176,6 @@ def _about(axis, deg):
 
 
 def _retargeters(body, person):
-    from skinning.retarget import IKSettings
-
     ch = BodyAnimator(body).character
     torso = (0.15, 0.1)
     return (Retargeter(ch, person, ik=IKSettings(arm_clearance_deg=0.0), torso=torso),
@@ -257,3 +257,16 @@ def test_arm_clearance_fades_continuously_as_the_arm_swings_forward(body, walker
     assert np.abs(np.diff(turns)).max() < 0.5  # no jump from one half-degree to the next
     assert turns[ahead >= 1.5 * clear.torso[0]].max() == 0.0  # elbow and wrist in front of the body: as copied
     assert turns[ahead <= clear.torso[0]].min() > 2.0
+
+
+@pytest.mark.parametrize("kwargs, says", [
+    ({"max_iterations": 0}, "IKSettings.max_iterations must be an integer >= 1, got 0"),
+    ({"damping": 0.0}, "IKSettings.damping must be > 0 and finite, got 0.0"),
+    ({"max_step": float("nan")}, "IKSettings.max_step must be > 0 and finite, got nan"),
+    ({"posture_gain": 1.5}, "IKSettings.posture_gain must be in [0, 1], got 1.5"),
+    ({"arm_clearance_deg": 90.0}, "IKSettings.arm_clearance_deg must be in [0, 90), got 90.0"),
+])
+def test_ik_settings_name_a_value_out_of_range(kwargs, says):
+    with pytest.raises(ValueError, match=re.escape(says)):
+        IKSettings(**kwargs)
+    IKSettings(arm_clearance_deg=0.0, hand_clearance=None)  # values in range are taken
