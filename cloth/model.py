@@ -20,6 +20,24 @@ from .topology import boundary_loops, triangulate, unique_edges
 STRUCTURAL, SHEAR, BENDING = 0, 1, 2
 
 
+def check_fields(settings, integers: dict[str, int] | None = None, non_negative: tuple = (),
+                 positive: tuple = ()) -> None:
+    """Raise a ValueError naming `Class.field` for a settings field out of its range: integers
+    {field: the lowest allowed}; non_negative and positive: finite numbers >= 0 and > 0 (NaN is
+    out of range)."""
+    name = type(settings).__name__
+    for key, low in (integers or {}).items():
+        value = getattr(settings, key)
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name}.{key} must be an integer >= {low}, got {value!r}")
+    for keys, strict in ((non_negative, False), (positive, True)):
+        for key in keys:
+            value = getattr(settings, key)
+            number = isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+            if not (number and (0 < value if strict else 0 <= value) and value < math.inf):
+                raise ValueError(f"{name}.{key} must be {'>' if strict else '>='} 0 and finite, got {value!r}")
+
+
 @dataclass(frozen=True)
 class SimSettings:
     frame_rate: float = 60.0  # frames per second the substep count is chosen for
@@ -67,17 +85,10 @@ class SimSettings:
         sub = self.substeps
         if sub is not None and (isinstance(sub, bool) or not isinstance(sub, (int, np.integer)) or sub < 1):
             raise ValueError(f"SimSettings.substeps must be None or an integer >= 1, got {sub!r}")
-        for key, low in (("collide_every", 1), ("limit_passes", 0), ("slide_passes", 0),
-                         ("contact_limit_passes", 0), ("target_particles", 4)):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
-                raise ValueError(f"SimSettings.{key} must be an integer >= {low}, got {value!r}")
-        for key in ("frame_rate", "max_speed"):
-            if not 0 < getattr(self, key) < math.inf:
-                raise ValueError(f"SimSettings.{key} must be > 0 and finite, got {getattr(self, key)!r}")
-        for key in ("follow_near", "follow_easing"):
-            if not 0 <= getattr(self, key) < math.inf:
-                raise ValueError(f"SimSettings.{key} must be >= 0 and finite, got {getattr(self, key)!r}")
+        check_fields(self, integers={"collide_every": 1, "limit_passes": 0, "slide_passes": 0,
+                                     "contact_limit_passes": 0, "target_particles": 4},
+                     positive=("frame_rate", "max_speed"),
+                     non_negative=("follow_near", "follow_easing", "nearest_face_radius"))
         if not self.follow_near < self.follow_far < math.inf:
             raise ValueError(f"SimSettings.follow_far must be > follow_near ({self.follow_near!r} m) and finite, "
                              f"got {self.follow_far!r}")
@@ -88,8 +99,6 @@ class SimSettings:
             raise ValueError(f"SimSettings.gravity must be finite, got {self.gravity!r}")
         if self.union_passes not in (0, 1, 2):
             raise ValueError(f"SimSettings.union_passes must be 0, 1 or 2, got {self.union_passes!r}")
-        if not self.nearest_face_radius >= 0:
-            raise ValueError(f"SimSettings.nearest_face_radius must be >= 0 m, got {self.nearest_face_radius!r}")
 
     @property
     def needs_face_tree(self) -> bool:

@@ -19,7 +19,7 @@ import numpy as np
 
 from .collision import BodyMesh, VertexGrid, part_scratch
 from .dynamics import spring_forces, spring_scratch
-from .model import ClothModel
+from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
 from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights,
@@ -58,16 +58,10 @@ class SurfaceSettings:
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
-        for key in ("level", "penetration_iterations", "constraint_passes", "length_iterations"):
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-                raise ValueError(f"SurfaceSettings.{key} must be an integer >= 1, got {value!r}")
-        for key in ("clearance", "tip_share", "face_margin"):
-            if not 0 <= getattr(self, key) < math.inf:  # (NaN fails too)
-                raise ValueError(f"SurfaceSettings.{key} must be >= 0 and finite, got {getattr(self, key)!r}")
-        for key in ("contact_margin", "max_lift", "max_height", "length_tolerance"):
-            if not 0 < getattr(self, key) < math.inf:
-                raise ValueError(f"SurfaceSettings.{key} must be > 0 and finite, got {getattr(self, key)!r}")
+        check_fields(self, integers={"level": 1, "penetration_iterations": 1, "constraint_passes": 1,
+                                     "length_iterations": 1},
+                     non_negative=("clearance", "tip_share", "face_margin"),
+                     positive=("contact_margin", "max_lift", "max_height", "length_tolerance"))
         if not 1 <= self.max_step_scale < math.inf:
             raise ValueError(f"SurfaceSettings.max_step_scale must be >= 1 (the patent's step) and finite, "
                              f"got {self.max_step_scale!r}")
