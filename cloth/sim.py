@@ -11,6 +11,11 @@ over the whole body (then a slide pass: strain limiting with the placed particle
 contact pass again), strain limiting with the placed particles held, the contact pass once
 more for the particles that moved, the body parts each particle's substep collisions track
 (`track_parts`), and the new relative coordinates.
+
+A frame is two kernel calls, `advance_particles` (up to the instability check) and
+`finish_frame` (the rest), which take the model, body, state and settings as tuples built once
+(`ClothSim._arguments`): two dozen calls with up to 38 arguments each cost 10-35 µs a
+garment-frame of Python and dispatch (1-2.5 % of S101; docs/history.md, thirty-ninth session).
 """
 
 from __future__ import annotations
@@ -29,8 +34,9 @@ from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment
 from .geometry import nearest_vertices, region_masks, vertex_normals
-from .jit import kernel
+from .jit import helper, kernel
 from .model import ClothModel, SimSettings, build_cloth_model
+from .winding import NO_WINDING
 
 
 @kernel
@@ -95,6 +101,157 @@ SLIDE_RECHECK = 0.1  # x thickness: a particle that slid less is not tested agai
 # facing the other way the nearest surface, and a particle outside reads deep inside
 FINAL_RECHECK = 0.1
 REGION_RADIUS = 0.06  # m: a particle may attach to the body parts within this distance at rest
+
+
+@kernel
+def advance_particles(model, body, state, body_x, face_n, n_sub, h, inv_dt, ease, settings):
+    """A frame's body following, n_sub substeps of length h and the instability check
+    (`recover_unstable`) as one call (one dispatch instead of four: see `ClothSim.step`):
+    returns how many particles were reset. model, body, state, settings: `ClothSim`'s argument
+    tuples (`ClothSim._arguments`); inv_dt, ease: `follow_body`'s."""
+    (triangles, grip, inv_mass, drag, pairs, params, si, sj, rest, region_mask, n_structural, max_strain, thickness,
+     friction) = model
+    tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
+    (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
+     contact, tested_at, clear, normals, bad, work, spring_work) = state[0]
+    collide_every, limit_passes, gravity_y, follow_near, follow_far, max_speed, max_stretch = settings[0]
+    follow_body(x, body_x, tris, grip, face, bary, height, anchor, body_vel, carrier, inv_dt, follow_near,
+                follow_far, followed, face_n, follow_w, ease)
+    vertex_normals(x, triangles, normals)  # for air drag
+    for i in range(clear.shape[0]):
+        clear[i] = -np.inf  # the body moved: every particle is tested at the first collision
+    simulate_substeps(n_sub, collide_every, h, x, v, inv_mass, drag, normals, gravity_y, pairs, params, si, sj, rest,
+                      spring_work, work, n_structural, max_strain, limit_passes, body_x, carrier, nbr_start, nbr_ids,
+                      tris, tri_start, tri_ids, regions, region_mask, nearest, part_nearest, thickness, friction,
+                      contact, grip, face_n, tested_at, clear)
+    # recovery before the contact pass: a reset particle's body-following place can lie in
+    # another body part, and what leaves the step has been through the contact pass
+    return recover_unstable(x, v, followed, si, sj, rest, n_structural, max_speed, max_stretch, bad)
+
+
+@kernel
+def contact_pass(model, body, state, body_x, face_n, grid, tree, radius, active):
+    """`resolve_contacts` against the whole body in this pose for the active particles (uint8
+    mask); marks the placed particles (placed_inv_mass) and those left with an untested push
+    (unsettled). Arguments as `settle_particles`'."""
+    (triangles, grip, inv_mass, drag, pairs, params, si, sj, rest, region_mask, n_structural, max_strain, thickness,
+     friction) = model
+    tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
+    (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
+     contact, tested_at, clear, normals, bad, work, spring_work) = state[0]
+    (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
+     hit_f) = state[1]
+    cell, grid_start, grid_ids, grid_x, grid_regions, grid_parts = grid
+    box, child, first, count, order, parent, leaf = tree
+    resolve_contacts(x, v, body_x, carrier, nbr_start, nbr_ids, tris, tri_start, tri_ids, tri_nbrs, regions,
+                     nearest_any, thickness, grip, face_n, q, cell, grid_start, grid_ids, grid_x, grid_regions,
+                     grid_parts, box, child, first, count, order, parent, leaf, radius, stack, part, part_vertex,
+                     part_d2, inv_mass, placed_inv_mass, active, unsettled)
+
+
+@kernel
+def union_pass(model, body, state, body_x, face_n, tree, winding, active):
+    """`leave_body_union` for the active particles (uint8 mask), out of the body as a whole;
+    marks the placed particles. Returns how many it put out, and how many it tested."""
+    thickness = model[12]
+    tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
+    x, v, carrier = state[0][0], state[0][1], state[0][10]
+    (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
+     hit_f) = state[1]
+    lo, start, ids, span, extent = winding
+    box, child, first, count, order, parent, leaf = tree
+    tested = 0
+    for i in range(active.shape[0]):
+        tested += 1 if active[i] else 0
+    pushed = leave_body_union(x, v, carrier, body_x, face_n, winding_faces, lo, start, ids, span, extent, tris, box,
+                              child, first, count, order, parent, leaf, stack, hit_t, hit_s, hit_f, q, thickness,
+                              active, placed_inv_mass)
+    return pushed, tested
+
+
+@helper
+def _copy_rows(src, dst):
+    for i in range(src.shape[0]):
+        for k in range(3):
+            dst[i, k] = src[i, k]
+
+
+@kernel
+def settle_particles(model, body, state, body_x, face_n, grid, tree, winding, settings, union_tested):
+    """After the substeps: the contact pass against the whole body, the slide pass, the
+    strain-limiting passes with the placed particles held, the final contact pass and the union
+    passes (see `SimSettings`), as one call (one dispatch instead of a dozen). Returns how many
+    particles the union passes put out; union_tested (2,) int64: written, how many particles
+    the first and the last union pass tested (-1: not run). grid, tree, winding: the body
+    pose's `VertexGrid.arrays()`, `FaceTree.arrays()` and `WindingGrid.arrays()` (empty ones of
+    the same types where the settings read none)."""
+    (triangles, grip, inv_mass, drag, pairs, params, si, sj, rest, region_mask, n_structural, max_strain, thickness,
+     friction) = model
+    x, v = state[0][0], state[0][1]
+    (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
+     hit_f) = state[1]
+    slide_passes, contact_limit_passes, final_contact, union_passes, radius = settings[1]
+    union_tested[0] = union_tested[1] = -1
+    pushes = 0
+    contact_pass(model, body, state, body_x, face_n, grid, tree, radius, all_particles)
+    if slide_passes:
+        # the pass puts a particle where the skin under it went, and skin stretches more than
+        # the cloth may (hips and thighs in a stride): free strain-limiting passes let the
+        # placed particles slide back towards their neighbours, and a second contact pass puts
+        # out again what slid inside, and what the first pass's pushes left untested. A
+        # particle that slid less than SLIDE_RECHECK x thickness from where the first pass
+        # left it outside is still outside (the body has not moved); it is not tested again,
+        # and, as that test would leave it, not held by the strain limiting below.
+        _copy_rows(x, held_from)
+        for _ in range(slide_passes):
+            limit_stretch(x, v, inv_mass, si, sj, rest, n_structural, max_strain)
+        mark_moved(x, held_from, SLIDE_RECHECK * thickness, recheck)
+        for i in range(recheck.shape[0]):
+            recheck[i] |= unsettled[i]
+            placed_inv_mass[i] = inv_mass[i]
+        contact_pass(model, body, state, body_x, face_n, grid, tree, radius, recheck)
+    if union_passes >= 2:
+        pushed, tested = union_pass(model, body, state, body_x, face_n, tree, winding, all_particles)
+        union_tested[0] = tested
+        pushes += pushed
+    # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
+    _copy_rows(x, held_from)
+    for _ in range(contact_limit_passes):
+        limit_stretch(x, v, placed_inv_mass, si, sj, rest, n_structural, max_strain)
+    final = final_contact and contact_limit_passes > 0
+    if final:
+        # pulled after a placed particle, a free one cuts the chord across a curved limb:
+        # what moved far enough to have reached the body is tested once more
+        mark_moved(x, held_from, FINAL_RECHECK * thickness, recheck)
+        contact_pass(model, body, state, body_x, face_n, grid, tree, radius, recheck)
+    if union_passes >= 1:  # last: what the ring tests above cannot see
+        active = all_particles
+        if union_passes >= 2:
+            # the first union pass left each particle outside, or where no way out was found:
+            # only one that moved since by more than FINAL_RECHECK x thickness can have gone
+            # in (the final contact pass moved only such particles)
+            if not final:
+                mark_moved(x, held_from, FINAL_RECHECK * thickness, recheck)
+            active = recheck
+        pushed, tested = union_pass(model, body, state, body_x, face_n, tree, winding, active)
+        union_tested[1] = tested
+        pushes += pushed
+    return pushes
+
+
+@kernel
+def finish_frame(model, body, state, body_x, face_n, grid, tree, winding, settings, union_tested):
+    """`settle_particles`, then the body parts each particle's substep collisions track
+    (`track_parts`) and the new relative coordinates (`attach_to_body`): the end of a frame as
+    one call. Returns what settle_particles returns."""
+    grip, region_mask = model[1], model[9]
+    tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
+    (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
+     contact, tested_at, clear, normals, bad, work, spring_work) = state[0]
+    pushes = settle_particles(model, body, state, body_x, face_n, grid, tree, winding, settings, union_tested)
+    track_parts(x, body_x, regions, region_mask, nearest, nearest_any, part_nearest, REGION_RADIUS)
+    attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, grip, face, bary, height, anchor, face_n)
+    return pushes
 
 
 def particle_regions(points: np.ndarray, body_x: np.ndarray, body: BodyMesh) -> np.ndarray:
@@ -197,10 +354,45 @@ class ClothSim:
         self.state = ClothState(model.n_particles, len(model.spring_i))
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
+        self.union_tested = np.zeros(2, dtype=np.int64)  # particles the last frame's union passes tested
         st = model.settings
         self.own_pose = BodyPose(body, st.needs_face_tree, st.union_passes > 0)  # when no shared pose is given
         self.pose = self.own_pose  # the body pose of the last step, for the detailed surface stage
+        self._model_args, self._body_args, self._state_args, self._settings_args = self._arguments()
         self.reset(body_vertices)
+
+    def _arguments(self) -> tuple[tuple, tuple, tuple, tuple]:
+        """What the frame's kernels (`advance_particles`, `settle_particles`) take of the model,
+        the body mesh, the state and the settings, as tuples built once: a frame is then two
+        calls with a dozen arguments, not two dozen calls with thirty each (about 80 µs a
+        garment-frame of Python and dispatch). The kernels unpack them in this order."""
+        m, b, s, st = self.model, self.body, self.state, self.model.settings
+        f = m.fabric
+        model = (m.triangles, m.grip, m.inv_mass, m.drag, m.spring_pairs, m.spring_params, m.spring_i, m.spring_j,
+                 m.rest_length, m.region_mask, int(m.n_structural), float(f.max_strain), float(f.thickness),
+                 float(f.friction))
+        body = (b.triangles, b.nbr_start, b.nbr_ids, b.tri_start, b.tri_ids, b.tri_nbrs, b.regions, b.winding_faces)
+        state = ((s.x, s.v, s.nearest, s.part_nearest, s.nearest_any, s.face, s.bary, s.height, s.anchor, s.body_vel,
+                  s.carrier, s.follow_w, s.followed, s.contact, s.tested_at, s.clear, s.normals, s.bad, s.work,
+                  s.spring_work),
+                 (s.q, s.stack, s.part, s.part_vertex, s.part_d2, s.placed_inv_mass, s.held_from, s.all_particles,
+                  s.recheck, s.unsettled, s.hit_t, s.hit_s, s.hit_f))
+        # fixed types (an integer given for a float setting would compile the kernels again)
+        settings = ((int(st.collide_every), int(st.limit_passes), -float(st.gravity), float(st.follow_near),
+                     float(st.follow_far), float(st.max_speed), float(st.max_stretch)),
+                    (int(st.slide_passes), int(st.contact_limit_passes), bool(st.final_contact), int(st.union_passes),
+                     float(st.nearest_face_radius)))
+        return model, body, state, settings
+
+    def _pose_arguments(self, pose: BodyPose) -> tuple[tuple, tuple, tuple]:
+        """(grid, tree, winding) of a body pose for `settle_particles`: empty ones of the same
+        types where the settings read none (the contact pass's query is off with no tree)."""
+        st = self.model.settings
+        if st.union_passes and (pose.faces is None or pose.winding is None):
+            raise ValueError("SimSettings.union_passes needs a body pose with the face tree and the winding grid "
+                             "(BodyPose(..., face_tree=True, winding=True))")
+        winding = pose.winding.arrays() if pose.winding is not None else NO_WINDING
+        return pose.grid.arrays(), pose.face_tree_arrays(), winding
 
     @property
     def body_x(self) -> np.ndarray:
@@ -234,50 +426,19 @@ class ClothSim:
         body (body_vertices is then ignored); None: the simulation updates its own from
         body_vertices."""
         s, m, b, st = self.state, self.model, self.body, self.model.settings
-        f = m.fabric
         if body_pose is None:
             body_pose = self.own_pose
             body_pose.update(body_vertices)
         self.pose = body_pose
         body_x, face_n = body_pose.x, body_pose.face_n
-        follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
-                    1.0 / dt, st.follow_near, st.follow_far, s.followed, face_n, s.follow_w,
-                    -math.expm1(-dt / st.follow_easing) if st.follow_easing > 0 else 1.0)
-        vertex_normals(s.x, m.triangles, s.normals)  # for air drag
-        s.clear[:] = -np.inf  # the body moved: every particle is tested at the first collision
         n_sub = m.substeps_for(dt)
         h = dt / n_sub
-        g = -st.gravity
+        ease = -math.expm1(-dt / st.follow_easing) if st.follow_easing > 0 else 1.0
         if profile:
-            t_int = t_col = 0.0
-            for k in range(n_sub):  # the same order as simulate_substeps, timed per stage
-                t0 = time.perf_counter()
-                rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, g, m.spring_pairs, m.spring_params,
-                            s.spring_work, s.work)
-                t1 = time.perf_counter()
-                if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
-                    collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
-                                      b.tri_ids, b.regions, m.region_mask, s.nearest, s.part_nearest, f.thickness,
-                                      f.friction, s.contact, m.grip, face_n, s.tested_at, s.clear)
-                t2 = time.perf_counter()
-                for _ in range(1 if k < n_sub - 1 else st.limit_passes):
-                    limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
-                                  f.max_strain)
-                t_int += (t1 - t0) + (time.perf_counter() - t2)
-                t_col += t2 - t1
-            self.stage_seconds[0] = t_int
-            self.stage_seconds[1] = t_col
+            n_bad = self._advance_profiled(body_pose, n_sub, h, 1.0 / dt, ease)
         else:
-            simulate_substeps(n_sub, st.collide_every, h, s.x, s.v, m.inv_mass, m.drag, s.normals, g, m.spring_pairs,
-                              m.spring_params, m.spring_i, m.spring_j, m.rest_length, s.spring_work, s.work,
-                              m.n_structural, f.max_strain, st.limit_passes, body_x, s.carrier,
-                              b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids, b.regions,
-                              m.region_mask, s.nearest, s.part_nearest, f.thickness, f.friction, s.contact, m.grip,
-                              face_n, s.tested_at, s.clear)
-        # recovery before the contact pass: a reset particle's body-following place can lie in
-        # another body part, and what leaves the step has been through the contact pass
-        n_bad = recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length,
-                                 m.n_structural, st.max_speed, st.max_stretch, s.bad)
+            n_bad = advance_particles(self._model_args, self._body_args, self._state_args, body_x, face_n, n_sub, h,
+                                      1.0 / dt, ease, self._settings_args)
         if n_bad:
             self.stats.reset_particles += n_bad
             self.stats.reset_frames += 1
@@ -288,86 +449,57 @@ class ClothSim:
             s.nearest[idx] = near
             s.nearest_any[idx] = near
             part_seeds(s.x, body_x, b.regions, m.region_mask, s.part_nearest, idx)
-        self.settle_contacts(body_pose)
-        track_parts(s.x, body_x, b.regions, m.region_mask, s.nearest, s.nearest_any, s.part_nearest, REGION_RADIUS)
-        attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, m.grip, s.face, s.bary,
-                       s.height, s.anchor, face_n)
+        body_pose.wait_queries()  # its grids and tree may still be updated (or grown) on another thread
+        grid, tree, winding = self._pose_arguments(body_pose)
+        self.stats.union_pushes += finish_frame(self._model_args, self._body_args, self._state_args, body_x, face_n,
+                                                grid, tree, winding, self._settings_args, self.union_tested)
         self.stats.frames += 1
         self.stats.last_substeps = n_sub
         return s.x
 
+    def _advance_profiled(self, pose: BodyPose, n_sub: int, h: float, inv_dt: float, ease: float) -> int:
+        """What `advance_particles` does, kernel by kernel, with integration (RK4 and strain
+        limiting) and collision timed apart into stage_seconds (bench_cloth's columns)."""
+        s, m, b, st = self.state, self.model, self.body, self.model.settings
+        f = m.fabric
+        body_x, face_n = pose.x, pose.face_n
+        follow_body(s.x, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
+                    inv_dt, st.follow_near, st.follow_far, s.followed, face_n, s.follow_w, ease)
+        vertex_normals(s.x, m.triangles, s.normals)
+        s.clear[:] = -np.inf
+        t_int = t_col = 0.0
+        for k in range(n_sub):  # the same order as simulate_substeps
+            t0 = time.perf_counter()
+            rk4_substep(s.x, s.v, h, m.inv_mass, m.drag, s.normals, -st.gravity, m.spring_pairs, m.spring_params,
+                        s.spring_work, s.work)
+            t1 = time.perf_counter()
+            if (k + 1) % st.collide_every == 0 or k == n_sub - 1:
+                collide_particles(s.x, s.v, body_x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start,
+                                  b.tri_ids, b.regions, m.region_mask, s.nearest, s.part_nearest, f.thickness,
+                                  f.friction, s.contact, m.grip, face_n, s.tested_at, s.clear)
+            t2 = time.perf_counter()
+            for _ in range(1 if k < n_sub - 1 else st.limit_passes):
+                limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
+                              f.max_strain)
+            t_int += (t1 - t0) + (time.perf_counter() - t2)
+            t_col += t2 - t1
+        self.stage_seconds[0] = t_int
+        self.stage_seconds[1] = t_col
+        return recover_unstable(s.x, s.v, s.followed, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
+                                st.max_speed, st.max_stretch, s.bad)
+
     def settle_contacts(self, pose: BodyPose) -> None:
         """After the substeps: the contact pass against the whole body, the slide pass, the
-        strain-limiting passes with the placed particles held, and the final contact pass
-        (see `SimSettings`)."""
-        s, m, st = self.state, self.model, self.model.settings
-        f = m.fabric
-        pose.wait_queries()  # its grid and tree may still be updated on another thread
-        self._contact_pass(pose)
-        if st.slide_passes:
-            # the pass puts a particle where the skin under it went, and skin stretches more than
-            # the cloth may (hips and thighs in a stride): free strain-limiting passes let the
-            # placed particles slide back towards their neighbours, and a second contact pass puts
-            # out again what slid inside, and what the first pass's pushes left untested. A
-            # particle that slid less than SLIDE_RECHECK x thickness from where the first pass
-            # left it outside is still outside (the body has not moved); it is not tested again,
-            # and, as that test would leave it, not held by the strain limiting below.
-            s.held_from[:] = s.x
-            for _ in range(st.slide_passes):
-                limit_stretch(s.x, s.v, m.inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural, f.max_strain)
-            mark_moved(s.x, s.held_from, SLIDE_RECHECK * f.thickness, s.recheck)
-            np.bitwise_or(s.recheck, s.unsettled, out=s.recheck)
-            s.placed_inv_mass[:] = m.inv_mass
-            self._contact_pass(pose, s.recheck)
-        if st.union_passes >= 2:
-            self._union_pass(pose)
-        # the pushes stretch the cloth around a pushed particle: pull its neighbours after it
-        s.held_from[:] = s.x
-        for _ in range(st.contact_limit_passes):
-            limit_stretch(s.x, s.v, s.placed_inv_mass, m.spring_i, m.spring_j, m.rest_length, m.n_structural,
-                          f.max_strain)
-        if st.final_contact and st.contact_limit_passes:
-            # pulled after a placed particle, a free one cuts the chord across a curved limb:
-            # what moved far enough to have reached the body is tested once more
-            mark_moved(s.x, s.held_from, FINAL_RECHECK * f.thickness, s.recheck)
-            self._contact_pass(pose, s.recheck)
-        if st.union_passes >= 1:  # last: what the ring tests above cannot see
-            active = None
-            if st.union_passes >= 2:
-                # the first union pass left each particle outside, or where no way out was
-                # found: only one that moved since by more than FINAL_RECHECK x thickness can
-                # have gone in (the final contact pass moved only such particles)
-                if not (st.final_contact and st.contact_limit_passes):
-                    mark_moved(s.x, s.held_from, FINAL_RECHECK * f.thickness, s.recheck)
-                active = s.recheck
-            self._union_pass(pose, active)
-
-    def _union_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
-        """`leave_body_union`: out of the body as a whole, for particles the ring tests of the
-        contact pass read as outside (needs the face tree and the winding grid; marks the placed
-        particles). active: the particles to test (all unless given)."""
-        if pose.faces is None or pose.winding is None:
-            raise ValueError("SimSettings.union_passes needs a body pose with the face tree and the winding grid "
-                             "(BodyPose(..., face_tree=True, winding=True))")
-        s, b = self.state, self.body
-        self.stats.union_pushes += leave_body_union(
-            s.x, s.v, s.carrier, pose.x, pose.face_n, b.winding_faces, *pose.winding.arrays(), b.triangles,
-            *pose.faces.arrays(), s.stack, s.hit_t, s.hit_s, s.hit_f, s.q, self.model.fabric.thickness,
-            s.all_particles if active is None else active,
-            s.placed_inv_mass)
-
-    def _contact_pass(self, pose: BodyPose, active: np.ndarray | None = None) -> None:
-        """`resolve_contacts` against the whole body in this pose for the active particles (all
-        unless given); marks the placed particles."""
-        s, m, b = self.state, self.model, self.body
-        grid = pose.grid
-        active = s.all_particles if active is None else active
-        radius = m.settings.nearest_face_radius if pose.faces is not None else 0.0
-        resolve_contacts(s.x, s.v, pose.x, s.carrier, b.nbr_start, b.nbr_ids, b.triangles, b.tri_start, b.tri_ids,
-                         b.tri_nbrs, b.regions, s.nearest_any, m.fabric.thickness, m.grip, pose.face_n, s.q,
-                         *grid.arrays(), *pose.face_tree_arrays(), radius, s.stack, s.part,
-                         s.part_vertex, s.part_d2, m.inv_mass, s.placed_inv_mass, active, s.unsettled)
+        strain-limiting passes with the placed particles held, the final contact pass and the
+        union passes (`settle_particles`; see `SimSettings`). union_tested: what each union
+        pass tested."""
+        pose.wait_queries()  # its grids and tree may still be updated (or grown) on another thread
+        grid, tree, winding = self._pose_arguments(pose)
+        self.stats.union_pushes += settle_particles(self._model_args, self._body_args, self._state_args, pose.x,
+                                                    pose.face_n, grid, tree, winding, self._settings_args,
+                                                    self.union_tested)
 
 
-__all__ = ["ClothSim", "ClothState", "ClothStats", "prepare_cloth", "resolve_intersections", "simulate_substeps",
-           "recover_unstable", "SimSettings"]
+__all__ = ["ClothSim", "ClothState", "ClothStats", "advance_particles", "contact_pass", "finish_frame", "prepare_cloth",
+           "recover_unstable", "resolve_intersections", "settle_particles", "simulate_substeps", "union_pass",
+           "SimSettings"]

@@ -257,5 +257,9 @@ class WindingGrid:
         return self.lo, self.start, self.ids, self.span, self.extent
 
 
-__all__ = ["WindingGrid", "build_winding_grid", "closed_faces", "edge_side", "owns_edge", "ray_crossing",
+# `WindingGrid.arrays()` of no grid: what a kernel that takes one is given where none is kept
+NO_WINDING = (np.zeros(5), np.zeros(1, np.int32), np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros((0, 2)))
+
+
+__all__ = ["NO_WINDING", "WindingGrid", "build_winding_grid", "closed_faces", "edge_side", "owns_edge", "ray_crossing",
            "winding_number", "winding_numbers"]

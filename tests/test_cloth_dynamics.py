@@ -886,6 +886,43 @@ def test_slide_pass_lets_placed_particles_slide_back_to_the_strain_limit(slide_p
     assert placed.all() if slide_passes == 0 else not placed.any()
 
 
+@pytest.mark.parametrize("blow_up", ["nan", "speed"])
+def test_step_resets_exploded_particles_to_their_body_following_places_and_counts_them(blow_up):
+    """The quad of `quad_on_box` settled on the still box for three frames, then a NaN in one
+    particle's velocity (it reaches every particle of the quad through the springs in the first
+    substep) or one particle thrown at 100 m/s (past max_speed; the strain limiting shares its
+    speed with the other three): the step resets all four to their body-following places, which
+    on a body that did not move are where the frame began, at rest, and counts them."""
+    sim, x = quad_on_box(SimSettings())
+    body = sim.pose.x.copy()
+    for _ in range(3):
+        sim.step(body, 1 / 60)
+    assert sim.stats.reset_particles == 0
+    before = x.copy()
+    if blow_up == "nan":
+        sim.state.v[1] = np.nan
+    else:
+        sim.state.v[0] = [100.0, 0.0, 0.0]
+    sim.step(body, 1 / 60)
+    assert (sim.stats.reset_particles, sim.stats.reset_frames) == (4, 1)
+    np.testing.assert_allclose(x, before, atol=1e-12)
+    np.testing.assert_array_equal(sim.state.v, 0.0)
+
+
+def test_profiled_step_is_the_same_computation():
+    """`ClothSim.step(profile=True)` runs the frame kernel by kernel to time integration and
+    collision apart; positions and velocities stay bit for bit those of the fused kernels."""
+    fused, x_fused = quad_on_box(SimSettings())
+    timed, x_timed = quad_on_box(SimSettings())
+    body = fused.pose.x.copy()
+    for _ in range(6):
+        fused.step(body, 1 / 60)
+        timed.step(body, 1 / 60, profile=True)
+        np.testing.assert_array_equal(x_fused, x_timed)
+        np.testing.assert_array_equal(fused.state.v, timed.state.v)
+    assert (timed.stage_seconds > 0).all()
+
+
 def test_nearest_face_query_off_keeps_no_face_tree():
     """nearest_face_radius = 0 and no union pass: the simulation's body pose keeps no face tree
     (no refit per pose), and the contact passes still place the quad on the box (the same

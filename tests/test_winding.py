@@ -172,9 +172,10 @@ def test_leave_body_union_goes_into_a_slit_narrower_than_thickness_only_where_th
 QUAD_IN_A = np.array([[0.04, 0.13, -0.01], [0.04, 0.13, 0.01], [0.06, 0.13, 0.01], [0.06, 0.13, -0.01]])
 
 
-def quad_in_overlapping_boxes(union_passes):
+def quad_in_overlapping_boxes(union_passes, **settings):
     """A 2 cm cotton quad at rest at QUAD_IN_A, inside box A of the overlapping boxes (finely
-    meshed), 5 cm in front of B's buried face x = 0.1 and 7 cm below A's top: (sim, verts)."""
+    meshed), 5 cm in front of B's buried face x = 0.1 and 7 cm below A's top: (sim, verts).
+    settings: more SimSettings."""
     from cloth.coarsen import CoarseMesh
     from cloth.garment import Garment
     from cloth.model import SimSettings, build_cloth_model
@@ -185,7 +186,7 @@ def quad_in_overlapping_boxes(union_passes):
     tris = np.vstack([ta, ta + len(va)]).astype(np.int32)
     quad = np.array([[0, 1, 2, 3]], np.int32)
     model = build_cloth_model(Garment("quad", QUAD_IN_A, quad, np.arange(4)), fabric("cotton"),
-                              SimSettings(union_passes=union_passes), QUAD_IN_A,
+                              SimSettings(union_passes=union_passes, **settings), QUAD_IN_A,
                               CoarseMesh(QUAD_IN_A, quad, np.zeros(0, np.int32), np.zeros((0, 3))))
     sim = ClothSim(model, BodyMesh.build(tris, len(verts)), verts)
     sim.state.x[:] = QUAD_IN_A
@@ -214,43 +215,30 @@ def test_cloth_sim_union_pass_puts_a_quad_out_of_overlapping_boxes(union_passes)
             sim.settle_contacts(bare)
 
 
-def test_second_union_pass_tests_only_what_moved_since_the_first(monkeypatch):
+def test_second_union_pass_tests_only_what_moved_since_the_first():
     """union_passes = 2: the first union pass puts the quad out of the overlapping boxes and
     tests every particle; the last one tests only the particles that moved more than
     FINAL_RECHECK x thickness since (none here: the quad lies flat and unstretched on A's top),
-    and the quad ends where the first pass put it. A particle moved back into the body after
-    the first pass (as a strain-limiting pass could) is tested and put out by the last."""
-    import cloth.sim as sim_module
-
-    tested = []
-    real = sim_module.leave_body_union
-
-    def counting(*args):
-        tested.append(int(np.count_nonzero(args[-2])))  # active
-        return real(*args)
-
-    monkeypatch.setattr(sim_module, "leave_body_union", counting)
+    and the quad ends where the first pass put it (`ClothSim.union_tested`). Then with corner 3
+    6 cm above A's top (no slide pass): the first union pass puts the other three out and
+    leaves it, the held strain-limiting passes pull it down towards them, and the last union
+    pass tests that one particle alone; none ends inside."""
     sim, _ = quad_in_overlapping_boxes(2)
-    rest, model = QUAD_IN_A, sim.model
+    top = 0.2 + sim.model.fabric.thickness
     sim.settle_contacts(sim.pose)
-    assert tested == [4, 0]
-    np.testing.assert_allclose(sim.state.x[:, 1], 0.2 + model.fabric.thickness, atol=1e-12)
+    np.testing.assert_array_equal(sim.union_tested, [4, 0])
+    np.testing.assert_allclose(sim.state.x[:, 1], top, atol=1e-12)
+    assert sim.stats.union_pushes == 4
 
-    # a strain-limiting pass after the first union pass taking particle 0 back where only the
-    # union pass sees it inside (the final contact pass's rings read "outside" there)
-    real_limit = sim_module.limit_stretch
-
-    def sinking(x, *args):
-        if len(tested) == 1:
-            x[0] = rest[0]
-        return real_limit(x, *args)
-
-    monkeypatch.setattr(sim_module, "limit_stretch", sinking)
-    tested.clear()
-    sim.state.x[:] = rest
+    sim, verts = quad_in_overlapping_boxes(2, slide_passes=0)
+    sim.state.x[3, 1] = 0.26
     sim.settle_contacts(sim.pose)
-    assert tested == [4, 1]
-    np.testing.assert_allclose(sim.state.x[:, 1], 0.2 + model.fabric.thickness, atol=1e-12)
+    np.testing.assert_array_equal(sim.union_tested, [4, 1])
+    assert sim.stats.union_pushes == 3
+    x = sim.state.x
+    np.testing.assert_allclose(x[:3, 1], top, atol=1e-12)
+    assert top < x[3, 1] < 0.26 - 0.01  # pulled down, still above the others
+    np.testing.assert_array_equal(windings(verts, sim.body.triangles, x), 0)
 
 
 def test_leave_body_union_goes_straight_out_through_the_nearest_face():
