@@ -73,7 +73,8 @@ def spring_forces(x, v, pairs, params, work, force):
 
     f_i = -k (|q_i - q_j| - L_ij) (q_i - q_j)/|q_i - q_j|, with k = k_stretch when the spring is
     longer than rest and k_compress when shorter (the patent's two stiffnesses), plus damping
-    along the spring on the relative velocity, with the same stretch/compress split.
+    along the spring on the relative velocity, with the same stretch/compress split (v: world
+    velocities, see `accelerations`).
     pairs, params: see `spring_table`; work: (6, s) scratch (`spring_scratch`). Three passes:
     gather, vectorised arithmetic, scatter (a fifth less time than one loop doing all three:
     13.7 → 10.7 µs for 1,809 springs on the AMD EPYC)."""
@@ -95,18 +96,27 @@ def spring_forces(x, v, pairs, params, work, force):
 
 
 @kernel
-def accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, out):
+def accelerations(x, v, carried, world, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, out):
     """a = (springs + air drag + gravity) / m.
 
+    v is relative to the frame body following carries (`collision.follow_body`), carried the
+    carried part of the body's velocity. Decision: the spring damping acts on the relative
+    world velocity, v + carried (written to `world`, (n, 3) scratch): two neighbours carried
+    with different weights are not parting because their v differ (on the run clip's sprint
+    that damping held the blouse's loose hem back against the body's 6 m/s).
     Air drag acts on the velocity across the cloth: f = -drag_i (v·n_i) n_i, drag_i = air_drag ·
     area_i (N·s/m), n_i the particle normal of this frame (a sheet moving along itself feels
-    little air)."""
+    little air); on v, the velocity relative to the carried frame: the air near the body moves
+    with it, the more the nearer (its boundary layer)."""
+    for i in range(x.shape[0]):
+        for k in range(3):
+            world[i, k] = v[i, k] + carried[i, k]
     for i in range(x.shape[0]):
         d = drag[i] * (v[i, 0] * normals[i, 0] + v[i, 1] * normals[i, 1] + v[i, 2] * normals[i, 2])
         out[i, 0] = -d * normals[i, 0]
         out[i, 1] = -d * normals[i, 1]
         out[i, 2] = -d * normals[i, 2]
-    spring_forces(x, v, pairs, params, spring_work, out)
+    spring_forces(x, world, pairs, params, spring_work, out)
     for i in range(x.shape[0]):
         w = inv_mass[i]
         out[i, 0] *= w
@@ -122,25 +132,27 @@ def _axpy(out, base, h, d):
 
 
 @kernel
-def rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work):
+def rk4_substep(x, v, carried, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work):
     """One classical 4th-order Runge-Kutta step of dx/dt = v, dv/dt = a(x, v) (S101 integrator).
+    carried: the part of the body's velocity body following transports at each particle
+    (`spring_forces`).
 
-    spring_work: see `spring_forces`; work: (9, n, 3) scratch: a1..a4, v2..v4, and two position
-    buffers."""
+    spring_work: see `spring_forces`; work: (9, n, 3) scratch: a1..a4, v2..v4, a position
+    buffer and the world velocities."""
     a1, a2, a3, a4 = work[0], work[1], work[2], work[3]
     v2, v3, v4 = work[4], work[5], work[6]
     xt = work[7]
     h = 0.5 * dt
-    accelerations(x, v, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a1)
+    accelerations(x, v, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a1)
     _axpy(xt, x, h, v)
     _axpy(v2, v, h, a1)
-    accelerations(xt, v2, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a2)
+    accelerations(xt, v2, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a2)
     _axpy(xt, x, h, v2)
     _axpy(v3, v, h, a2)
-    accelerations(xt, v3, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a3)
+    accelerations(xt, v3, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a3)
     _axpy(xt, x, dt, v3)
     _axpy(v4, v, dt, a3)
-    accelerations(xt, v4, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a4)
+    accelerations(xt, v4, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a4)
     s = dt / 6.0
     for i in range(x.shape[0]):
         for k in range(3):
@@ -149,12 +161,13 @@ def rk4_substep(x, v, dt, inv_mass, drag, normals, gravity_y, pairs, params, spr
 
 
 @kernel
-def limit_stretch(x, v, inv_mass, si, sj, rest, n_springs, max_strain):
+def limit_stretch(x, v, carried, inv_mass, si, sj, rest, n_springs, max_strain):
     """Strain limiting (Provot 1995) on the first n_springs springs (the structural ones).
 
     One Gauss-Seidel pass: a spring longer than (1 + max_strain) * rest has its ends pulled
     together to that length, split by inverse mass, and loses the part of its ends' relative
-    velocity that separates them (an inextensible thread does not bounce back). Explicit
+    velocity that separates them (an inextensible thread does not bounce back; the world
+    velocities v + carried, see `spring_forces`). Explicit
     springs soft enough for a few substeps would otherwise let loose cloth sag and flutter
     far beyond what woven fabric allows."""
     for s in range(n_springs):
@@ -182,7 +195,9 @@ def limit_stretch(x, v, inv_mass, si, sj, rest, n_springs, max_strain):
         x[j, 0] += wj * corr * dx
         x[j, 1] += wj * corr * dy
         x[j, 2] += wj * corr * dz
-        sep = (v[i, 0] - v[j, 0]) * dx + (v[i, 1] - v[j, 1]) * dy + (v[i, 2] - v[j, 2]) * dz
+        sep = ((v[i, 0] + carried[i, 0] - v[j, 0] - carried[j, 0]) * dx
+               + (v[i, 1] + carried[i, 1] - v[j, 1] - carried[j, 1]) * dy
+               + (v[i, 2] + carried[i, 2] - v[j, 2] - carried[j, 2]) * dz)
         if sep > 0.0:
             imp = sep / w
             v[i, 0] -= wi * imp * dx

@@ -2,7 +2,8 @@
 
 Per garment and frame: the deepest coarse particle (independent signed distance to the
 skinned body, negative inside), the strain of every structural edge, the waistband's largest
-distance from the body, and NaN. Run directly for a table: python -m tests.cloth_acceptance
+distance from the body, the share of particles more than OFF_BODY from the skin (a garment
+blown or thrown off the body), and NaN. Run directly for a table: python -m tests.cloth_acceptance
 """
 
 from __future__ import annotations
@@ -16,6 +17,8 @@ import numpy as np
 from services.cloth_job import OUTFITS, run_cloth_clip
 from tests.signed_distance import SignedDistance
 
+OFF_BODY = 0.10  # m: a particle farther than this from the skin is off the body
+
 
 @dataclass
 class GarmentRecord:
@@ -23,6 +26,7 @@ class GarmentRecord:
     depth: list[float] = field(default_factory=list)  # per frame: most negative signed distance, m
     strain: list[np.ndarray] = field(default_factory=list)  # per frame: structural edge strains
     waist_gap: list[float] = field(default_factory=list)  # per frame: waistband's largest |distance|, m
+    off_body: list[float] = field(default_factory=list)  # per frame: share of particles beyond OFF_BODY
     nan_frames: int = 0
 
     @property
@@ -59,6 +63,7 @@ def measure(body, data: Path, outfit: str, clip: str, every: int = 2,
             if not full:
                 continue
             rec.depth.append(float(d.min()))
+            rec.off_body.append(float(np.mean(d > OFF_BODY)))
             k = m.n_structural
             length = np.linalg.norm(x[m.spring_i[:k]] - x[m.spring_j[:k]], axis=1)
             rec.strain.append((length / m.rest_length[:k] - 1.0).astype(np.float32))
@@ -83,7 +88,8 @@ def main() -> None:
                 s = np.concatenate(r.strain)
                 print(f"{clip:26s} {r.name:28s} frames {len(r.depth):5d} deepest {r.deepest * 1000:7.2f} mm "
                       f"(frames < -1 mm: {sum(d < -0.001 for d in r.depth):4d}) strain p99 {r.strain_p99 * 100:5.1f} % "
-                      f"max {s.max() * 100:5.1f} % waist {gap} NaN {r.nan_frames} "
+                      f"max {s.max() * 100:5.1f} % waist {gap} off body {np.mean(r.off_body) * 100:4.1f} % "
+                      f"(worst frame {max(r.off_body) * 100:4.1f} %) NaN {r.nan_frames} "
                       f"substeps {report.substeps} resets {report.resets}", flush=True)
 
 

@@ -34,7 +34,7 @@ def run_rk4(x, v, inv_mass, spring_args, dt, steps, gravity=0.0, drag=None, norm
     work = np.zeros((9, n, 3))
     spring_work = spring_scratch(len(spring_args[0]))
     for _ in range(steps):
-        rk4_substep(x, v, dt, inv_mass, drag, normals, -gravity, *spring_args, spring_work, work)
+        rk4_substep(x, v, np.zeros((n, 3)), dt, inv_mass, drag, normals, -gravity, *spring_args, spring_work, work)
 
 
 def test_hanging_spring_settles_at_analytic_extension():
@@ -304,6 +304,30 @@ def test_air_drag_acts_across_the_cloth_only():
     assert v[0, 1] == pytest.approx(-G * tau * (1 - math.exp(-T / tau)), rel=1e-9)
     assert x[0, 1] == pytest.approx(-G * tau * (T - tau * (1 - math.exp(-T / tau))), rel=1e-9)
     assert v[0, 0] == 1.0 and x[0, 0] == pytest.approx(T, rel=1e-12)
+
+
+def test_spring_damping_and_the_strain_limit_see_world_velocities():
+    """Two particles moving together at 1 m/s in the world, one carried by the body following
+    (v 0, carried 1 m/s), the other not (v 1 m/s, carried 0): the damping of a spring at its rest
+    length between them is zero, and the strain limit takes no velocity from its stretched ends.
+    Counted by v alone they would be parting at 1 m/s: damping c x 1 m/s, and the strain limit's
+    velocity change."""
+    x = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    v = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    carried = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    args = springs([(0, 1)], 0.1, 100.0, 10.0, cs=0.5, cc=0.5)
+    for c, want in ((carried, 0.0), (np.zeros((2, 3)), 0.5)):
+        a, world = np.zeros((2, 3)), np.zeros((2, 3))
+        dynamics.accelerations(x, v, c, world, np.ones(2), np.zeros(2), np.zeros((2, 3)), 0.0, *args,
+                               spring_scratch(1), a)
+        np.testing.assert_allclose(a, [[want, 0.0, 0.0], [-want, 0.0, 0.0]], atol=1e-12)
+        np.testing.assert_allclose(world, v + c, atol=0)
+    si, sj, rest = np.array([0], np.int32), np.array([1], np.int32), np.array([0.09])
+    for c, want in ((carried, [0.0, 1.0]), (np.zeros((2, 3)), [0.5, 0.5])):
+        xs, vs = x.copy(), v.copy()
+        limit_stretch(xs, vs, c, np.ones(2), si, sj, rest, 1, 0.0)
+        np.testing.assert_allclose(xs[:, 0], [0.005, 0.095], atol=1e-12)
+        np.testing.assert_allclose(vs[:, 0], want, atol=1e-12)
 
 
 @pytest.mark.parametrize("friction, body_vel, expected", [
@@ -608,7 +632,7 @@ def test_strain_limit_caps_an_edge_by_inverse_mass_and_keeps_momentum():
     inv_mass = np.array([1.0, 1.0 / 3.0, 0.0, 1.0])
     si, sj = np.array([0, 2], np.int32), np.array([1, 3], np.int32)
     rest = np.array([1.0, 0.25])
-    limit_stretch(x, v, inv_mass, si, sj, rest, 2, 0.1)
+    limit_stretch(x, v, np.zeros_like(v), inv_mass, si, sj, rest, 2, 0.1)
     # 0.4 too long; the light particle moves 3 times as far as the heavy one
     np.testing.assert_allclose(x[0], [0.3, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(x[1], [1.4, 0.0, 0.0], atol=1e-12)
@@ -619,7 +643,7 @@ def test_strain_limit_caps_an_edge_by_inverse_mass_and_keeps_momentum():
     np.testing.assert_allclose(x[3], [3.275, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(v[3], [0.0, 0.0, 0.0], atol=1e-12)
     before = x.copy()
-    limit_stretch(x, v, inv_mass, si, sj, rest, 2, 0.1)  # within the limit now: untouched
+    limit_stretch(x, v, np.zeros_like(v), inv_mass, si, sj, rest, 2, 0.1)  # within the limit now: untouched
     np.testing.assert_array_equal(x, before)
 
 
@@ -646,11 +670,12 @@ def test_body_following_moves_an_attached_particle_rigidly():
     R = rotation([0.3, 1.0, -0.2], 0.7)
     t = np.array([0.4, -0.1, 0.25])
     moved = verts @ R.T + t
-    body_vel, carrier, followed = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    body_vel, carrier, carried, followed = np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+    v = np.zeros((n, 3))
     x0 = x.copy()
     dt = 1 / 60
     follow_w = np.full(n, -1.0)  # no weight last frame: the blend is taken as it is
-    follow_body(x, moved, mesh.triangles, free, face, bary, height, anchor, body_vel, carrier, 1 / dt,
+    follow_body(x, v, moved, mesh.triangles, free, face, bary, height, anchor, body_vel, carrier, carried, 1 / dt,
                 0.01, 0.04, followed, face_normals(moved, tris), follow_w, 0.5)
     rigid = x0 @ R.T + t
     np.testing.assert_allclose(followed, rigid, atol=1e-12)  # relative coordinates are preserved
@@ -660,13 +685,17 @@ def test_body_following_moves_an_attached_particle_rigidly():
     np.testing.assert_allclose(x[2], x0[2])  # beyond `far`: free cloth keeps its place
     np.testing.assert_allclose(carrier[0], 0.0)
     np.testing.assert_allclose(carrier[2], body_vel[2])
+    np.testing.assert_allclose(carried, np.array([1.0, w, 0.0])[:, None] * body_vel, atol=1e-12)
+    np.testing.assert_array_equal(v, 0.0)  # no weight last frame: nothing to keep
     np.testing.assert_allclose(follow_w, [1.0, w, 0.0])
 
 
 def test_body_following_weight_eases_towards_the_distance_blend():
     """A particle 2 cm above a box (blend weight 2/3 between near 1 cm and far 4 cm) that was
     followed fully last frame is followed with 1 + s (2/3 - 1) this frame, s the easing; with
-    the body translated by t each frame its weight approaches 2/3 geometrically, (1 - s)^k."""
+    the body translated by t each frame its weight approaches 2/3 geometrically, (1 - s)^k.
+    Its world velocity, v + carried, stays the body's 60 t per second it had when carried fully
+    (Decision): v takes what the weight no longer carries, (1 - w) 60 t."""
     verts, tris = box(0.3)
     mesh = BodyMesh.build(tris, len(verts))
     x = np.array([[0.05, 0.32, 0.1]])
@@ -681,14 +710,16 @@ def test_body_following_weight_eases_towards_the_distance_blend():
     follow_w = np.ones(1)
     blend, s = 2.0 / 3.0, 0.4
     t = np.array([0.01, 0.0, 0.0])
-    scratch = np.zeros((1, 3)), np.zeros((1, 3))  # body_vel, carrier
+    v, body_vel, carrier, carried = np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 3))
     for k in range(1, 6):
         moved = verts + k * t
         x0 = x.copy()
-        follow_body(x, moved, mesh.triangles, free, face, bary, height, anchor, *scratch, 60.0, 0.01, 0.04,
-                    np.zeros((1, 3)), face_normals(moved, tris), follow_w, s)
+        follow_body(x, v, moved, mesh.triangles, free, face, bary, height, anchor, body_vel, carrier, carried, 60.0,
+                    0.01, 0.04, np.zeros((1, 3)), face_normals(moved, tris), follow_w, s)
         w = blend + (1 - blend) * (1 - s) ** k
         assert follow_w[0] == pytest.approx(w, abs=1e-12)
+        np.testing.assert_allclose(v[0] + carried[0], 60.0 * t, atol=1e-12)
+        np.testing.assert_allclose(v[0], (1 - w) * 60.0 * t, atol=1e-12)
         np.testing.assert_allclose(x[0], x0[0] + w * t, atol=1e-12)  # the box moved by t: w of it
         attach_to_body(x, moved, mesh.triangles, mesh.tri_start, mesh.tri_ids, nearest, free, face, bary, height,
                        anchor, face_normals(moved, tris))
