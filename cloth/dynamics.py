@@ -135,7 +135,7 @@ def _axpy(out, base, h, d):
 def rk4_substep(x, v, carried, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work):
     """One classical 4th-order Runge-Kutta step of dx/dt = v, dv/dt = a(x, v) (S101 integrator).
     carried: the part of the body's velocity body following transports at each particle
-    (`spring_forces`).
+    (`accelerations`).
 
     spring_work: see `spring_forces`; work: (9, n, 3) scratch: a1..a4, v2..v4, a position
     buffer and the world velocities."""
@@ -167,7 +167,7 @@ def limit_stretch(x, v, carried, inv_mass, si, sj, rest, n_springs, max_strain):
     One Gauss-Seidel pass: a spring longer than (1 + max_strain) * rest has its ends pulled
     together to that length, split by inverse mass, and loses the part of its ends' relative
     velocity that separates them (an inextensible thread does not bounce back; the world
-    velocities v + carried, see `spring_forces`). Explicit
+    velocities v + carried, see `accelerations`). Explicit
     springs soft enough for a few substeps would otherwise let loose cloth sag and flutter
     far beyond what woven fabric allows."""
     for s in range(n_springs):
