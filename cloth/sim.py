@@ -153,9 +153,11 @@ def contact_pass(model, body, state, body_x, face_n, grid, tree, radius, active)
 def union_pass(model, body, state, body_x, face_n, tree, winding, active):
     """`leave_body_union` for the active particles (uint8 mask), out of the body as a whole;
     marks the placed particles. Returns how many it put out, and how many it tested."""
-    thickness = model[12]
+    (triangles, grip, inv_mass, drag, pairs, params, si, sj, rest, region_mask, n_structural, max_strain, thickness,
+     friction) = model
     tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
-    x, v, carrier = state[0][0], state[0][1], state[0][10]
+    (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
+     contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
     (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
      hit_f) = state[1]
     lo, start, ids, span, extent = winding
@@ -187,7 +189,8 @@ def settle_particles(model, body, state, body_x, face_n, grid, tree, winding, se
     the same types where the settings read none)."""
     (triangles, grip, inv_mass, drag, pairs, params, si, sj, rest, region_mask, n_structural, max_strain, thickness,
      friction) = model
-    x, v, carried = state[0][0], state[0][1], state[0][20]
+    (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
+     contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
     (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
      hit_f) = state[1]
     slide_passes, contact_limit_passes, final_contact, union_passes, radius = settings[1]
@@ -244,7 +247,8 @@ def finish_frame(model, body, state, body_x, face_n, grid, tree, winding, settin
     """`settle_particles`, then the body parts each particle's substep collisions track
     (`track_parts`) and the new relative coordinates (`attach_to_body`): the end of a frame as
     one call. Returns what settle_particles returns."""
-    grip, region_mask = model[1], model[9]
+    (triangles, grip, inv_mass, drag, pairs, params, si, sj, rest, region_mask, n_structural, max_strain, thickness,
+     friction) = model
     tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
     (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
      contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
