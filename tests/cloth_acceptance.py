@@ -3,11 +3,13 @@
 Per garment and frame: the deepest coarse particle (independent signed distance to the
 skinned body, negative inside), the strain of every structural edge, the waistband's largest
 distance from the body, the share of particles more than OFF_BODY from the skin (a garment
-blown or thrown off the body), and NaN. Run directly for a table: python -m tests.cloth_acceptance
+blown or thrown off the body), and NaN. Run directly for a table:
+python -m tests.cloth_acceptance [clip ...] [--outfit NAME ...] (default: every clip and outfit)
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,6 +20,16 @@ from services.cloth_job import OUTFITS, run_cloth_clip
 from tests.signed_distance import SignedDistance
 
 OFF_BODY = 0.10  # m: a particle farther than this from the skin is off the body
+CLIPS = ["cmu_npybvh_example_75f", "cmu_131_01_walk_3dsmax", "cmu_13_29_jumping_jacks"]
+
+
+def clips_and_outfits(argv: list[str]) -> tuple[list[str], list[str]]:
+    """The clips and outfits a table runs over: positional clip names, --outfit (repeatable)."""
+    parser = argparse.ArgumentParser()
+    parser.add_argument("clips", nargs="*", default=CLIPS)
+    parser.add_argument("--outfit", action="append", choices=OUTFITS, help="default: every outfit")
+    args = parser.parse_args(argv)
+    return args.clips, args.outfit or list(OUTFITS)
 
 
 @dataclass
@@ -79,9 +91,9 @@ def main() -> None:
 
     data = data_dir()
     body = load_body(data)
-    clips = sys.argv[1:] or ["cmu_npybvh_example_75f", "cmu_131_01_walk_3dsmax", "cmu_13_29_jumping_jacks"]
+    clips, outfits = clips_and_outfits(sys.argv[1:])
     for clip in clips:
-        for outfit in OUTFITS:
+        for outfit in outfits:
             records, report = measure(body, data, outfit, clip)
             for r in records:
                 gap = f"{max(r.waist_gap) * 100:5.1f} cm" if r.waist_gap else "   -    "

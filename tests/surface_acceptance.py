@@ -5,7 +5,7 @@ Per garment and frame: the deepest detailed vertex, NaN, detailed edges longer t
 maximum neighbour distance (where the reference surface alone is already longer, than its
 length with the height difference allowed at rest: S106's Decision), and on coarse edges compressed by more than 2 %
 the share of their arc-length deficit the wrinkles recovered.
-Run directly for a table: python -m tests.surface_acceptance [clip ...]
+Run directly for a table: python -m tests.surface_acceptance [clip ...] [--outfit NAME ...]
 """
 
 from __future__ import annotations
@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cloth.surface import SurfaceSettings
-from services.cloth_job import OUTFITS, run_cloth_clip
+from services.cloth_job import run_cloth_clip
+from tests.cloth_acceptance import clips_and_outfits
 from tests.signed_distance import SignedDistance
 
 
@@ -84,9 +85,9 @@ def main() -> None:
 
     data = data_dir()
     body = load_body(data)
-    clips = sys.argv[1:] or ["cmu_npybvh_example_75f", "cmu_131_01_walk_3dsmax", "cmu_13_29_jumping_jacks"]
+    clips, outfits = clips_and_outfits(sys.argv[1:])
     for clip in clips:
-        for outfit in OUTFITS:
+        for outfit in outfits:
             records, _ = measure(body, data, outfit, clip)
             for r in records:
                 d = np.array(r.depth)
