@@ -96,36 +96,7 @@ def spring_forces(x, v, pairs, params, work, force):
 
 
 @kernel
-def air_velocity(body_vel, follow_w, air):
-    """The air's velocity at each particle, relative to the frame body following carries
-    (`accelerations`' air drag), written to air (n, 3).
-
-    Decision: the air near a moving body moves with it. In the world it moves at
-    w body_vel_i + (1 - w) ū, w the particle's body-following weight (`collision.follow_body`):
-    within the blend's near distance with the skin under the particle (its boundary layer),
-    beyond its far distance with ū, the mean of body_vel over the garment's particles (the
-    body's own motion under the garment, its limbs' swings averaged out). Relative to the
-    carried frame (w body_vel_i) that is (1 - w) ū. Against still air, the open silk blouse on
-    the run clip's sprint (6.2 m/s) was blown back off the torso whenever its weight eased
-    (strain p99 12.6 %, 2.7 % of its particles more than 10 cm off the skin); with the air moving
-    with the skin under every particle, loose cloth was dragged along with the swinging hands
-    and forearms (docs/history.md, fortieth session)."""
-    n = body_vel.shape[0]
-    ux = uy = uz = 0.0
-    for i in range(n):
-        ux += body_vel[i, 0]
-        uy += body_vel[i, 1]
-        uz += body_vel[i, 2]
-    inv_n = 1.0 / max(n, 1)
-    for i in range(n):
-        a = (1.0 - follow_w[i]) * inv_n  # follow_w is written by follow_body before this
-        air[i, 0] = a * ux
-        air[i, 1] = a * uy
-        air[i, 2] = a * uz
-
-
-@kernel
-def accelerations(x, v, carried, air, world, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, out):
+def accelerations(x, v, carried, world, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, out):
     """a = (springs + air drag + gravity) / m.
 
     v is relative to the frame body following carries (`collision.follow_body`), carried the
@@ -133,16 +104,15 @@ def accelerations(x, v, carried, air, world, inv_mass, drag, normals, gravity_y,
     world velocity, v + carried (written to `world`, (n, 3) scratch): two neighbours carried
     with different weights are not parting because their v differ (on the run clip's sprint
     that damping held the blouse's loose hem back against the body's 6 m/s).
-    Air drag acts on the velocity across the cloth relative to the air: f = -drag_i
-    ((v - air)·n_i) n_i, drag_i = air_drag · area_i (N·s/m), n_i the particle normal of this
-    frame (a sheet moving along itself feels little air), air the air's velocity relative to
-    the carried frame (`air_velocity`: the air near the body moves with it)."""
+    Air drag acts on the velocity across the cloth: f = -drag_i (v·n_i) n_i, drag_i = air_drag ·
+    area_i (N·s/m), n_i the particle normal of this frame (a sheet moving along itself feels
+    little air); on v, the velocity relative to the carried frame: the air near the body moves
+    with it, the more the nearer (its boundary layer)."""
     for i in range(x.shape[0]):
         for k in range(3):
             world[i, k] = v[i, k] + carried[i, k]
     for i in range(x.shape[0]):
-        d = drag[i] * ((v[i, 0] - air[i, 0]) * normals[i, 0] + (v[i, 1] - air[i, 1]) * normals[i, 1]
-                       + (v[i, 2] - air[i, 2]) * normals[i, 2])
+        d = drag[i] * (v[i, 0] * normals[i, 0] + v[i, 1] * normals[i, 1] + v[i, 2] * normals[i, 2])
         out[i, 0] = -d * normals[i, 0]
         out[i, 1] = -d * normals[i, 1]
         out[i, 2] = -d * normals[i, 2]
@@ -162,10 +132,10 @@ def _axpy(out, base, h, d):
 
 
 @kernel
-def rk4_substep(x, v, carried, air, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work):
+def rk4_substep(x, v, carried, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work):
     """One classical 4th-order Runge-Kutta step of dx/dt = v, dv/dt = a(x, v) (S101 integrator).
-    carried: the part of the body's velocity body following transports at each particle; air:
-    the air's velocity relative to that (`accelerations`).
+    carried: the part of the body's velocity body following transports at each particle
+    (`accelerations`).
 
     spring_work: see `spring_forces`; work: (9, n, 3) scratch: a1..a4, v2..v4, a position
     buffer and the world velocities."""
@@ -173,16 +143,16 @@ def rk4_substep(x, v, carried, air, dt, inv_mass, drag, normals, gravity_y, pair
     v2, v3, v4 = work[4], work[5], work[6]
     xt = work[7]
     h = 0.5 * dt
-    accelerations(x, v, carried, air, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a1)
+    accelerations(x, v, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a1)
     _axpy(xt, x, h, v)
     _axpy(v2, v, h, a1)
-    accelerations(xt, v2, carried, air, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a2)
+    accelerations(xt, v2, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a2)
     _axpy(xt, x, h, v2)
     _axpy(v3, v, h, a2)
-    accelerations(xt, v3, carried, air, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a3)
+    accelerations(xt, v3, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a3)
     _axpy(xt, x, dt, v3)
     _axpy(v4, v, dt, a3)
-    accelerations(xt, v4, carried, air, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a4)
+    accelerations(xt, v4, carried, work[8], inv_mass, drag, normals, gravity_y, pairs, params, spring_work, a4)
     s = dt / 6.0
     for i in range(x.shape[0]):
         for k in range(3):

@@ -30,7 +30,7 @@ from .coarsen import coarsen
 from .collision import (FACE_TREE_STACK, PART_SLOTS, UNION_HITS, BodyMesh, BodyPose, attach_to_body,
                         collide_particles, face_normals, follow_body, leave_body_union, part_scratch, part_seeds,
                         resolve_contacts, track_parts)
-from .dynamics import air_velocity, limit_stretch, rk4_substep, spring_scratch
+from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment
 from .geometry import nearest_vertices, region_masks, vertex_normals
@@ -40,14 +40,14 @@ from .winding import NO_WINDING
 
 
 @kernel
-def simulate_substeps(n_sub, collide_every, dt, x, v, carried, air, inv_mass, drag, normals, gravity_y, pairs, params,
+def simulate_substeps(n_sub, collide_every, dt, x, v, carried, inv_mass, drag, normals, gravity_y, pairs, params,
                       si, sj, rest, spring_work, work, n_structural, max_strain, limit_passes, body_x, body_vel,
                       nbr_start, nbr_ids, tris, tri_start, tri_ids, regions, masks, nearest, part_nearest, thickness,
                       friction, contact, fixed, face_n, tested_at, clear):
     """n_sub × (RK4 integration, vertex collision, strain limiting), fused so that a frame is one
     call; collision after every collide_every-th substep and always after the last."""
     for k in range(n_sub):
-        rk4_substep(x, v, carried, air, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work)
+        rk4_substep(x, v, carried, dt, inv_mass, drag, normals, gravity_y, pairs, params, spring_work, work)
         if (k + 1) % collide_every == 0 or k == n_sub - 1:
             collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start, tri_ids, regions,
                               masks, nearest, part_nearest, thickness, friction, contact, fixed, face_n, tested_at,
@@ -113,15 +113,14 @@ def advance_particles(model, body, state, body_x, face_n, n_sub, h, inv_dt, ease
      friction) = model
     tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
     (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
-     contact, tested_at, clear, normals, bad, work, spring_work, carried, air) = state[0]
+     contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
     collide_every, limit_passes, gravity_y, follow_near, follow_far, max_speed, max_stretch = settings[0]
     follow_body(x, v, body_x, tris, grip, face, bary, height, anchor, body_vel, carrier, carried, inv_dt, follow_near,
                 follow_far, followed, face_n, follow_w, ease)
     vertex_normals(x, triangles, normals)  # for air drag
     for i in range(clear.shape[0]):
         clear[i] = -np.inf  # the body moved: every particle is tested at the first collision
-    air_velocity(body_vel, follow_w, air)
-    simulate_substeps(n_sub, collide_every, h, x, v, carried, air, inv_mass, drag, normals, gravity_y, pairs, params, si,
+    simulate_substeps(n_sub, collide_every, h, x, v, carried, inv_mass, drag, normals, gravity_y, pairs, params, si,
                       sj, rest, spring_work, work, n_structural, max_strain, limit_passes, body_x, carrier, nbr_start,
                       nbr_ids, tris, tri_start, tri_ids, regions, region_mask, nearest, part_nearest, thickness,
                       friction, contact, grip, face_n, tested_at, clear)
@@ -139,7 +138,7 @@ def contact_pass(model, body, state, body_x, face_n, grid, tree, radius, active)
      friction) = model
     tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
     (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
-     contact, tested_at, clear, normals, bad, work, spring_work, carried, air) = state[0]
+     contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
     (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
      hit_f) = state[1]
     cell, grid_start, grid_ids, grid_x, grid_regions, grid_parts = grid
@@ -158,7 +157,7 @@ def union_pass(model, body, state, body_x, face_n, tree, winding, active):
      friction) = model
     tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
     (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
-     contact, tested_at, clear, normals, bad, work, spring_work, carried, air) = state[0]
+     contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
     (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
      hit_f) = state[1]
     lo, start, ids, span, extent = winding
@@ -191,7 +190,7 @@ def settle_particles(model, body, state, body_x, face_n, grid, tree, winding, se
     (triangles, grip, inv_mass, drag, pairs, params, si, sj, rest, region_mask, n_structural, max_strain, thickness,
      friction) = model
     (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
-     contact, tested_at, clear, normals, bad, work, spring_work, carried, air) = state[0]
+     contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
     (q, stack, part, part_vertex, part_d2, placed_inv_mass, held_from, all_particles, recheck, unsettled, hit_t, hit_s,
      hit_f) = state[1]
     slide_passes, contact_limit_passes, final_contact, union_passes, radius = settings[1]
@@ -252,7 +251,7 @@ def finish_frame(model, body, state, body_x, face_n, grid, tree, winding, settin
      friction) = model
     tris, nbr_start, nbr_ids, tri_start, tri_ids, tri_nbrs, regions, winding_faces = body
     (x, v, nearest, part_nearest, nearest_any, face, bary, height, anchor, body_vel, carrier, follow_w, followed,
-     contact, tested_at, clear, normals, bad, work, spring_work, carried, air) = state[0]
+     contact, tested_at, clear, normals, bad, work, spring_work, carried) = state[0]
     pushes = settle_particles(model, body, state, body_x, face_n, grid, tree, winding, settings, union_tested)
     track_parts(x, body_x, regions, region_mask, nearest, nearest_any, part_nearest, REGION_RADIUS)
     attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, grip, face, bary, height, anchor, face_n)
@@ -342,7 +341,6 @@ class ClothState:
         self.body_vel = np.zeros((n, 3))  # body velocity at the attachment point, m/s
         self.carrier = np.zeros((n, 3))  # part of it not transported by body following, m/s
         self.carried = np.zeros((n, 3))  # the part transported, m/s: v + carried is the world velocity
-        self.air = np.zeros((n, 3))  # the air's velocity relative to the carried frame, m/s (air drag)
         self.follow_w = np.full(n, -1.0)  # the body following's weight last frame (-1: none yet)
         self.followed = np.zeros((n, 3))  # fully body-following positions (recovery targets)
         self.contact = np.zeros(n, dtype=np.uint8)  # in contact after the last collision
@@ -381,7 +379,7 @@ class ClothSim:
         body = (b.triangles, b.nbr_start, b.nbr_ids, b.tri_start, b.tri_ids, b.tri_nbrs, b.regions, b.winding_faces)
         state = ((s.x, s.v, s.nearest, s.part_nearest, s.nearest_any, s.face, s.bary, s.height, s.anchor, s.body_vel,
                   s.carrier, s.follow_w, s.followed, s.contact, s.tested_at, s.clear, s.normals, s.bad, s.work,
-                  s.spring_work, s.carried, s.air),
+                  s.spring_work, s.carried),
                  (s.q, s.stack, s.part, s.part_vertex, s.part_d2, s.placed_inv_mass, s.held_from, s.all_particles,
                   s.recheck, s.unsettled, s.hit_t, s.hit_s, s.hit_f))
         # fixed types (an integer given for a float setting would compile the kernels again)
@@ -473,12 +471,11 @@ class ClothSim:
         follow_body(s.x, s.v, body_x, b.triangles, m.grip, s.face, s.bary, s.height, s.anchor, s.body_vel, s.carrier,
                     s.carried, inv_dt, st.follow_near, st.follow_far, s.followed, face_n, s.follow_w, ease)
         vertex_normals(s.x, m.triangles, s.normals)
-        air_velocity(s.body_vel, s.follow_w, s.air)
         s.clear[:] = -np.inf
         t_int = t_col = 0.0
         for k in range(n_sub):  # the same order as simulate_substeps
             t0 = time.perf_counter()
-            rk4_substep(s.x, s.v, s.carried, s.air, h, m.inv_mass, m.drag, s.normals, -st.gravity, m.spring_pairs,
+            rk4_substep(s.x, s.v, s.carried, h, m.inv_mass, m.drag, s.normals, -st.gravity, m.spring_pairs,
                         m.spring_params, s.spring_work, s.work)
             t1 = time.perf_counter()
             if (k + 1) % st.collide_every == 0 or k == n_sub - 1:

@@ -27,16 +27,14 @@ def springs(pairs, rest, ks, kc, cs=0.0, cc=0.0):
                         np.full(s, cs, float), np.full(s, cc, float))
 
 
-def run_rk4(x, v, inv_mass, spring_args, dt, steps, gravity=0.0, drag=None, normals=None, air=None):
+def run_rk4(x, v, inv_mass, spring_args, dt, steps, gravity=0.0, drag=None, normals=None):
     n = len(x)
     drag = np.zeros(n) if drag is None else drag
     normals = np.zeros((n, 3)) if normals is None else normals
-    air = np.zeros((n, 3)) if air is None else air
     work = np.zeros((9, n, 3))
     spring_work = spring_scratch(len(spring_args[0]))
     for _ in range(steps):
-        rk4_substep(x, v, np.zeros((n, 3)), air, dt, inv_mass, drag, normals, -gravity, *spring_args, spring_work,
-                    work)
+        rk4_substep(x, v, np.zeros((n, 3)), dt, inv_mass, drag, normals, -gravity, *spring_args, spring_work, work)
 
 
 def test_hanging_spring_settles_at_analytic_extension():
@@ -308,32 +306,6 @@ def test_air_drag_acts_across_the_cloth_only():
     assert v[0, 0] == 1.0 and x[0, 0] == pytest.approx(T, rel=1e-12)
 
 
-def test_loose_cloth_is_dragged_towards_the_body_s_mean_velocity():
-    """The air moves with the body (Decision, `dynamics.air_velocity`): relative to the carried
-    frame it moves at (1 - w) ū, ū the mean body velocity under the garment's particles. Two
-    particles over skin moving at 1 and 3 m/s: ū = 2 m/s; the one followed fully (w = 1) is in
-    still air relative to its carried frame, the loose one (w = 0) in air at 2 m/s. The loose
-    particle, at rest, its sheet facing along the motion, takes the air's speed as a plate in a
-    stream does: v(t) = ū (1 - exp(-d t / m)); one moving with the air feels no drag."""
-    body_vel = np.array([[1.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
-    air = np.zeros((2, 3))
-    dynamics.air_velocity(body_vel, np.array([1.0, 0.0]), air)
-    np.testing.assert_allclose(air, [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]], atol=1e-15)
-    m, d, T = 0.002, 0.01, 0.5
-    empty = np.zeros(0, np.int32)
-    args = spring_table(empty, empty, *[np.zeros(0)] * 5)
-    facing = np.array([[1.0, 0.0, 0.0]])
-    x, v = np.zeros((1, 3)), np.zeros((1, 3))
-    run_rk4(x, v, np.array([1.0 / m]), args, 1e-3, int(round(T / 1e-3)), drag=np.array([d]), normals=facing,
-            air=air[1:])
-    tau = m / d
-    assert v[0, 0] == pytest.approx(2.0 * (1 - math.exp(-T / tau)), rel=1e-9)
-    assert x[0, 0] == pytest.approx(2.0 * (T - tau * (1 - math.exp(-T / tau))), rel=1e-9)
-    x, v = np.zeros((1, 3)), np.array([[2.0, 0.0, 0.0]])
-    run_rk4(x, v, np.array([1.0 / m]), args, 1e-3, 100, drag=np.array([d]), normals=facing, air=air[1:])
-    assert v[0, 0] == 2.0
-
-
 def test_spring_damping_and_the_strain_limit_see_world_velocities():
     """Two particles moving together at 1 m/s in the world, one carried by the body following
     (v 0, carried 1 m/s), the other not (v 1 m/s, carried 0): the damping of a spring at its rest
@@ -346,7 +318,7 @@ def test_spring_damping_and_the_strain_limit_see_world_velocities():
     args = springs([(0, 1)], 0.1, 100.0, 10.0, cs=0.5, cc=0.5)
     for c, want in ((carried, 0.0), (np.zeros((2, 3)), 0.5)):
         a, world = np.zeros((2, 3)), np.zeros((2, 3))
-        dynamics.accelerations(x, v, c, np.zeros((2, 3)), world, np.ones(2), np.zeros(2), np.zeros((2, 3)), 0.0, *args,
+        dynamics.accelerations(x, v, c, world, np.ones(2), np.zeros(2), np.zeros((2, 3)), 0.0, *args,
                                spring_scratch(1), a)
         np.testing.assert_allclose(a, [[want, 0.0, 0.0], [-want, 0.0, 0.0]], atol=1e-12)
         np.testing.assert_allclose(world, v + c, atol=0)
