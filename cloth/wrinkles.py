@@ -365,8 +365,9 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     particle's distance counts tip_share x face_tip of the face its walk ended on less
     (`tip_allowance`; Decision: a body vertex standing out of its ring would come through the
     detailed triangles between particles that are only the clearance away from the faces
-    around it). layer (N,): each particle is kept `clearance` + layer[i] outside, and the
-    margins are wider by as much (Decision: a garment worn over another, `cloth.layers`).
+    around it). layer (N,): each particle whose body lies below it is kept `clearance` +
+    layer[i] outside, and the margins are wider by as much (Decision: a garment worn over
+    another, `cloth.layers`).
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
     `_lift_out` for the other cases). Returns the number of particles tested."""
@@ -423,7 +424,9 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                                                                                 part_face, face_n, q)
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 d -= tip_allowance(body_face, vid, face_tip, tip_share, rate, other[vid])
-                c = clearance + layer[vid]
+                # the layer lifts only off a body below: lowered by it under a body part above
+                # (a hand on the hip), a particle went through the thin gap into the part below
+                c = clearance + (layer[vid] if rate >= 0.0 else 0.0)
                 if d < c - LIFT_TOLERANCE:
                     # |Δh| never exceeds max_height
                     up = max(0.0, min(max_lift, max_height - dh[vid]))
@@ -1122,8 +1125,9 @@ def penetration_floor(dh, sd, facing, other, dh_pen, clearance, layer, cap, max_
     dh_pen), the particle may rise by no more than that distance beyond the clearance either:
     in the gap between the torso and an arm resting on the cloth a wrinkle would rise into
     the arm.
-    layer, cap (N,): the clearance is clearance + layer[i], and no height goes above cap[i]
-    unless S103 needs it (Decision: a garment worn over another, `cloth.layers`)."""
+    layer, cap (N,): the clearance is clearance + layer[i] where the body lies below, and no
+    height goes above cap[i] unless S103 needs it (Decision: a garment worn over another,
+    `cloth.layers`)."""
     for i in range(dh.shape[0]):
         c = clearance + layer[i]
         if sd[i] == UNTESTED:
@@ -1135,7 +1139,7 @@ def penetration_floor(dh, sd, facing, other, dh_pen, clearance, layer, cap, max_
             gap = other[i] - abs(dh_pen[i]) - c  # a ball this wide around p is outside the other parts
             if gap < max_height:
                 ceiling[i] = max(floor[i], min(max_height, dh[i] + max(0.0, gap)))
-        else:
-            ceiling[i] = min(max_height, dh[i] + max(0.0, sd[i] - c))
+        else:  # (the layer lifts only off a body below, see avoid_penetration)
+            ceiling[i] = min(max_height, dh[i] + max(0.0, sd[i] - clearance))
             floor[i] = min(0.0, ceiling[i])
         ceiling[i] = max(floor[i], min(ceiling[i], cap[i]))
