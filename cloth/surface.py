@@ -85,16 +85,6 @@ class SurfaceModel:
     h_normal: float
     transfer_exponent: float
     height_allowance: float  # (d_max² - rest²) / d_max² = 1 - 1/ratio²: S106 step 5 on stretched edges
-    # (N,) m: S103 keeps each detailed vertex this much more than the clearance off the body, and
-    # (N,) m: S106 keeps its height under this (the garments it is worn over or under: `cloth.layers`)
-    layer_clearance: np.ndarray | None = None
-    layer_cap: np.ndarray | None = None
-
-    def __post_init__(self):
-        if self.layer_clearance is None:
-            self.layer_clearance = np.zeros(self.tess.n_vertices)
-        if self.layer_cap is None:
-            self.layer_cap = np.full(self.tess.n_vertices, self.settings.max_height)
 
     @property
     def n_vertices(self) -> int:
@@ -230,10 +220,9 @@ class DetailedSurface:
                                             s.seed_count, s.parts, s.reach, body_x, body.nbr_start, body.nbr_ids,
                                             body.regions, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
                                             s.body_face, s.part_face, face_n, s.q, face_tip, st.tip_share,
-                                            st.clearance, m.layer_clearance, st.contact_margin,
+                                            st.clearance, st.contact_margin,
                                             st.face_margin, st.penetration_iterations, st.max_lift, st.max_height)
-        penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, m.layer_clearance, m.layer_cap,
-                          st.max_height, s.floor, s.ceiling)
+        penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.max_height, s.floor, s.ceiling)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0

@@ -340,7 +340,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
 def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, x, coarse_nearest,
                       find_parts, part_seeds, seed_reach, seed_count, parts, reach, body_x, nbr_start, nbr_ids, regions,
                       tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip, tip_share,
-                      clearance, layer, margin, face_margin, max_iterations, max_lift, max_height):
+                      clearance, margin, face_margin, max_iterations, max_lift, max_height):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
@@ -365,9 +365,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     particle's distance counts tip_share x face_tip of the face its walk ended on less
     (`tip_allowance`; Decision: a body vertex standing out of its ring would come through the
     detailed triangles between particles that are only the clearance away from the faces
-    around it). layer (N,): each particle whose body lies below it is kept `clearance` +
-    layer[i] outside, and the margins are wider by as much (Decision: a garment worn over
-    another, `cloth.layers`).
+    around it).
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
     `_lift_out` for the other cases). Returns the number of particles tested."""
@@ -405,8 +403,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                 hit = False
                 for m in range(3):
                     par = parents[loc, m]
-                    pv = face_ids[f, par] if par >= 0 else 0
-                    if par >= 0 and sd[pv] < (face_margin if parents[par, 0] < 0 else margin) + layer[pv]:
+                    if par >= 0 and sd[face_ids[f, par]] < (face_margin if parents[par, 0] < 0 else margin):
                         hit = True
                 if not hit:
                     continue
@@ -424,20 +421,17 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                                                                                 part_face, face_n, q)
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 d -= tip_allowance(body_face, vid, face_tip, tip_share, rate, other[vid])
-                # the layer lifts only off a body below: lowered by it under a body part above
-                # (a hand on the hip), a particle went through the thin gap into the part below
-                c = clearance + (layer[vid] if rate >= 0.0 else 0.0)
-                if d < c - LIFT_TOLERANCE:
+                if d < clearance - LIFT_TOLERANCE:
                     # |Δh| never exceeds max_height
                     up = max(0.0, min(max_lift, max_height - dh[vid]))
                     down = max(0.0, min(max_lift, max_height + dh[vid]))
                     d, rate = _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh,
                                         dh_pen, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                                        body_face, part_face, face_n, q, face_tip, tip_share, c,
+                                        body_face, part_face, face_n, q, face_tip, tip_share, clearance,
                                         max_iterations, up, down)
                 sd[vid] = d
                 facing[vid] = rate
-            if parents[loc, 0] < 0 and sd[vid] < face_margin + layer[vid]:
+            if parents[loc, 0] < 0 and sd[vid] < face_margin:
                 near = True
     return tested
 
@@ -1113,7 +1107,7 @@ def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
 
 
 @kernel
-def penetration_floor(dh, sd, facing, other, dh_pen, clearance, layer, cap, max_height, floor, ceiling):
+def penetration_floor(dh, sd, facing, other, dh_pen, clearance, max_height, floor, ceiling):
     """The lowest and highest heights S106 may give each particle without undoing S103.
 
     An untested particle: from the reference surface (0) to max_height. A tested one whose
@@ -1124,22 +1118,17 @@ def penetration_floor(dh, sd, facing, other, dh_pen, clearance, layer, cap, max_
     another body part near the particle (other: its distance, before S103 moved it by
     dh_pen), the particle may rise by no more than that distance beyond the clearance either:
     in the gap between the torso and an arm resting on the cloth a wrinkle would rise into
-    the arm.
-    layer, cap (N,): the clearance is clearance + layer[i] where the body lies below, and no
-    height goes above cap[i] unless S103 needs it (Decision: a garment worn over another,
-    `cloth.layers`)."""
+    the arm."""
     for i in range(dh.shape[0]):
-        c = clearance + layer[i]
         if sd[i] == UNTESTED:
             floor[i] = 0.0
             ceiling[i] = max_height
         elif facing[i] >= 0.0:
-            floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - c))
+            floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - clearance))
             ceiling[i] = max_height
-            gap = other[i] - abs(dh_pen[i]) - c  # a ball this wide around p is outside the other parts
+            gap = other[i] - abs(dh_pen[i]) - clearance  # a ball this wide around p is outside the other parts
             if gap < max_height:
                 ceiling[i] = max(floor[i], min(max_height, dh[i] + max(0.0, gap)))
-        else:  # (the layer lifts only off a body below, see avoid_penetration)
+        else:
             ceiling[i] = min(max_height, dh[i] + max(0.0, sd[i] - clearance))
             floor[i] = min(0.0, ceiling[i])
-        ceiling[i] = max(floor[i], min(ceiling[i], cap[i]))

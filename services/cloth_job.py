@@ -22,7 +22,6 @@ from cloth.garment import Garment, load_outfit
 from cloth.geometry import vertex_normals as geometry_vertex_normals
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
-from cloth.layers import layer_outfit
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
 from skinning.body import Body, body_clothed_faces, body_regions
@@ -67,14 +66,6 @@ class Outfit:
     garments: list[Garment]
     models: list[ClothModel]
     rest_body: np.ndarray  # the skinned rest body they were fitted on (world frame)
-
-
-def outfit_surfaces(outfit: "Outfit", settings: SurfaceSettings, n_visible: int) -> list:
-    """Each garment's detailed surface model, layered where the garments overlap at rest
-    (`cloth.layers`: the outer one's surface kept over the inner one's)."""
-    models = [build_surface_model(m, settings) for m in outfit.models]
-    layer_outfit(models, outfit.rest_body[:n_visible])
-    return models
 
 
 def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
@@ -139,7 +130,7 @@ class OutfitSession:
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
         if surface_models is None and surface is not None:
-            surface_models = outfit_surfaces(outfit, surface, body.n_visible)
+            surface_models = [build_surface_model(m, surface) for m in outfit.models]
         self.surfaces = [DetailedSurface(sm) for sm in surface_models or []]
         self._detailed: list = [None] * len(self.sims)
         self._frame = None

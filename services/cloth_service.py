@@ -32,12 +32,12 @@ import zenoh
 from cloth.collision import BodyMesh
 from cloth.fabric import fabric as fabric_preset
 from cloth.geometry import vertex_normals
-from cloth.surface import SurfaceSettings
+from cloth.surface import SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
 from skinning.body import Body, body_clothed_faces, body_regions
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
-from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, find_outfit, load_outfit_models, outfit_surfaces
+from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, find_outfit, load_outfit_models
 from .heap import freeze_heap, reclaim_heap
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
@@ -262,7 +262,7 @@ class ClothService:
             outfit = load_outfit_models(self.body, self.animator, self.body_mesh, outfit_dir, fabrics)
             surfaces = None
             if spec.level is not None:
-                surfaces = outfit_surfaces(outfit, SurfaceSettings(level=spec.level), self.body.n_visible)
+                surfaces = [build_surface_model(m, SurfaceSettings(level=spec.level)) for m in outfit.models]
             self._models[spec] = (outfit, surfaces)
         return self._models[spec]
 

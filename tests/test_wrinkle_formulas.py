@@ -155,7 +155,6 @@ def test_penetration_floor_and_ceiling():
     other = np.array([inf, inf, inf, inf, inf, 6.0, 1.5, 0.5]) / 1000
     dh_pen = np.array([0.0, 0.0, 0.0, -3.0, 0.0, 1.0, 0.0, 0.0]) / 1000
     floor, ceiling = np.full(8, np.nan), np.full(8, np.nan)
-    penetration_floor(dh, sd, facing, other, dh_pen, 0.001, np.zeros(len(dh)), np.full(len(dh), 0.03), 0.03, floor,
-                      ceiling)
+    penetration_floor(dh, sd, facing, other, dh_pen, 0.001, 0.03, floor, ceiling)
     np.testing.assert_allclose(floor * 1000, [0.0, 0.0, 3.5, -2.5, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(ceiling * 1000, [30.0, 30.0, 30.0, -2.5, 4.0, 6.0, 2.5, 2.0], atol=1e-12)
