@@ -20,6 +20,7 @@ from cloth.collision import BodyMesh, BodyPose
 from cloth.fabric import Fabric, fabric as fabric_preset
 from cloth.garment import Garment, load_outfit
 from cloth.geometry import vertex_normals as geometry_vertex_normals
+from cloth.layers import LayerModel, LayerState, layer_outfit, stack_layer
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
@@ -66,6 +67,12 @@ class Outfit:
     garments: list[Garment]
     models: list[ClothModel]
     rest_body: np.ndarray  # the skinned rest body they were fitted on (world frame)
+
+
+def outfit_layers(outfit: "Outfit", surface_models: list, n_visible: int) -> list[LayerModel]:
+    """The outfit's layer pairs (`cloth.layers`): which garment is worn over which, from the
+    garments' detailed surfaces and the body at rest."""
+    return layer_outfit(surface_models, np.ascontiguousarray(outfit.rest_body[:n_visible], dtype=np.float64))
 
 
 def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
@@ -120,18 +127,27 @@ class OutfitSession:
 
     def __init__(self, body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit: Outfit,
                  surface: SurfaceSettings | None = None, surface_models: list | None = None,
-                 threads: int | None = None, pool: SpinPool | None = None):
+                 threads: int | None = None, pool: SpinPool | None = None,
+                 layers: list[LayerModel] | None = None):
         """surface: also build each garment's detailed surface (S102-S106) at these settings;
         surface_models: the garments' surface models, already built (shared between sessions);
         threads: garments stepped in parallel (default: one per garment, at most one per core):
         the calling thread steps its share and helper threads the rest;
         pool: the helper threads, shared with other sessions (`services.spin.SpinPool`; a frame
-        that finds them busy is stepped on the calling thread alone); default: its own."""
+        that finds them busy is stepped on the calling thread alone); default: its own;
+        layers: the outfit's layer pairs (`cloth.layers`, shared between sessions; default: found
+        from the surface models, `outfit_layers`), whose outer detailed surfaces are kept over the
+        inner ones after every garment has stepped."""
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
         if surface_models is None and surface is not None:
             surface_models = [build_surface_model(m, surface) for m in outfit.models]
         self.surfaces = [DetailedSurface(sm) for sm in surface_models or []]
+        if layers is None:
+            layers = outfit_layers(outfit, surface_models, body.n_visible) if surface_models else []
+        self.layers = [(lm, LayerState(lm)) for lm in layers]
+        self._outer = {lm.outer for lm in layers}  # garments handed to on_garment only once layered
+        self.layer_seconds = 0.0
         self._detailed: list = [None] * len(self.sims)
         self._frame = None
         threads = min(len(self.sims), os.cpu_count() or 1) if threads is None else threads
@@ -163,7 +179,9 @@ class OutfitSession:
         updated on the calling thread while the helpers' garments start.
         on_garment(k, positions): called on the thread that stepped garment k, as soon as it is
         done (a service publishes it there while the other garments are still stepping); its
-        detailed surface is `garment_surface(k)`."""
+        detailed surface is `garment_surface(k)`. A garment worn over another (`self.layers`) is
+        handed over on the calling thread once every garment is done and its surface is lifted
+        over the inner one's."""
         self.pose.update_surface(body_vertices)
         self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt, on_garment)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
@@ -190,7 +208,16 @@ class OutfitSession:
         if failed:
             raise failed[0]
         if self._frame[2]:
+            t0 = time.perf_counter()
+            for lm, ls in self.layers:
+                (p_out, n_out), (p_in, n_in) = self._detailed[lm.outer], self._detailed[lm.inner]
+                outer = self.surfaces[lm.outer]
+                stack_layer(lm, ls, p_out, n_out, p_in, n_in, outer.state, outer.model.settings.max_height)
+            self.layer_seconds = time.perf_counter() - t0
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
+            if on_garment is not None:
+                for k in sorted(self._outer):
+                    on_garment(k, out[k])
         return out
 
     def garment_surface(self, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -212,8 +239,8 @@ class OutfitSession:
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
                                           surface_dt, self.pose.grid, self.pose.face_tips())
             self.surface_seconds[k] = surf.stage_seconds
-        if on_garment is not None:
-            on_garment(k, x)
+        if on_garment is not None and not (surface and k in self._outer):
+            on_garment(k, x)  # an outer garment's once it is layered (step_cloth)
         return x
 
     def close(self) -> None:

@@ -37,7 +37,7 @@ from skinning.animate import BodyAnimator
 from skinning.body import Body, body_clothed_faces, body_regions
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
-from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, find_outfit, load_outfit_models
+from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, find_outfit, load_outfit_models, outfit_layers
 from .heap import freeze_heap, reclaim_heap
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
@@ -70,9 +70,9 @@ class GarmentSession:
 
     def __init__(self, service: "ClothService", session: str, spec: OutfitSpec, frame_time: float):
         self.service, self.session, self.spec, self.dt = service, session, spec, frame_time
-        outfit, surface_models = service.outfit_models(spec)
+        outfit, surface_models, layers = service.outfit_models(spec)
         self.sim = OutfitSession(service.body, service.animator, service.body_mesh, outfit,
-                                 surface_models=surface_models, pool=service.garment_pool)
+                                 surface_models=surface_models, pool=service.garment_pool, layers=layers)
         self.names = [m.name for m in outfit.models]
         self.stats = Stats(ClothService.SERVICE, session)
         self.stats.values["garments"] = len(self.names)
@@ -260,10 +260,11 @@ class ClothService:
             outfit_dir = find_outfit(self.data, spec.outfit)
             fabrics = fabric_preset(spec.fabric) if spec.fabric else None
             outfit = load_outfit_models(self.body, self.animator, self.body_mesh, outfit_dir, fabrics)
-            surfaces = None
+            surfaces, layers = None, []
             if spec.level is not None:
                 surfaces = [build_surface_model(m, SurfaceSettings(level=spec.level)) for m in outfit.models]
-            self._models[spec] = (outfit, surfaces)
+                layers = outfit_layers(outfit, surfaces, self.body.n_visible)
+            self._models[spec] = (outfit, surfaces, layers)
         return self._models[spec]
 
     def backlog(self) -> int:

@@ -1,0 +1,283 @@
+"""Garments worn over one another: the outer garment's detailed surface kept over the inner one's.
+
+S101-S106 simulate each garment against the body alone, so where a top's hem overlaps a
+bottom's waistband both lie a few millimetres off the same skin, the one with the thicker
+collision layer comes out on top (denim's 4 mm against cotton's 3 mm), and the jeans' wrinkles
+show through the T-shirt's hem in a jagged line.
+
+Decision (layering, not in the patent): after every garment of an outfit has run S101-S106,
+each outer garment's detailed vertices that lie within LAYER_GAP over the inner garment's
+detailed surface of this frame, or behind it by less than LAYER_DEPTH, are lifted along their
+own normals until they are LAYER_GAP over it; the lifts then ease off along the outer surface
+by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
+stepping), and are never negative. It is a pass on the drawn surfaces only: no garment's state
+(its coarse cloth, its Δh) sees it, so each garment's simulation stays what it is alone, and the
+pass never moves a vertex towards the body.
+
+Which garment is outer, and which of its vertices can meet the inner one, is found once from the
+rest surfaces: where two garments come within LAYER_BAND of each other, the one farther from the
+body there is outer (the shipped tops sit 1-2 mm outside the bottoms' waistbands), and its
+vertices within LAYER_REACH of the inner garment are tested each frame, each tracking its nearest
+inner vertex by a walk over the inner mesh (as S101 tracks the body's).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import closest_point_triangle
+from .jit import kernel
+from .pn import pn_surface
+from .surface import SurfaceModel, SurfaceState
+from .topology import vertex_cells, vertex_neighbours
+
+LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
+LAYER_REACH = 0.03  # m: an outer vertex this near the inner garment at rest is tested every frame
+LAYER_GAP = 0.002  # m: the outer surface is kept this far over the inner one
+LAYER_DEPTH = 0.02  # m: an outer vertex at most this far behind the inner surface is brought over it
+LAYER_SLOPE = 0.5  # m of lift given up per m along the outer surface away from a lifted vertex
+MAX_LAYER_LIFT = 0.03  # m: no vertex is lifted farther (the inner garment's heights reach 3 cm)
+SPREAD_SWEEPS = 4  # forward and backward sweeps over the outer edges that ease the lifts off
+FACING = 0.25  # an outer vertex whose normal is within about 75° of the inner surface's is over it
+WALK_STEPS = 256  # at most this many vertices walked per tracked vertex and frame
+
+
+@dataclass
+class LayerModel:
+    """What does not change: one (outer, inner) pair of an outfit's garments."""
+
+    outer: int  # garment indices in the outfit
+    inner: int
+    candidates: np.ndarray  # (C,) int32: the outer detailed vertices tested every frame
+    rest_nearest: np.ndarray  # (C,) int32: each one's nearest inner detailed vertex at rest
+    nbr_start: np.ndarray  # (Ni + 1,) int64: CSR of the inner detailed vertices' neighbours
+    nbr_ids: np.ndarray  # int32
+    tri_start: np.ndarray  # (Ni + 1,) int64: CSR of the inner detailed triangles around each vertex
+    tri_ids: np.ndarray  # int32
+    triangles: np.ndarray  # (Ti, 3) int32: the inner detailed triangles
+    spread_edges: np.ndarray  # (S, 2) int32: outer detailed edges between candidates, as candidate indices
+    spread_drop: np.ndarray  # (S,) m: LAYER_SLOPE × each one's rest length
+    gap: float = LAYER_GAP
+    depth: float = LAYER_DEPTH
+    max_lift: float = MAX_LAYER_LIFT
+
+
+class LayerState:
+    """Per-frame arrays of one layer pair."""
+
+    def __init__(self, m: LayerModel):
+        self.nearest = m.rest_nearest.copy()  # each candidate's nearest inner vertex, tracked
+        self.lift = np.zeros(len(m.candidates))  # m, along the outer normal
+        self.room = np.zeros(len(m.candidates))  # m: how far each may rise (lift_over_inner)
+        self.no_heights = np.zeros(int(m.candidates.max()) + 1 if len(m.candidates) else 0)
+        self.q = np.zeros(3)
+        self.lifted = 0  # candidates lifted in the last frame (before the easing)
+
+
+@kernel
+def walk_nearest_vertex(px, py, pz, x, nbr_start, nbr_ids, start, steps):
+    """The vertex of x nearest p reached by walking from `start` to ever nearer neighbours."""
+    v = start
+    best = (x[v, 0] - px) ** 2 + (x[v, 1] - py) ** 2 + (x[v, 2] - pz) ** 2
+    for _ in range(steps):
+        nxt = v
+        for k in range(nbr_start[v], nbr_start[v + 1]):
+            w = nbr_ids[k]
+            d2 = (x[w, 0] - px) ** 2 + (x[w, 1] - py) ** 2 + (x[w, 2] - pz) ** 2
+            if d2 < best:
+                best, nxt = d2, w
+        if nxt == v:
+            break
+        v = nxt
+    return v
+
+
+@kernel
+def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids, tris,
+                    gap, depth, max_lift, dh, ceiling, free_ceiling, q, lift, room):
+    """Each candidate's lift along its normal n_o that puts it `gap` over the inner surface
+    (its closest point q on the triangles around its nearest inner vertex, the inner's normal
+    n_q there interpolated from the inner's shading normals):
+    over it (side (p - q)·n_q ≥ 0) and nearer than gap, or behind it by less than depth: lift
+    until |p + s n_o - q| = gap on the outer side, s = sqrt(gap² - t²) - h with h = (p - q)·n_o
+    and t² = |p - q|² - h² (t ≥ gap behind: past the inner's edge, not under it: none);
+    otherwise none, and none where n_o turns away from n_q. Returns how many were lifted.
+
+    room[c]: how far the candidate may rise without going into the body: where S103 found a
+    body part above it or another one near it (its S106 ceiling under free_ceiling, the
+    max_height it has with none), its ceiling less its height Δh; elsewhere max_lift."""
+    lifted = 0
+    for c in range(candidates.shape[0]):
+        i = candidates[c]
+        room[c] = max_lift if ceiling[i] >= free_ceiling else min(max_lift, max(0.0, ceiling[i] - dh[i]))
+        px, py, pz = p_out[i, 0], p_out[i, 1], p_out[i, 2]
+        v = walk_nearest_vertex(px, py, pz, p_in, nbr_start, nbr_ids, nearest[c], WALK_STEPS)
+        nearest[c] = v
+        best, bt, bv, bw = np.inf, -1, 0.0, 0.0
+        qx, qy, qz = 0.0, 0.0, 0.0
+        for k in range(tri_start[v], tri_start[v + 1]):
+            t = tri_ids[k]
+            wv, ww = closest_point_triangle(px, py, pz, p_in, tris[t, 0], tris[t, 1], tris[t, 2], q)
+            d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
+            if d2 < best:
+                best, bt, bv, bw = d2, t, wv, ww
+                qx, qy, qz = q[0], q[1], q[2]
+        lift[c] = 0.0
+        if bt < 0:
+            continue
+        a, b, e = tris[bt, 0], tris[bt, 1], tris[bt, 2]
+        bu = 1.0 - bv - bw
+        nx = bu * n_in[a, 0] + bv * n_in[b, 0] + bw * n_in[e, 0]
+        ny = bu * n_in[a, 1] + bv * n_in[b, 1] + bw * n_in[e, 1]
+        nz = bu * n_in[a, 2] + bv * n_in[b, 2] + bw * n_in[e, 2]
+        nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+        if nn == 0.0:
+            continue
+        if (n_out[i, 0] * nx + n_out[i, 1] * ny + n_out[i, 2] * nz) < FACING * nn:
+            continue  # the outer sheet turned away from the inner one (a fold's far side): not over it
+        dx, dy, dz = px - qx, py - qy, pz - qz
+        side = (dx * nx + dy * ny + dz * nz) / nn
+        if side >= 0.0:
+            if best >= gap * gap:
+                continue
+        elif -side > depth:
+            continue
+        h = dx * n_out[i, 0] + dy * n_out[i, 1] + dz * n_out[i, 2]
+        t2 = best - h * h
+        if t2 >= gap * gap:
+            continue
+        s = math.sqrt(gap * gap - t2) - h
+        if s > 0.0 and room[c] > 0.0:
+            lift[c] = min(s, room[c])
+            lifted += 1
+    return lifted
+
+
+@kernel
+def ease_lifts(edges, drop, lift, sweeps):
+    """Each lift at least its neighbour's minus the edge's drop (LAYER_SLOPE × its length),
+    relaxed by sweeps over the edges in both orders: the lifts fall off along the outer
+    surface as a cone, never below what lift_over_inner asked."""
+    for _ in range(sweeps):
+        for k in range(edges.shape[0]):
+            a, b = edges[k, 0], edges[k, 1]
+            if lift[b] - drop[k] > lift[a]:
+                lift[a] = lift[b] - drop[k]
+            elif lift[a] - drop[k] > lift[b]:
+                lift[b] = lift[a] - drop[k]
+        for k in range(edges.shape[0] - 1, -1, -1):
+            a, b = edges[k, 0], edges[k, 1]
+            if lift[b] - drop[k] > lift[a]:
+                lift[a] = lift[b] - drop[k]
+            elif lift[a] - drop[k] > lift[b]:
+                lift[b] = lift[a] - drop[k]
+
+
+@kernel
+def apply_lifts(p_out, n_out, candidates, lift, room):
+    """Each candidate moved along its normal by its eased lift, within its room."""
+    for c in range(candidates.shape[0]):
+        s = min(lift[c], room[c])
+        if s > 0.0:
+            i = candidates[c]
+            p_out[i, 0] += s * n_out[i, 0]
+            p_out[i, 1] += s * n_out[i, 1]
+            p_out[i, 2] += s * n_out[i, 2]
+
+
+def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarray, p_in: np.ndarray,
+                n_in: np.ndarray, outer: SurfaceState | None = None, max_height: float = 0.0) -> None:
+    """Lift the outer garment's detailed positions p_out (N, 3), in place, over the inner
+    garment's detailed surface (p_in, n_in) of the same frame (the module's Decision).
+    n_out: the outer's shading normals (unit, away from the body); outer: its surface state,
+    whose heights Δh and S106 ceilings the lifts keep to where S103 found a body part above or
+    beside a vertex (a ceiling under max_height, its SurfaceSettings'); None: no body near."""
+    if outer is None:
+        dh = ceiling = s.no_heights
+    else:
+        dh, ceiling = outer.dh, outer.ceiling
+    s.lifted = lift_over_inner(p_out, n_out, p_in, n_in, m.candidates, s.nearest, m.nbr_start, m.nbr_ids, m.tri_start,
+                               m.tri_ids, m.triangles, m.gap, m.depth, m.max_lift, dh, ceiling, max_height, s.q, s.lift,
+                               s.room)
+    if s.lifted:
+        ease_lifts(m.spread_edges, m.spread_drop, s.lift, SPREAD_SWEEPS)
+        apply_lifts(p_out, n_out, m.candidates, s.lift, s.room)
+
+
+@kernel
+def nearest_points(points, targets, dist, index):
+    """dist[i], index[i]: the nearest of targets to points[i] (brute force, setup only: 11,000 ×
+    11,000 pairs in a fraction of a second)."""
+    for i in range(points.shape[0]):
+        best, arg = np.inf, -1
+        for j in range(targets.shape[0]):
+            d2 = ((points[i, 0] - targets[j, 0]) ** 2 + (points[i, 1] - targets[j, 1]) ** 2
+                  + (points[i, 2] - targets[j, 2]) ** 2)
+            if d2 < best:
+                best, arg = d2, j
+        dist[i] = math.sqrt(best)
+        index[i] = arg
+
+
+def nearest(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    dist, index = np.empty(len(points)), np.empty(len(points), dtype=np.int32)
+    nearest_points(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(targets, dtype=np.float64),
+                   dist, index)
+    return dist, index
+
+
+def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.ndarray, inner_rest: np.ndarray,
+               inner_triangles: np.ndarray, inner_edges: np.ndarray, reach: float = LAYER_REACH) -> LayerModel:
+    """The layer model of one pair from the two garments' detailed meshes at rest (m)."""
+    dist, index = nearest(outer_rest, inner_rest)
+    candidates = np.flatnonzero(dist < reach).astype(np.int32)
+    slot = np.full(len(outer_rest), -1, dtype=np.int64)
+    slot[candidates] = np.arange(len(candidates))
+    e = np.asarray(outer_edges, dtype=np.int64)
+    keep = (slot[e[:, 0]] >= 0) & (slot[e[:, 1]] >= 0)
+    spread = slot[e[keep]].astype(np.int32)
+    rest_len = np.linalg.norm(outer_rest[e[keep, 0]] - outer_rest[e[keep, 1]], axis=1)
+    ns, ni = vertex_neighbours(len(inner_rest), np.asarray(inner_edges))
+    ts, ti = vertex_cells(len(inner_rest), np.asarray(inner_triangles))
+    return LayerModel(outer, inner, candidates, index[candidates].copy(), ns, ni, ts, ti,
+                      np.ascontiguousarray(inner_triangles, dtype=np.int32), np.ascontiguousarray(spread),
+                      LAYER_SLOPE * rest_len)
+
+
+def rest_surface(model: SurfaceModel) -> np.ndarray:
+    """(N, 3) a garment's detailed surface at rest: PN over its rest particles, no heights."""
+    t = model.tess
+    x = np.ascontiguousarray(model.cloth.rest_positions, dtype=np.float64)
+    n, T = len(x), len(t.coarse_triangles)
+    p, normals = np.zeros((t.n_vertices, 3)), np.zeros((t.n_vertices, 3))
+    pn_surface(t, x, np.zeros((n, 3)), np.zeros((T, 10, 3)), np.zeros((T, 6, 3)), p, normals)
+    return p
+
+
+def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[LayerModel]:
+    """The layer pairs of an outfit's garments, fitted together on the body at rest (body_rest:
+    (n, 3) the rest body's vertices, m): for every two garments whose rest surfaces come within
+    LAYER_BAND, the one farther from the body where they do is outer."""
+    rest = [rest_surface(m) for m in models]
+    pairs = []
+    for a in range(len(models)):
+        for b in range(a + 1, len(models)):
+            d_ab, _ = nearest(rest[a], rest[b])
+            d_ba, _ = nearest(rest[b], rest[a])
+            in_a, in_b = d_ab < LAYER_BAND, d_ba < LAYER_BAND
+            if not (in_a.any() and in_b.any()):
+                continue
+            off_a, _ = nearest(rest[a][in_a], body_rest)
+            off_b, _ = nearest(rest[b][in_b], body_rest)
+            outer, inner = (a, b) if np.median(off_a) >= np.median(off_b) else (b, a)
+            mo, mi = models[outer], models[inner]
+            pairs.append(layer_pair(outer, inner, rest[outer], mo.d_edges, rest[inner], mi.tess.triangles,
+                                    mi.d_edges))
+    return pairs
+
+
+__all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
+           "ease_lifts", "layer_outfit", "layer_pair", "lift_over_inner", "nearest", "rest_surface", "stack_layer"]

@@ -1,0 +1,142 @@
+"""Garments worn over one another (cloth/layers.py, the layering Decision) on cases whose answers are known."""
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from cloth.coarsen import CoarseMesh
+from cloth.fabric import fabric
+from cloth.garment import Garment
+from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LayerState, layer_outfit, layer_pair,
+                          stack_layer)
+from cloth.model import SimSettings, build_cloth_model
+from cloth.surface import SurfaceSettings, build_surface_model
+from cloth.topology import unique_edges
+from tests.test_surface import grid_sheet
+
+H = 0.01  # m: the grids' spacing
+
+
+def grid(x0: float, x1: float, y: float, z1: float = 0.2):
+    """A triangulated flat grid over [x0, x1] × [0, z1] at height y, spacing H: (vertices,
+    triangles, edges), its normals +Y."""
+    nx, nz = int(round((x1 - x0) / H)) + 1, int(round(z1 / H)) + 1
+    xs, zs = np.meshgrid(x0 + np.arange(nx) * H, np.arange(nz) * H, indexing="ij")
+    v = np.stack([xs.ravel(), np.full(xs.size, y), zs.ravel()], axis=1)
+    vid = np.arange(nx * nz).reshape(nx, nz)
+    tris = []
+    for i in range(nx - 1):
+        for k in range(nz - 1):
+            a, b, c, d = vid[i, k], vid[i, k + 1], vid[i + 1, k + 1], vid[i + 1, k]
+            tris += [(a, b, c), (a, c, d)]
+    tris = np.array(tris, dtype=np.int32)
+    return v, tris, unique_edges(tris)[0]
+
+
+def up(n: int) -> np.ndarray:
+    return np.tile([0.0, 1.0, 0.0], (n, 1))
+
+
+def outer_and_inner(inner_y: float, outer_y: float = 0.0):
+    """An outer sheet over x in [0, 0.4] at outer_y and an inner one over [0.1, 0.3] at inner_y."""
+    po, _, eo = grid(0.0, 0.4, outer_y)
+    pi, ti, ei = grid(0.1, 0.3, inner_y)
+    return po, eo, pi, ti, ei, layer_pair(0, 1, po, eo, pi, ti, ei)
+
+
+def test_an_outer_sheet_behind_the_inner_one_is_brought_over_it_and_eases_off_beyond_its_edge():
+    """The inner sheet 4 mm above the outer one (its wrinkles poking through): over the inner
+    sheet the outer comes to exactly LAYER_GAP above it; beyond the inner's edge the lift falls
+    off by LAYER_SLOPE along the outer sheet (one 1 cm step: 6 - 5 = 1 mm; two: none), and
+    nothing comes down."""
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    p = po.copy()
+    s = LayerState(m)
+    stack_layer(m, s, p, up(len(p)), pi, up(len(pi)))
+    x = po[:, 0]
+    over = (x > 0.1 - 1e-9) & (x < 0.3 + 1e-9)
+    np.testing.assert_allclose(p[over, 1], 0.004 + LAYER_GAP, atol=1e-12)
+    one_out = np.isclose(x, 0.09) | np.isclose(x, 0.31)
+    np.testing.assert_allclose(p[one_out, 1], 0.004 + LAYER_GAP - LAYER_SLOPE * H, atol=1e-12)
+    far = (x < 0.08 + 1e-9) | (x > 0.32 - 1e-9)
+    assert np.all(p[far, 1] == 0.0)
+    np.testing.assert_array_equal(p[:, [0, 2]], po[:, [0, 2]])  # along the normals only
+    assert s.lifted == int(over.sum())
+
+
+@pytest.mark.parametrize("outer_y, lifted_to", [(0.005, 0.004 + LAYER_GAP), (0.0061, None), (0.01, None)])
+def test_an_outer_sheet_over_the_inner_one_is_lifted_only_if_nearer_than_the_gap(outer_y, lifted_to):
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004, outer_y)
+    p = po.copy()
+    stack_layer(m, LayerState(m), p, up(len(p)), pi, up(len(pi)))
+    if lifted_to is None:
+        np.testing.assert_array_equal(p, po)
+    else:
+        over = (po[:, 0] > 0.1 - 1e-9) & (po[:, 0] < 0.3 + 1e-9)
+        np.testing.assert_allclose(p[over, 1], lifted_to, atol=1e-12)
+
+
+def test_no_lift_behind_the_inner_sheet_beyond_the_depth_nor_where_the_outer_one_faces_away():
+    po, eo, pi, ti, ei, m = outer_and_inner(LAYER_DEPTH + 0.002)  # another sheet, not a wrinkle poking through
+    p = po.copy()
+    stack_layer(m, LayerState(m), p, up(len(p)), pi, up(len(pi)))
+    np.testing.assert_array_equal(p, po)
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    p = po.copy()
+    stack_layer(m, LayerState(m), p, -up(len(p)), pi, up(len(pi)))  # the outer sheet turned over
+    np.testing.assert_array_equal(p, po)
+
+
+def test_the_lift_follows_the_inner_sheet_as_it_slides_and_keeps_out_of_a_body_above():
+    """The inner sheet slides 3 cm along x over three frames: each outer vertex's nearest inner
+    vertex is tracked by the walk, and the lifted band moves with it. Where S103 left an outer
+    vertex a ceiling 1 mm above its height (a body part above it), it rises 1 mm only."""
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    s = LayerState(m)
+    for shift in (0.01, 0.02, 0.03):
+        p = po.copy()
+        moved = pi + [shift, 0.0, 0.0]
+        stack_layer(m, s, p, up(len(p)), moved, up(len(pi)))
+    x = po[:, 0]
+    over = (x > 0.13 - 1e-9) & (x < 0.32 + 1e-9)  # (0.33 is beyond LAYER_REACH of the rest sheet)
+    np.testing.assert_allclose(p[over, 1], 0.004 + LAYER_GAP, atol=1e-12)
+    assert np.all(p[x < 0.11 + 1e-9, 1] == 0.0)
+    # a body part 1 mm above some of the outer vertices (their S106 ceiling), none near the rest
+    max_height = 0.03
+    ceiling = np.full(len(po), max_height)
+    held = over & (po[:, 2] < 0.05)
+    ceiling[held] = 0.001
+    state = SimpleNamespace(dh=np.zeros(len(po)), ceiling=ceiling)
+    p = po.copy()
+    stack_layer(m, s, p, up(len(p)), pi + [0.03, 0.0, 0.0], up(len(pi)), state, max_height)
+    np.testing.assert_allclose(p[held, 1], 0.001, atol=1e-12)
+    np.testing.assert_allclose(p[over & ~held, 1], 0.004 + LAYER_GAP, atol=1e-12)
+
+
+def sheet(x0: float, y: float, material: str, nx: int = 5, nz: int = 3, spacing: float = 0.04):
+    verts, faces = grid_sheet(nx, nz, spacing, y)
+    verts = verts + [x0, 0.0, 0.0]
+    coarse = CoarseMesh(verts, faces, np.zeros(0, np.int32), np.zeros((0, 3)))
+    cloth = build_cloth_model(Garment(material, verts, faces, np.arange(len(verts))), fabric(material), SimSettings(),
+                              verts, coarse)
+    return build_surface_model(cloth, SurfaceSettings())
+
+
+def floor(x0=-0.05, x1=0.3):
+    xs, zs = np.meshgrid(np.linspace(x0, x1, 36), np.linspace(-0.05, 0.13, 19))
+    return np.stack([xs.ravel(), np.zeros(xs.size), zs.ravel()], axis=1)
+
+
+def test_the_garment_farther_from_the_body_where_two_overlap_is_the_outer_one():
+    """Cotton 12 mm over a floor of body vertices over x in [0, 0.16], denim 10 mm over [0.08,
+    0.24]: the cotton is outer; its vertices within LAYER_REACH of the denim are tested. Apart,
+    they are not layered."""
+    inner, outer = sheet(0.08, 0.010, "denim"), sheet(0.0, 0.012, "cotton")
+    pairs = layer_outfit([inner, outer], floor())
+    assert [(m.outer, m.inner) for m in pairs] == [(1, 0)]
+    swapped = layer_outfit([sheet(0.08, 0.014, "denim"), outer], floor())
+    assert [(m.outer, m.inner) for m in swapped] == [(0, 1)]
+    assert LAYER_BAND < 0.03
+    apart = layer_outfit([sheet(0.0, 0.01, "cotton"), sheet(0.3, 0.01, "cotton")], floor(-0.05, 0.5))
+    assert apart == []
