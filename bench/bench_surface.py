@@ -2,7 +2,8 @@
 
 For the dress-like outfit (elegantsuit: blouse + skirt) and the trouser-like one (casualsuit:
 T-shirt + jeans) on the walk clip at 60 frames per second: medians in ms per frame of each
-stage, summed over the outfit's garments, beside the patent's figures (Pentium 4, 2.5 GHz).
+stage, summed over the outfit's garments, beside the patent's figures (Pentium 4, 2.5 GHz), and
+the outfit's layering (cloth/layers.py: the top's surface kept over the bottom's; not in the patent).
 Then how the surface cost grows with the tessellation level.
 Run: .venv/bin/python bench/bench_surface.py [--frames 200] [--levels 4 6 8 10 12]
 """
@@ -33,6 +34,7 @@ def stage_medians(report, fast) -> dict[str, float]:
     the profiled run `report`, the whole S101 step and the surface stages from `fast`."""
     out = {k: 0.0 for k in ("integration", "collision", "PN triangles", "surface collision", "deformation")}
     out["S101 total"] = 0.0
+    out["layering"] = float(np.median(fast.layer_ms)) if fast.layer_ms else 0.0
     for name in report.garments:
         split = np.median(np.array(report.split_ms[name]), axis=0)
         surf = np.median(np.array(fast.surface_ms[name]), axis=0)
@@ -76,9 +78,10 @@ def main() -> None:
     for i, lb in enumerate(labels):
         r = rows[lb]
         surface = r["PN triangles"] + r["surface collision"] + r["deformation"]
-        total = r["S101 total"] + surface
+        total = r["S101 total"] + surface + r["layering"]
         patent_total = sum(PATENT[s][i] for s in PATENT)
-        print(f"{lb}: S101 {r['S101 total']:.2f} ms, surface {surface:.2f} ms, whole {total:.2f} ms per frame "
+        print(f"{lb}: S101 {r['S101 total']:.2f} ms, surface {surface:.2f} ms, layering {r['layering']:.2f} ms, "
+              f"whole {total:.2f} ms per frame "
               f"({1000.0 / total:.0f} FPS; patent {patent_total:.1f} ms, {patent_total / total:.0f}x faster)")
     print("\nsurface cost by level, trouser-like outfit (ms per frame, both garments)")
     print(f"{'level':>5s} {'detailed verts':>14s} {'PN':>6s} {'collision':>9s} {'deformation':>11s} {'us per 1k verts':>15s}")

@@ -37,12 +37,14 @@ from .topology import vertex_cells, vertex_neighbours
 LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
 LAYER_REACH = 0.03  # m: an outer vertex this near the inner garment at rest is tested every frame
 LAYER_GAP = 0.002  # m: the outer surface is kept this far over the inner one
-LAYER_DEPTH = 0.02  # m: an outer vertex at most this far behind the inner surface is brought over it
+LAYER_DEPTH = 0.01  # m: an outer vertex at most this far behind the inner surface is brought over it
+# (the inner's wrinkles poking through are 6-10 mm high; farther behind it is another sheet)
 LAYER_SLOPE = 0.5  # m of lift given up per m along the outer surface away from a lifted vertex
 MAX_LAYER_LIFT = 0.03  # m: no vertex is lifted farther (the inner garment's heights reach 3 cm)
-SPREAD_SWEEPS = 4  # forward and backward sweeps over the outer edges that ease the lifts off
+SPREAD_SWEEPS = 2  # forward and backward sweeps over the outer edges that ease the lifts off
 FACING = 0.25  # an outer vertex whose normal is within about 75° of the inner surface's is over it
 WALK_STEPS = 256  # at most this many vertices walked per tracked vertex and frame
+RING_STRETCH = 1.5  # the inner's detailed edges are taken to stretch at most this much (for ring_reach)
 
 
 @dataclass
@@ -58,6 +60,8 @@ class LayerModel:
     tri_start: np.ndarray  # (Ni + 1,) int64: CSR of the inner detailed triangles around each vertex
     tri_ids: np.ndarray  # int32
     triangles: np.ndarray  # (Ti, 3) int32: the inner detailed triangles
+    ring_reach: np.ndarray  # (Ni,) m: RING_STRETCH × the longest rest edge at each inner vertex (how far
+    # its triangles reach from it): a point farther than depth + this from the vertex is over none of them
     spread_edges: np.ndarray  # (S, 2) int32: outer detailed edges between candidates, as candidate indices
     spread_drop: np.ndarray  # (S,) m: LAYER_SLOPE × each one's rest length
     gap: float = LAYER_GAP
@@ -97,7 +101,7 @@ def walk_nearest_vertex(px, py, pz, x, nbr_start, nbr_ids, start, steps):
 
 @kernel
 def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids, tris,
-                    gap, depth, max_lift, dh, ceiling, free_ceiling, q, lift, room):
+                    ring_reach, gap, depth, max_lift, dh, ceiling, free_ceiling, q, lift, room):
     """Each candidate's lift along its normal n_o that puts it `gap` over the inner surface
     (its closest point q on the triangles around its nearest inner vertex, the inner's normal
     n_q there interpolated from the inner's shading normals):
@@ -116,6 +120,10 @@ def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nb
         px, py, pz = p_out[i, 0], p_out[i, 1], p_out[i, 2]
         v = walk_nearest_vertex(px, py, pz, p_in, nbr_start, nbr_ids, nearest[c], WALK_STEPS)
         nearest[c] = v
+        lift[c] = 0.0
+        far = max(gap, depth) + ring_reach[v]
+        if (p_in[v, 0] - px) ** 2 + (p_in[v, 1] - py) ** 2 + (p_in[v, 2] - pz) ** 2 > far * far:
+            continue  # nowhere near the inner surface (most of a loose top's band, most frames)
         best, bt, bv, bw = np.inf, -1, 0.0, 0.0
         qx, qy, qz = 0.0, 0.0, 0.0
         for k in range(tri_start[v], tri_start[v + 1]):
@@ -125,7 +133,6 @@ def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nb
             if d2 < best:
                 best, bt, bv, bw = d2, t, wv, ww
                 qx, qy, qz = q[0], q[1], q[2]
-        lift[c] = 0.0
         if bt < 0:
             continue
         a, b, e = tris[bt, 0], tris[bt, 1], tris[bt, 2]
@@ -200,8 +207,8 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     else:
         dh, ceiling = outer.dh, outer.ceiling
     s.lifted = lift_over_inner(p_out, n_out, p_in, n_in, m.candidates, s.nearest, m.nbr_start, m.nbr_ids, m.tri_start,
-                               m.tri_ids, m.triangles, m.gap, m.depth, m.max_lift, dh, ceiling, max_height, s.q, s.lift,
-                               s.room)
+                               m.tri_ids, m.triangles, m.ring_reach, m.gap, m.depth, m.max_lift, dh, ceiling,
+                               max_height, s.q, s.lift, s.room)
     if s.lifted:
         ease_lifts(m.spread_edges, m.spread_drop, s.lift, SPREAD_SWEEPS)
         apply_lifts(p_out, n_out, m.candidates, s.lift, s.room)
@@ -242,9 +249,14 @@ def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.n
     rest_len = np.linalg.norm(outer_rest[e[keep, 0]] - outer_rest[e[keep, 1]], axis=1)
     ns, ni = vertex_neighbours(len(inner_rest), np.asarray(inner_edges))
     ts, ti = vertex_cells(len(inner_rest), np.asarray(inner_triangles))
+    ie = np.asarray(inner_edges, dtype=np.int64)
+    longest = np.zeros(len(inner_rest))
+    inner_len = np.linalg.norm(inner_rest[ie[:, 0]] - inner_rest[ie[:, 1]], axis=1)
+    np.maximum.at(longest, ie[:, 0], inner_len)
+    np.maximum.at(longest, ie[:, 1], inner_len)
     return LayerModel(outer, inner, candidates, index[candidates].copy(), ns, ni, ts, ti,
-                      np.ascontiguousarray(inner_triangles, dtype=np.int32), np.ascontiguousarray(spread),
-                      LAYER_SLOPE * rest_len)
+                      np.ascontiguousarray(inner_triangles, dtype=np.int32), RING_STRETCH * longest,
+                      np.ascontiguousarray(spread), LAYER_SLOPE * rest_len)
 
 
 def rest_surface(model: SurfaceModel) -> np.ndarray:

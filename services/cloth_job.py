@@ -104,6 +104,7 @@ class ClothReport:
     stage_ms: dict[str, list[float]] = field(default_factory=dict)  # per garment-frame: whole S101 step
     split_ms: dict[str, list[tuple[float, float]]] = field(default_factory=dict)  # (integration, collision), profile
     surface_ms: dict[str, list[tuple[float, float, float]]] = field(default_factory=dict)  # PN, collision, deformation
+    layer_ms: list[float] = field(default_factory=list)  # per frame: the outfit's layering (cloth.layers), all pairs
     nan_frames: int = 0
     resets: list[int] = field(default_factory=list)  # particles reset per garment
     snapshots: list[tuple[int, np.ndarray, list[np.ndarray]]] = field(default_factory=list)
@@ -116,6 +117,8 @@ class ClothReport:
         if self.surface_ms:
             ms += " | surface PN/collision/deformation: " + "  ".join(
                 f"{k} " + "/".join(f"{x:.2f}" for x in np.median(np.array(v), axis=0)) for k, v in self.surface_ms.items())
+        if self.layer_ms:
+            ms += f" | layering {np.median(self.layer_ms):.2f}"
         return (f"{self.clip} × {self.outfit}: {self.frames} frames, substeps {self.substeps} | "
                 f"median ms per garment-frame: {ms} | NaN frames {self.nan_frames} | resets {self.resets}")
 
@@ -146,7 +149,7 @@ class OutfitSession:
         if layers is None:
             layers = outfit_layers(outfit, surface_models, body.n_visible) if surface_models else []
         self.layers = [(lm, LayerState(lm)) for lm in layers]
-        self._outer = {lm.outer for lm in layers}  # garments handed to on_garment only once layered
+        self.outer_garments = {lm.outer for lm in layers}  # handed to on_garment only once layered
         self.layer_seconds = 0.0
         self._detailed: list = [None] * len(self.sims)
         self._frame = None
@@ -216,7 +219,7 @@ class OutfitSession:
             self.layer_seconds = time.perf_counter() - t0
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
             if on_garment is not None:
-                for k in sorted(self._outer):
+                for k in sorted(self.outer_garments):
                     on_garment(k, out[k])
         return out
 
@@ -239,7 +242,7 @@ class OutfitSession:
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
                                           surface_dt, self.pose.grid, self.pose.face_tips())
             self.surface_seconds[k] = surf.stage_seconds
-        if on_garment is not None and not (surface and k in self._outer):
+        if on_garment is not None and not (surface and k in self.outer_garments):
             on_garment(k, x)  # an outer garment's once it is layered (step_cloth)
         return x
 
@@ -300,6 +303,8 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
                     report.split_ms.setdefault(name, []).append(tuple(session.stage_seconds[k] * 1000))
                 if surface is not None:
                     report.surface_ms.setdefault(name, []).append(tuple(session.surface_seconds[k] * 1000))
+            if session.layers:
+                report.layer_ms.append(session.layer_seconds * 1000)
             if not all(np.isfinite(p).all() for p in positions):
                 report.nan_frames += 1
             if on_frame is not None:

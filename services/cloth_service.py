@@ -184,6 +184,8 @@ class GarmentSession:
         if sim.surfaces:
             pn, col, deform = (float(x) * 1000 for x in sim.surface_seconds[k])
             meta.update(pn_ms=round(pn, 4), collision_ms=round(col, 4), deformation_ms=round(deform, 4))
+            if k in sim.outer_garments:  # lifted over the garment under it once both were done (cloth.layers)
+                meta["layer_ms"] = round(sim.layer_seconds * 1000, 4)
         self._p32[k][:] = p
         self._n32[k][:] = n
         out = Message("garment", self.session, msg.frame, msg.time, {"positions": self._p32[k], "normals": self._n32[k]},

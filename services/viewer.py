@@ -241,7 +241,7 @@ class ViewerBridge:
             self.stats.values["latency_ms"] = round(latency, 3)
             if self.log_stats:
                 name = parts[-1]
-                for field in ("s101_ms", "pn_ms", "collision_ms", "deformation_ms"):
+                for field in ("s101_ms", "pn_ms", "collision_ms", "deformation_ms", "layer_ms"):
                     if field in msg.meta:
                         self.rec.log(f"stats/stages/{name}/{field}", rr.Scalars(float(msg.meta[field])))
                 self.rec.log(f"stats/latency/{name}", rr.Scalars(latency))
