@@ -1,5 +1,6 @@
 """The detailed surface through a real clip with every outfit: finite, heights within their
-bounds, unit shading normals, and the coarse vertices on the surface."""
+bounds, unit shading normals, the coarse vertices on the surface, and the layering (the top
+lifted over the bottom) along the top's normals only, outward and bounded."""
 
 import numpy as np
 import pytest
@@ -10,10 +11,16 @@ from services.cloth_job import OUTFITS, run_cloth_clip
 
 @pytest.mark.parametrize("outfit", OUTFITS)
 def test_surface_through_the_run_clip(body, data, outfit):
-    checked = []
+    checked, lifted = [], []
 
     def on_frame(index, session, body_frame, positions):
-        for surf, (p, n), x in zip(session.surfaces, session.detailed, positions):
+        layered = [p.copy() for p, _ in session.detailed]
+        lifted.append(sum(ls.lifted for _, ls in session.layers))
+        for lm, ls in session.layers:  # take the layering's lifts off again (cloth.layers.apply_lifts)
+            lift = np.minimum(ls.lift, ls.room)
+            assert lift.min() >= 0.0 and lift.max() <= lm.max_lift
+            layered[lm.outer][lm.candidates] -= lift[:, None] * session.detailed[lm.outer][1][lm.candidates]
+        for surf, (_, n), p, x in zip(session.surfaces, session.detailed, layered, positions):
             s, st = surf.state, surf.model.settings
             assert np.isfinite(p).all() and np.isfinite(n).all()
             assert s.dh.min() >= -st.max_height and s.dh.max() <= 2 * st.max_height
@@ -29,4 +36,6 @@ def test_surface_through_the_run_clip(body, data, outfit):
     report = run_cloth_clip(body, data / "garments" / outfit, data / "mocap" / "cmu_npybvh_example_75f.bvh",
                             on_frame=on_frame, surface=SurfaceSettings())
     assert report.nan_frames == 0 and len(checked) == report.frames > 30
+    layers = outfit != "female_sportsuit01"  # the sport suit's top and bottom do not meet
+    assert (len(report.layer_ms) == report.frames) == layers and (sum(lifted) > 0) == layers
     assert all(len(v) == report.frames for v in report.surface_ms.values())
