@@ -4,7 +4,10 @@ share no code with cloth/: the independent signed distance of tests/signed_dista
 Per garment and frame: the deepest detailed vertex, NaN, detailed edges longer than the
 maximum neighbour distance (where the reference surface alone is already longer, than its
 length with the height difference allowed at rest: S106's Decision), and on coarse edges compressed by more than 2 %
-the share of their arc-length deficit the wrinkles recovered.
+the share of their arc-length deficit the wrinkles recovered; where a garment is worn over
+another (cloth.layers), every tenth frame, the share of the inner one's vertices near the outer
+one that stand farther from the skin than the outer's nearest vertex (showing through it; which
+vertices are near is taken at rest by cloth.layers' rule, the distances are the independent ones).
 Run directly for a table: python -m tests.surface_acceptance [clip ...] [--outfit NAME ...]
 """
 
@@ -15,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cloth.layers import LAYER_BAND, nearest, rest_surface
 from cloth.surface import SurfaceSettings
 from services.cloth_job import run_cloth_clip
 from tests.cloth_acceptance import clips_and_outfits
@@ -33,6 +37,10 @@ class SurfaceRecord:
     edges: int = 0
     recovered: list[float] = field(default_factory=list)  # per frame: median recovered share of the deficit
     max_height: float = 0.0
+    # an inner garment (another worn over it, cloth.layers), every tenth frame: its vertices within
+    # LAYER_BAND of the outer one's, and of those, the ones farther from the skin than the outer's nearest
+    overlap: int = 0
+    showing: int = 0
 
 
 def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int | None = None,
@@ -40,16 +48,25 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
     sd = SignedDistance(body.triangles, body.n_visible)
     records: list[SurfaceRecord] = []
 
+    bands = {}  # (outer, inner): each one's detailed vertices within LAYER_BAND of the other at rest
+
     def on_frame(index, session, body_frame, positions):
         if not records:
             records.extend(SurfaceRecord(s.model.cloth.name) for s in session.surfaces)
+            rest = [rest_surface(s.model) for s in session.surfaces]
+            for lm, _ in session.layers:
+                d_oi, _ = nearest(rest[lm.outer], rest[lm.inner])
+                d_io, _ = nearest(rest[lm.inner], rest[lm.outer])
+                bands[lm.outer, lm.inner] = (np.flatnonzero(d_oi < LAYER_BAND), np.flatnonzero(d_io < LAYER_BAND))
         skin = body_frame.vertices[: body.n_visible]
+        skin_distance = []
         for rec, surf, (p, _) in zip(records, session.surfaces, session.detailed):
+            skin_distance.append(None)
             if not np.isfinite(p).all():
                 rec.nan_frames += 1
                 continue
             m, s = surf.model, surf.state
-            d = sd(skin, p)
+            d = skin_distance[-1] = sd(skin, p)
             rec.depth.append(float(d.min()))
             rec.deep_vertices += int(np.sum(d < -0.001))
             length = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
@@ -73,6 +90,16 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
             comp = deficit > 0.02 * m.edge_rest
             if comp.any():
                 rec.recovered.append(float(np.median((arc[comp] - arc_ref[comp]) / deficit[comp])))
+        if index % 10 == 0:
+            for (o, i), (bo, bi) in bands.items():
+                if skin_distance[o] is None or skin_distance[i] is None:
+                    continue
+                po, pi = session.detailed[o][0][bo], session.detailed[i][0][bi]
+                d2 = ((pi[:, None, :] - po[None, :, :]) ** 2).sum(axis=2)
+                near = d2.argmin(axis=1)
+                close = d2[np.arange(len(pi)), near] < LAYER_BAND**2
+                records[i].overlap += int(close.sum())
+                records[i].showing += int(np.sum(close & (skin_distance[i][bi] > skin_distance[o][bo][near])))
 
     report = run_cloth_clip(body, data / "garments" / outfit, data / "mocap" / f"{clip}.bvh", every=every,
                             max_frames=max_frames, on_frame=on_frame, surface=settings or SurfaceSettings())
@@ -97,7 +124,9 @@ def main() -> None:
                       f"(both ends at S103 floors {r.long_floored / max(r.edges, 1) * 100:6.3f} %, "
                       f"beyond d_max {r.beyond_d_max / max(r.edges, 1) * 100:5.2f} %) "
                       f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
-                      f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}", flush=True)
+                      f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}"
+                      + (f" showing through the garment over it {r.showing / r.overlap * 100:4.1f} %" if r.overlap else ""),
+                      flush=True)
 
 
 if __name__ == "__main__":
