@@ -272,7 +272,9 @@ def rest_surface(model: SurfaceModel) -> np.ndarray:
 def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[LayerModel]:
     """The layer pairs of an outfit's garments, fitted together on the body at rest (body_rest:
     (n, 3) the rest body's vertices, m): for every two garments whose rest surfaces come within
-    LAYER_BAND, the one farther from the body where they do is outer."""
+    LAYER_BAND, the one farther from the body where they do is outer. In the order they are to
+    be stacked (`stacking_order`): a garment is lifted over another only once that one has been
+    lifted over what it is worn over (a jacket over a shirt over trousers)."""
     rest = [rest_surface(m) for m in models]
     pairs = []
     for a in range(len(models)):
@@ -288,8 +290,25 @@ def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[Laye
             mo, mi = models[outer], models[inner]
             pairs.append(layer_pair(outer, inner, rest[outer], mo.d_edges, rest[inner], mi.tess.triangles,
                                     mi.d_edges))
-    return pairs
+    return stacking_order(pairs, len(models))
+
+
+def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]:
+    """The pairs sorted by how many layers lie under their outer garment (its longest chain of
+    garments worn under it), so each garment is lifted over a surface already in its place.
+    A cycle (A over B over C over A, in different places) is cut after n_garments rounds."""
+    depth = [0] * n_garments
+    for _ in range(n_garments):
+        changed = False
+        for m in pairs:
+            if depth[m.outer] < depth[m.inner] + 1 <= n_garments:
+                depth[m.outer] = depth[m.inner] + 1
+                changed = True
+        if not changed:
+            break
+    return sorted(pairs, key=lambda m: (depth[m.outer], m.outer, m.inner))
 
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "ease_lifts", "layer_outfit", "layer_pair", "lift_over_inner", "nearest", "rest_surface", "stack_layer"]
+           "ease_lifts", "layer_outfit", "layer_pair", "lift_over_inner", "nearest", "rest_surface", "stack_layer",
+           "stacking_order"]

@@ -9,7 +9,7 @@ from cloth.coarsen import CoarseMesh
 from cloth.fabric import fabric
 from cloth.garment import Garment
 from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LayerState, layer_outfit, layer_pair,
-                          stack_layer)
+                          rest_surface, stack_layer)
 from cloth.model import SimSettings, build_cloth_model
 from cloth.surface import SurfaceSettings, build_surface_model
 from cloth.topology import unique_edges
@@ -140,3 +140,27 @@ def test_the_garment_farther_from_the_body_where_two_overlap_is_the_outer_one():
     assert LAYER_BAND < 0.03
     apart = layer_outfit([sheet(0.0, 0.01, "cotton"), sheet(0.3, 0.01, "cotton")], floor(-0.05, 0.5))
     assert apart == []
+
+
+def test_three_garments_are_stacked_from_the_inside_out():
+    """Trousers at 10 mm, a shirt at 12 mm and a jacket at 14 mm over the same floor, all
+    overlapping: the shirt is lifted over the trousers before the jacket over the shirt, in
+    whatever order the garments come, and a frame in which the trousers' wrinkles rise 7 mm
+    (to 17 mm) ends with the shirt 2 mm over them and the jacket 2 mm over the shirt."""
+    made = {"trousers": (0.010, "denim"), "shirt": (0.012, "cotton"), "jacket": (0.014, "denim")}
+    for names in (("jacket", "shirt", "trousers"), ("trousers", "jacket", "shirt")):
+        models = [sheet(0.0, made[n][0], made[n][1]) for n in names]
+        pairs = layer_outfit(models, floor())
+        k = {n: names.index(n) for n in names}
+        order = [(m.outer, m.inner) for m in pairs]
+        assert order.index((k["shirt"], k["trousers"])) < order.index((k["jacket"], k["shirt"]))
+        assert (k["jacket"], k["trousers"]) in order
+        rest = [rest_surface(m) for m in models]
+        p = {n: rest[k[n]].copy() for n in names}
+        p["trousers"][:, 1] += 0.007
+        for m in pairs:
+            outer, inner = names[m.outer], names[m.inner]
+            stack_layer(m, LayerState(m), p[outer], up(len(p[outer])), p[inner], up(len(p[inner])))
+        mid = (rest[0][:, 0] > 0.02) & (rest[0][:, 0] < 0.14)  # away from the sheets' edges
+        np.testing.assert_allclose(p["shirt"][mid, 1], 0.017 + LAYER_GAP, atol=1e-9)
+        np.testing.assert_allclose(p["jacket"][mid, 1], 0.017 + 2 * LAYER_GAP, atol=1e-9)
