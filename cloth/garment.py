@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .geometry import nearest_vertices
 from .topology import boundary_loops, connected_components, orient_faces
 
 MAKEHUMAN_UNIT_M = 0.1  # mhclo offsets and OBJ coordinates are decimetres
@@ -168,6 +169,33 @@ def read_obj_polygons(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(v).all():
         raise GarmentError(f"{path}: a vertex coordinate is not finite")
     return v, f
+
+
+def face_outward(garment: Garment, body_vertices: np.ndarray) -> Garment:
+    """The garment with its faces wound so that their normals point away from the body it is
+    fitted on (body_vertices (n, 3), m, in the garment's frame): the side S103 lifts to, the
+    layering lifts along and the renderer lights. Each face votes with its area whether its
+    normal points away from the body vertex nearest its centre; where most of the area says
+    no (a mesh wound inwards), every face is reversed (`orient_faces` has made the winding
+    consistent). The garment itself is returned when it already faces out."""
+    f = np.asarray(garment.faces)
+    v = np.asarray(garment.vertices, dtype=np.float64)
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    normal = np.cross(b - a, c - a)  # area-weighted (the first triangle of a quad)
+    centre = (a + b + c) / 3.0
+    body = np.ascontiguousarray(body_vertices, dtype=np.float64)
+    near = np.zeros(len(f), dtype=np.int64)
+    nearest_vertices(np.ascontiguousarray(centre), body, near, np.ones(len(body), dtype=np.uint8),
+                     np.ones(len(f), dtype=np.uint8))
+    away = np.einsum("ij,ij->i", normal, centre - body[near])
+    area = np.linalg.norm(normal, axis=1)
+    if np.sum(area[away > 0]) >= np.sum(area[away < 0]):
+        return garment
+    flipped = f.copy()
+    for k in range(len(f)):  # each face's ring reversed, its -1 padding kept at the end
+        n = int(np.count_nonzero(f[k] >= 0))
+        flipped[k, :n] = f[k, :n][::-1]
+    return Garment(garment.name, garment.vertices, flipped, garment.source_ids)
 
 
 def split_garments(name: str, vertices: np.ndarray, faces: np.ndarray, min_vertices: int = 16) -> list[Garment]:

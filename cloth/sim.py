@@ -32,7 +32,7 @@ from .collision import (FACE_TREE_STACK, PART_SLOTS, UNION_HITS, BodyMesh, BodyP
                         resolve_contacts, track_parts)
 from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
-from .garment import Garment
+from .garment import Garment, face_outward
 from .geometry import nearest_vertices, region_masks, vertex_normals
 from .jit import helper, kernel
 from .model import ClothModel, SimSettings, build_cloth_model
@@ -292,6 +292,7 @@ def prepare_cloth(garment: Garment, fabric: Fabric, body_rest: np.ndarray, body:
     waistband): those particles keep their rest-pose place on the body. The rest of the garment
     is simulated."""
     settings = settings or SimSettings()
+    garment = face_outward(garment, body_rest[: body.n_vertices])  # the skin, not the helper geometry
     coarse = coarsen(garment.vertices, garment.faces, settings.target_particles)
     body_x = body.internal(body_rest)
     masks = particle_regions(coarse.vertices, body_x, body)

@@ -119,3 +119,41 @@ def test_any_trimesh_mesh_is_accepted(tmp_path):
     assert len(garments[0].vertices) == 42
     with pytest.raises(GarmentError, match="no such file"):
         load_garment_file(tmp_path / "missing.glb")
+
+
+def test_a_garment_wound_inwards_is_turned_to_face_away_from_the_body(outfits, body):
+    """A sleeve (an open cylinder of quads, r = 6 cm) around a body cylinder (r = 5 cm): wound so
+    its normals point in, face_outward reverses every face (padding kept), after which every
+    normal points away from the axis; wound outwards, it is returned as it is. The shipped
+    garments all face out already."""
+    from cloth.garment import Garment, face_outward
+
+    def cylinder(r, n=24, rows=6):
+        t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        v = np.array([[r * np.cos(a), 0.05 * k, r * np.sin(a)] for k in range(rows) for a in t])
+        f = [[k * n + i, k * n + (i + 1) % n, (k + 1) * n + (i + 1) % n, (k + 1) * n + i]
+             for k in range(rows - 1) for i in range(n)]
+        return v, np.array(f, dtype=np.int32)
+
+    skin, _ = cylinder(0.05, n=48, rows=11)
+    v, f = cylinder(0.06)
+
+    def outward_share(g):
+        a, b, c = (g.vertices[g.faces[:, k]] for k in range(3))
+        n = np.cross(b - a, c - a)
+        radial = (a + b + c) / 3 * [1.0, 0.0, 1.0]
+        return np.mean(np.einsum("ij,ij->i", n, radial) > 0)
+
+    f_out = f if outward_share(Garment("s", v, f, np.arange(len(v)))) > 0.5 else f[:, ::-1].copy()
+    f_in = f_out[:, ::-1].copy()
+    f_in_tri = np.concatenate([f_in, np.c_[f_in[:3, :3], np.full(3, -1)]]).astype(np.int32)  # some triangles too
+    sleeve_out, sleeve_in = Garment("s", v, f_out, np.arange(len(v))), Garment("s", v, f_in_tri, np.arange(len(v)))
+    assert outward_share(sleeve_out) == 1.0 and outward_share(sleeve_in) == 0.0
+    assert face_outward(sleeve_out, skin) is sleeve_out
+    turned = face_outward(sleeve_in, skin)
+    assert outward_share(turned) == 1.0
+    np.testing.assert_array_equal(turned.faces[-3:, 3], -1)
+    np.testing.assert_array_equal(np.sort(turned.faces, axis=1), np.sort(sleeve_in.faces, axis=1))  # same faces
+    for outfit in OUTFITS:
+        for g in outfits[outfit]:
+            assert face_outward(g, body.vertices[: body.n_visible]) is g, g.name
