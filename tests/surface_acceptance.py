@@ -6,7 +6,8 @@ maximum neighbour distance (where the reference surface alone is already longer,
 length with the height difference allowed at rest: S106's Decision), and on coarse edges compressed by more than 2 %
 the share of their arc-length deficit the wrinkles recovered; where a garment is worn over
 another (cloth.layers), every tenth frame, the share of the inner one's vertices near the outer
-one that stand farther from the skin than the outer's nearest vertex (showing through it; which
+one (more than 1 cm in from its edges) that stand farther from the skin than the outer's nearest
+vertex there (showing through it; which
 vertices are near is taken at rest by cloth.layers' rule, the distances are the independent ones).
 Run directly for a table: python -m tests.surface_acceptance [clip ...] [--outfit NAME ...]
 """
@@ -18,8 +19,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cloth.layers import LAYER_BAND, nearest, rest_surface
+from cloth.layers import LAYER_BAND, layer_outfit, nearest, rest_surface
 from cloth.surface import SurfaceSettings
+from cloth.topology import unique_edges
 from services.cloth_job import run_cloth_clip
 from tests.cloth_acceptance import clips_and_outfits
 from tests.signed_distance import SignedDistance
@@ -38,7 +40,8 @@ class SurfaceRecord:
     recovered: list[float] = field(default_factory=list)  # per frame: median recovered share of the deficit
     max_height: float = 0.0
     # an inner garment (another worn over it, cloth.layers), every tenth frame: its vertices within
-    # LAYER_BAND of the outer one's, and of those, the ones farther from the skin than the outer's nearest
+    # LAYER_BAND of the outer one's away from the outer's edges, and of those, the ones farther from
+    # the skin than that outer vertex
     overlap: int = 0
     showing: int = 0
 
@@ -54,10 +57,18 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
         if not records:
             records.extend(SurfaceRecord(s.model.cloth.name) for s in session.surfaces)
             rest = [rest_surface(s.model) for s in session.surfaces]
-            for lm, _ in session.layers:
+            # the garment pairs worn one over the other (found even where the session's layering is off)
+            models = [sf.model for sf in session.surfaces]
+            for lm in layer_outfit(models, np.ascontiguousarray(session.outfit.rest_body[: body.n_visible])):
                 d_oi, _ = nearest(rest[lm.outer], rest[lm.inner])
                 d_io, _ = nearest(rest[lm.inner], rest[lm.outer])
-                bands[lm.outer, lm.inner] = (np.flatnonzero(d_oi < LAYER_BAND), np.flatnonzero(d_io < LAYER_BAND))
+                # the outer's vertices more than LAYER_BAND in from its edges (a hem): an inner vertex
+                # near the hem's last row may lie just beyond it, not under the outer garment
+                edges, uses = unique_edges(session.surfaces[lm.outer].model.tess.triangles)
+                rim = np.unique(edges[uses == 1])
+                d_rim, _ = nearest(rest[lm.outer], rest[lm.outer][rim])
+                bands[lm.outer, lm.inner] = (np.flatnonzero((d_oi < LAYER_BAND) & (d_rim > LAYER_BAND)),
+                                             np.flatnonzero(d_io < LAYER_BAND))
         skin = body_frame.vertices[: body.n_visible]
         skin_distance = []
         for rec, surf, (p, _) in zip(records, session.surfaces, session.detailed):
