@@ -136,7 +136,8 @@ def main() -> None:
                       f"beyond d_max {r.beyond_d_max / max(r.edges, 1) * 100:5.2f} %) "
                       f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
                       f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}"
-                      + (f" showing through the garment over it {r.showing / r.overlap * 100:4.1f} %" if r.overlap else ""),
+                      + (f" showing through the garment over it {r.showing / r.overlap * 100:4.1f} %"
+                         if r.overlap else ""),
                       flush=True)
 
 
