@@ -28,10 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import closest_point_triangle
-from .jit import kernel
-from .pn import pn_surface
+from .geometry import closest_point_triangle, nearest_vertices
+from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
+from .surface import rest_surface as surface_at_rest
 from .topology import vertex_cells, vertex_neighbours
 
 LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
@@ -163,6 +163,15 @@ def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nb
     return lifted
 
 
+@helper
+def _ease_edge(edges, drop, lift, k):
+    a, b = edges[k, 0], edges[k, 1]
+    if lift[b] - drop[k] > lift[a]:
+        lift[a] = lift[b] - drop[k]
+    elif lift[a] - drop[k] > lift[b]:
+        lift[b] = lift[a] - drop[k]
+
+
 @kernel
 def ease_lifts(edges, drop, lift, sweeps):
     """Each lift at least its neighbour's minus the edge's drop (LAYER_SLOPE × its length),
@@ -170,17 +179,9 @@ def ease_lifts(edges, drop, lift, sweeps):
     surface as a cone, never below what lift_over_inner asked."""
     for _ in range(sweeps):
         for k in range(edges.shape[0]):
-            a, b = edges[k, 0], edges[k, 1]
-            if lift[b] - drop[k] > lift[a]:
-                lift[a] = lift[b] - drop[k]
-            elif lift[a] - drop[k] > lift[b]:
-                lift[b] = lift[a] - drop[k]
+            _ease_edge(edges, drop, lift, k)
         for k in range(edges.shape[0] - 1, -1, -1):
-            a, b = edges[k, 0], edges[k, 1]
-            if lift[b] - drop[k] > lift[a]:
-                lift[a] = lift[b] - drop[k]
-            elif lift[a] - drop[k] > lift[b]:
-                lift[b] = lift[a] - drop[k]
+            _ease_edge(edges, drop, lift, k)
 
 
 @kernel
@@ -214,26 +215,13 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
         apply_lifts(p_out, n_out, m.candidates, s.lift, s.room)
 
 
-@kernel
-def nearest_points(points, targets, dist, index):
-    """dist[i], index[i]: the nearest of targets to points[i] (brute force, setup only: 11,000 ×
-    11,000 pairs in a fraction of a second)."""
-    for i in range(points.shape[0]):
-        best, arg = np.inf, -1
-        for j in range(targets.shape[0]):
-            d2 = ((points[i, 0] - targets[j, 0]) ** 2 + (points[i, 1] - targets[j, 1]) ** 2
-                  + (points[i, 2] - targets[j, 2]) ** 2)
-            if d2 < best:
-                best, arg = d2, j
-        dist[i] = math.sqrt(best)
-        index[i] = arg
-
-
 def nearest(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    dist, index = np.empty(len(points)), np.empty(len(points), dtype=np.int32)
-    nearest_points(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(targets, dtype=np.float64),
-                   dist, index)
-    return dist, index
+    """(distance, index) of the nearest of targets to each point (brute force, setup only)."""
+    pts = np.ascontiguousarray(points, dtype=np.float64)
+    tgt = np.ascontiguousarray(targets, dtype=np.float64)
+    index = np.zeros(len(pts), dtype=np.int64)
+    nearest_vertices(pts, tgt, index, np.ones(len(tgt), dtype=np.uint8), np.ones(len(pts), dtype=np.uint8))
+    return np.linalg.norm(pts - tgt[index], axis=1), index.astype(np.int32)
 
 
 def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.ndarray, inner_rest: np.ndarray,
@@ -260,13 +248,8 @@ def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.n
 
 
 def rest_surface(model: SurfaceModel) -> np.ndarray:
-    """(N, 3) a garment's detailed surface at rest: PN over its rest particles, no heights."""
-    t = model.tess
-    x = np.ascontiguousarray(model.cloth.rest_positions, dtype=np.float64)
-    n, T = len(x), len(t.coarse_triangles)
-    p, normals = np.zeros((t.n_vertices, 3)), np.zeros((t.n_vertices, 3))
-    pn_surface(t, x, np.zeros((n, 3)), np.zeros((T, 10, 3)), np.zeros((T, 6, 3)), p, normals)
-    return p
+    """(N, 3) a garment's detailed surface at rest (`surface.rest_surface`)."""
+    return surface_at_rest(model.tess, model.cloth.rest_positions)
 
 
 def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[LayerModel]:

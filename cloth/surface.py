@@ -91,16 +91,21 @@ class SurfaceModel:
         return self.tess.n_vertices
 
 
+def rest_surface(tess: Tessellation, rest_positions: np.ndarray) -> np.ndarray:
+    """(N, 3) a garment's detailed surface at rest: PN over its rest particles, no heights (setup only)."""
+    x = np.ascontiguousarray(rest_positions, dtype=np.float64)
+    p, normals = np.zeros((tess.n_vertices, 3)), np.zeros((tess.n_vertices, 3))
+    T = len(tess.coarse_triangles)
+    pn_surface(tess, x, np.zeros((len(x), 3)), np.zeros((T, 10, 3)), np.zeros((T, 6, 3)), p, normals)
+    return p
+
+
 def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = None) -> SurfaceModel:
     settings = settings or SurfaceSettings()
     n = cloth.n_particles
     tess = build_tessellation(cloth.triangles, n, settings.level)
-    # the rest surface: PN over the rest particles, no heights
     x = np.ascontiguousarray(cloth.rest_positions, dtype=np.float64)
-    p_rest = np.zeros((tess.n_vertices, 3))
-    n_rest = np.zeros_like(p_rest)
-    T = len(tess.coarse_triangles)
-    pn_surface(tess, x, np.zeros((n, 3)), np.zeros((T, 10, 3)), np.zeros((T, 6, 3)), p_rest, n_rest)
+    p_rest = rest_surface(tess, x)
     seg = np.linalg.norm(np.diff(p_rest[tess.edge_ids], axis=1), axis=2)
     edge_rest = seg.sum(axis=1)
     d_edges = tess.detail_edges
@@ -254,4 +259,4 @@ class DetailedSurface:
         return s.p, s.normals
 
 
-__all__ = ["DetailedSurface", "SurfaceModel", "SurfaceSettings", "SurfaceState", "build_surface_model"]
+__all__ = ["DetailedSurface", "SurfaceModel", "SurfaceSettings", "SurfaceState", "build_surface_model", "rest_surface"]
