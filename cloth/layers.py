@@ -201,12 +201,12 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     """Lift the outer garment's detailed positions p_out (N, 3), in place, over the inner
     garment's detailed surface (p_in, n_in) of the same frame (the module's Decision).
     n_out: the outer's shading normals (unit, away from the body); outer: its surface state,
-    whose heights Δh and S106 ceilings the lifts keep to where S103 found a body part above or
+    whose drawn heights and S106 ceilings the lifts keep to where S103 found a body part above or
     beside a vertex (a ceiling under max_height, its SurfaceSettings'); None: no body near."""
     if outer is None:
         dh = ceiling = s.no_heights
     else:
-        dh, ceiling = outer.dh, outer.ceiling
+        dh, ceiling = outer.height, outer.ceiling
     s.lifted = lift_over_inner(p_out, n_out, p_in, n_in, m.candidates, s.nearest, m.nbr_start, m.nbr_ids, m.tri_start,
                                m.tri_ids, m.triangles, m.ring_reach, m.gap, m.depth, m.max_lift, dh, ceiling,
                                max_height, s.q, s.lift, s.room)

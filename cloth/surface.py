@@ -5,8 +5,8 @@
     p, n = surface.step(x, nearest_any, body_x, body_mesh, face_n, dt)
 
 One frame: S102 PN triangles → S103 penetration avoidance → S104 normal force → S105 length
-displacement → S106 deformation (its steps scaled to each compressed edge's deficit), constraints
-and shading normals. Δh carries to the next frame.
+displacement → S106 deformation (its steps scaled to each compressed edge's deficit), constraints,
+the folds drawn across the compression, and shading normals. Δh carries to the next frame.
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
 from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights,
-                       elastic_forces, length_displacement, match_required_length, normal_force, offset_along_normals,
-                       other_part_seeds, penetration_floor, shading_normals)
+                       elastic_forces, fold_across, fold_edges, fold_lines, length_displacement, match_required_length, normal_force,
+                       offset_along_normals, other_part_seeds, penetration_floor, shading_normals)
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,10 @@ class SurfaceSettings:
     # S106 step 5: a wrinkle on a compressed coarse edge widens into a fold to keep the maximum
     # neighbour distance (its neighbours rise), rather than coming down (Decision)
     widen_folds: bool = True
+    # S106 step 6 as drawn: a compressed coarse edge's wrinkle is carried into its faces as a fold
+    # running across the compression, tapering off towards the opposite corners (Decision,
+    # `wrinkles.fold_across`); the carried Δh is the same either way
+    fold_across: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -85,6 +89,10 @@ class SurfaceModel:
     h_normal: float
     transfer_exponent: float
     height_allowance: float  # (d_max² - rest²) / d_max² = 1 - 1/ratio²: S106 step 5 on stretched edges
+    fold_src: np.ndarray  # (3, P, 2) int32: `wrinkles.fold_lines`, the folds across the compression
+    fold_weight: np.ndarray  # (3, P, 2) float64
+    fold_local_edges: np.ndarray  # (Le, 2) int32: `wrinkles.fold_edges`, where a fold can part neighbours
+    fold_edge_ids: np.ndarray  # (T, Le) int32
 
     @property
     def n_vertices(self) -> int:
@@ -115,7 +123,8 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     es, ei = vertex_cells(tess.n_vertices, d_edges)
     return SurfaceModel(tess, settings, cloth, edge_rest, straight, d_edges, f.max_neighbour_ratio * rest_len,
                         f.max_neighbour_ratio * seg, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
-                        1.0 - 1.0 / f.max_neighbour_ratio**2)
+                        1.0 - 1.0 / f.max_neighbour_ratio**2, *fold_lines(tess.lattice, tess.level),
+                        *fold_edges(tess))
 
 
 class SurfaceState:
@@ -129,6 +138,7 @@ class SurfaceState:
         self.p = np.zeros((N, 3))  # final positions, m
         self.normals = np.zeros((N, 3))  # S106 shading normals
         self.dh = np.zeros(N)  # Δh, carried to the next frame (Δh_last_frame)
+        self.height = np.zeros(N)  # the drawn heights: Δh, or more in a fold across the compression
         self.dh_pen = np.zeros(N)  # S103 Δh_penetration
         self.sd = np.zeros(N)  # S103 signed distance of tested particles (inf: untested)
         self.facing = np.zeros(N)  # S103: n_i . n_body at each tested particle's closest body point
@@ -253,7 +263,13 @@ class DetailedSurface:
                           s.edge_deficit, t.edge_ids, t.interior_local, m.d_edges, m.d_max, m.height_allowance,
                           m.d_edge_start, m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved,
                           s.stamp, s.start_h, st.widen_folds, s.fold, s.p)
-        shading_normals(s.p, t.triangles, s.n_pn, s.dh, m.h_normal, s.n_deform, s.normals)
+        if st.fold_across:
+            fold_across(s.p_smoothed, s.n_pn, s.dh, s.floor, s.ceiling, t.face_ids, t.face_edges, s.edge_required,
+                        m.fold_src, m.fold_weight, m.fold_local_edges, m.fold_edge_ids, m.d_max, m.height_allowance,
+                        s.height, s.p)
+        else:
+            s.height[:] = s.dh
+        shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
         self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)
         return s.p, s.normals

@@ -14,6 +14,8 @@ import numpy as np
 from .collision import deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
 from .geometry import add_face_normal
 from .jit import FAST_ARITHMETIC, helper, kernel
+from .pn import lattice_triangles
+from .topology import unique_edges
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -1104,6 +1106,122 @@ def shading_normals(p, triangles, n_pn, dh, h_normal, n_deform, out):
         out[i, 0] = x * m
         out[i, 1] = y * m
         out[i, 2] = z * m
+
+
+# ---------------------------------------------------------------- S106: folds across the compression
+
+
+def fold_lines(lattice: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where each lattice point of a face lies on the fold lines from each of its edges (AB, BC,
+    CA) to the opposite corner: the line from the corner through the point meets the edge
+    between two of the edge's lattice points. Returns src (3, P, 2) int32, their local indices,
+    and weight (3, P, 2) float64: the second one's share, and the taper 1 - depth / L (depth:
+    lattice steps from the edge). Only the face's interior points lie on fold lines (taper 0
+    elsewhere): a coarse edge's particles keep the heights S106 gave them for its length."""
+    L = level
+    local = {(int(b), int(c)): k for k, (b, c) in enumerate(lattice)}
+    P = len(lattice)
+    src = np.zeros((3, P, 2), dtype=np.int32)
+    weight = np.zeros((3, P, 2))
+    # lattice point m steps along each edge from its first corner (AB from A, BC from B, CA from A)
+    edge_point = (lambda m: (m, 0), lambda m: (L - m, m), lambda m: (0, m))
+    for k, (b, c) in enumerate(lattice):
+        a = L - b - c
+        # per edge: the point's depth from it, and its position along it as seen from the opposite corner
+        for s, (depth, along, rest) in enumerate(((c, b, a + b), (a, c, b + c), (b, c, a + c))):
+            if a == 0 or b == 0 or c == 0:
+                continue  # on a coarse edge: its heights are its own wrinkles' (S106), folds run inside faces
+            u = L * along / rest
+            lo = min(int(math.floor(u + 1e-9)), L - 1)
+            src[s, k] = (local[edge_point[s](lo)], local[edge_point[s](lo + 1)])
+            weight[s, k] = (u - lo, 1.0 - depth / L)
+    return src, weight
+
+
+def fold_edges(tess) -> tuple[np.ndarray, np.ndarray]:
+    """The lattice edges with a face-interior end, where a fold can part two neighbours:
+    (Le, 2) int32 local lattice indices, and per face the detailed edge each one is, (T, Le)
+    int32 into tess.detail_edges."""
+    local, _ = unique_edges(lattice_triangles(tess.level))
+    inner = np.zeros(len(tess.lattice), dtype=bool)
+    inner[tess.interior_local] = True
+    local = local[inner[local[:, 0]] | inner[local[:, 1]]].astype(np.int32)
+    ends = np.sort(tess.face_ids[:, local], axis=2).astype(np.int64)  # (T, Le, 2)
+    N = tess.n_vertices
+    keys = tess.detail_edges[:, 0].astype(np.int64) * N + tess.detail_edges[:, 1]
+    ids = np.searchsorted(keys, ends[..., 0] * N + ends[..., 1])
+    return local, ids.astype(np.int32)
+
+
+@kernel
+def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_required, fold_src, fold_weight,
+                local_edges, face_edge_ids, d_max, allowance, height, p):
+    """Decision (folds across the compression, S106 step 6 as drawn): S106 raises the particles
+    along a compressed coarse edge (ΔLE_required > 0), which gives the edge its length back, but
+    its wrinkle stays a bump a few particles wide on that edge, where cloth buckles into a fold
+    running across the compression. Each such edge's wrinkle heights above their floors are
+    carried into its faces along the lines towards the opposite corner, tapering to nothing
+    there: a particle at `depth` steps from the edge on the line through edge position t is
+    drawn at least floor + (1 - depth / L) (Δh - floor)(t), never above its S106 ceiling (a
+    body part above or beside it), never lower than its Δh. The particles on coarse edges (and
+    so every edge's arc length), the coarse vertices and the carried Δh (next frame's
+    Δh_last_frame) are unchanged: only the face interiors as drawn take the folds. Along a row
+    of a face the taper shrinks the heights as much as the row's points spread along the edge,
+    so no two neighbours differ in height more than the edge's particles do; where a fold still
+    parts two neighbours beyond S106 step 5's limit (d_max, allowance: `apply_constraints`';
+    local_edges, face_edge_ids: `fold_edges`) it is taken off them. height (N,): the drawn
+    heights, written; p: written where raised."""
+    for i in range(dh.shape[0]):
+        height[i] = dh[i]
+    for f in range(face_ids.shape[0]):
+        raised = False
+        for s in range(3):
+            if edge_required[face_edges[f, s]] <= 0.0:
+                continue
+            for k in range(face_ids.shape[1]):
+                taper = fold_weight[s, k, 1]
+                if taper <= 0.0:
+                    continue
+                v0, v1 = face_ids[f, fold_src[s, k, 0]], face_ids[f, fold_src[s, k, 1]]
+                w = fold_weight[s, k, 0]
+                wrinkle = (1.0 - w) * (dh[v0] - floor[v0]) + w * (dh[v1] - floor[v1])
+                if wrinkle <= 0.0:
+                    continue
+                vid = face_ids[f, k]
+                h = min(floor[vid] + taper * wrinkle, ceiling[vid])
+                if h > height[vid]:
+                    height[vid] = h
+                    raised = True
+        if raised:
+            _settle_fold(p_smoothed, n_pn, dh, face_ids, f, local_edges, face_edge_ids, d_max, allowance, height, p)
+
+
+@helper
+def _settle_fold(p_smoothed, n_pn, dh, face_ids, f, local_edges, face_edge_ids, d_max, allowance, height, p):
+    """Face f's raised particles drawn, and taken back to their Δh where they part two neighbours
+    beyond S106 step 5's limit: the taper bounds height steps, not distances, and a fold beside
+    a steep wrinkle of S106 can part them. A raised particle is inside f, and so are all its
+    edges; round after round until none is too long (each particle goes back once, so this
+    ends; an edge left too long was so before the folds)."""
+    for k in range(face_ids.shape[1]):
+        vid = face_ids[f, k]
+        if height[vid] > dh[vid]:
+            for a in range(3):
+                p[vid, a] = p_smoothed[vid, a] + height[vid] * n_pn[vid, a]
+    changed = True
+    while changed:
+        changed = False
+        for k in range(local_edges.shape[0]):
+            i, j = face_ids[f, local_edges[k, 0]], face_ids[f, local_edges[k, 1]]
+            if height[i] <= dh[i] and height[j] <= dh[j]:
+                continue
+            if _dist2(p, i, j) <= _limit2(p_smoothed, i, j, d_max[face_edge_ids[f, k]], allowance):
+                continue
+            if height[i] > dh[i]:
+                _set_height(p_smoothed, n_pn, height, p, i, dh[i])
+            if height[j] > dh[j]:
+                _set_height(p_smoothed, n_pn, height, p, j, dh[j])
+            changed = True
 
 
 @kernel

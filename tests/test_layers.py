@@ -107,7 +107,7 @@ def test_the_lift_follows_the_inner_sheet_as_it_slides_and_keeps_out_of_a_body_a
     ceiling = np.full(len(po), max_height)
     held = over & (po[:, 2] < 0.05)
     ceiling[held] = 0.001
-    state = SimpleNamespace(dh=np.zeros(len(po)), ceiling=ceiling)
+    state = SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling)
     p = po.copy()
     stack_layer(m, s, p, up(len(p)), pi + [0.03, 0.0, 0.0], up(len(pi)), state, max_height)
     np.testing.assert_allclose(p[held, 1], 0.001, atol=1e-12)

@@ -185,9 +185,14 @@ def test_compressed_strip_grows_wrinkles_that_restore_its_length():
     ratio = arc_lengths(surf, p) / m.edge_rest
     assert abs(np.median(ratio) - 1.0) < 0.05, ratio
     assert np.all((ratio > 0.8) & (ratio < 1.3)), ratio
-    # no neighbour farther than the fabric allows
+    # no neighbour farther than the fabric allows, the folds drawn across the compression included
     d = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
     assert np.all(d <= m.d_max * (1 + 1e-9))
+    s = surf.state
+    assert np.all(s.height >= s.dh)  # folds across the compression only raise (Decision)
+    on_edges = m.tess.edge_ids.ravel()  # the coarse edges' particles: as S106 left them
+    np.testing.assert_array_equal(s.height[on_edges], s.dh[on_edges])
+    np.testing.assert_allclose(p, s.p_smoothed + s.height[:, None] * s.n_pn, atol=1e-15)
 
 
 def test_fully_stretched_faces_stay_flat():

@@ -1,14 +1,14 @@
 """SPEC.md S104 and S106 formulas, kernel by kernel, on cases worked out by hand: the transfer
 rates and the force interpolation along a bent chain, the three-direction average inside a
-face, the normal force, ΔL_expected's sign rule with Δh_length and its clamp, and the
-blended shading normals."""
+face, the normal force, ΔL_expected's sign rule with Δh_length and its clamp, the blended
+shading normals, and the folds carried across the compression (Decision)."""
 
 import numpy as np
 import pytest
 
 from cloth.pn import build_tessellation
-from cloth.wrinkles import (UNTESTED, deformation_heights, elastic_forces, normal_force, penetration_floor,
-                            shading_normals)
+from cloth.wrinkles import (UNTESTED, deformation_heights, elastic_forces, fold_across, fold_edges, fold_lines,
+                            normal_force, penetration_floor, shading_normals)
 
 
 def single_face(level, corners):
@@ -158,3 +158,145 @@ def test_penetration_floor_and_ceiling():
     penetration_floor(dh, sd, facing, other, dh_pen, 0.001, 0.03, floor, ceiling)
     np.testing.assert_allclose(floor * 1000, [0.0, 0.0, 3.5, -2.5, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(ceiling * 1000, [30.0, 30.0, 30.0, -2.5, 4.0, 6.0, 2.5, 2.0], atol=1e-12)
+
+
+def lattice_index(t, b, c):
+    return int(np.flatnonzero((t.lattice[:, 0] == b) & (t.lattice[:, 1] == c))[0])
+
+
+def test_fold_lines_run_from_each_edge_to_the_opposite_corner():
+    """Level 6: the point (a, b, c) = (2, 2, 2) is 2 steps from each edge, on the line from
+    each opposite corner through the edge's middle (3 of 6), taper 1 - 2/6. (4, 1, 1) is 1 step
+    from AB, on the line from C through b' = 6 * 1/5 = 1.2; from CA (depth b = 1) through
+    c' = 6 * 1/5 = 1.2 too. Points on the coarse edges take no fold."""
+    L = 6
+    t = build_tessellation(np.array([[0, 1, 2]], dtype=np.int32), 3, L)
+    src, weight = fold_lines(t.lattice, L)
+    centre = lattice_index(t, 2, 2)
+    for s, (first, second) in enumerate((((3, 0), (4, 0)), ((3, 3), (2, 4)), ((0, 3), (0, 4)))):
+        assert tuple(src[s, centre]) == (lattice_index(t, *first), lattice_index(t, *second))
+        np.testing.assert_allclose(weight[s, centre], (0.0, 2.0 / 3.0), atol=1e-12)
+    k = lattice_index(t, 1, 1)
+    assert tuple(src[0, k]) == (lattice_index(t, 1, 0), lattice_index(t, 2, 0))
+    np.testing.assert_allclose(weight[0, k], (0.2, 5.0 / 6.0), atol=1e-12)
+    assert tuple(src[2, k]) == (lattice_index(t, 0, 1), lattice_index(t, 0, 2))
+    np.testing.assert_allclose(weight[2, k], (0.2, 5.0 / 6.0), atol=1e-12)
+    b, c = t.lattice.T
+    on_edges = (b == 0) | (c == 0) | (b + c == L)  # the coarse edges' particles: S106's alone
+    assert np.all(weight[:, on_edges, 1] == 0.0) and np.all(weight[:, ~on_edges, 1] > 0.0)
+
+
+def run_fold(t, dh, required, floor=None, ceiling=None, max_height=0.03, d_max=1.0):
+    N = t.n_vertices
+    p_smoothed = np.zeros((N, 3))
+    p_smoothed[:, [0, 2]] = t.owner_weights[:, 1:]  # any surface: the heights are along +Y
+    n_pn = np.tile([0.0, 1.0, 0.0], (N, 1))
+    floor = np.zeros(N) if floor is None else floor
+    ceiling = np.full(N, max_height) if ceiling is None else ceiling
+    src, weight = fold_lines(t.lattice, t.level)
+    height = np.full(N, np.nan)
+    p = p_smoothed + dh[:, None] * n_pn
+    d_max = np.full(len(t.detail_edges), d_max)  # 1 m: no neighbour limit on this unit face
+    local, ids = fold_edges(t)
+    fold_across(p_smoothed, n_pn, dh, floor, ceiling, t.face_ids, t.face_edges, np.asarray(required, float), src,
+                weight, local, ids, d_max, 0.0, height, p)
+    np.testing.assert_allclose(p, p_smoothed + height[:, None] * n_pn, atol=1e-15)
+    return height
+
+
+def test_fold_across_carries_a_wrinkle_towards_the_opposite_corner():
+    """A 6 mm wrinkle in the middle of the compressed edge AB (level 6, particles b = 2, 3, 4 at
+    3, 6, 3 mm; corner B at 2 mm): the face's interior points on the line from C through the
+    peak rise by 6 mm times the taper 1 - c/6, the others by the interpolated height times the
+    taper; the particles on the coarse edges keep their heights. AB stretched and the other
+    two compressed, with no wrinkles of their own: no fold."""
+    L = 6
+    t = build_tessellation(np.array([[0, 1, 2]], dtype=np.int32), 3, L)
+    dh = np.zeros(t.n_vertices)
+    ab = {b: t.face_ids[0, lattice_index(t, b, 0)] for b in range(L + 1)}
+    dh[ab[2]], dh[ab[3]], dh[ab[4]] = 0.003, 0.006, 0.003
+    dh[ab[L]] = 0.002  # corner B carries a height: edge BC, on the lines from A through B, takes none
+    height = run_fold(t, dh, [1e-3, -1e-3, -1e-3])  # face_edges: AB, BC, CA
+    for c in range(1, L):
+        for b in range(1, L - c):  # the interior
+            u = L * b / (L - c)  # where the line from C through (b, c) meets AB
+            profile = np.interp(u, np.arange(L + 1), dh[[ab[m] for m in range(L + 1)]])
+            expected = (1.0 - c / L) * profile
+            assert height[t.face_ids[0, lattice_index(t, b, c)]] == pytest.approx(expected, abs=1e-15), (b, c)
+    on_edges = t.edge_ids.ravel()
+    np.testing.assert_array_equal(height[on_edges], dh[on_edges])
+    assert height[t.face_ids[0, lattice_index(t, 2, 2)]] == pytest.approx(0.004, abs=1e-15)  # (1 - 2/6) 6 mm
+    np.testing.assert_array_equal(run_fold(t, dh, [-1e-3, 1e-3, 1e-3]), dh)
+
+
+def test_fold_across_keeps_higher_particles_and_the_ceiling_and_counts_from_the_floor():
+    """A fold never lowers a particle (one already at 9 mm stays), stops at a particle's
+    ceiling (a body part 1 mm above it), and carries the wrinkle above the edge's floors: an edge
+    lifted 2 mm out of the body everywhere (floor 2 mm) with a 5 mm peak carries 3 mm, added
+    to the interior particle's own floor."""
+    L = 6
+    t = build_tessellation(np.array([[0, 1, 2]], dtype=np.int32), 3, L)
+    N = t.n_vertices
+    ab = [t.face_ids[0, lattice_index(t, b, 0)] for b in range(L + 1)]
+    floor = np.zeros(N)
+    floor[ab] = 0.002
+    dh = floor.copy()
+    dh[ab[3]] = 0.005
+    centre, below = t.face_ids[0, lattice_index(t, 3, 1)], t.face_ids[0, lattice_index(t, 2, 2)]
+    high, capped = t.face_ids[0, lattice_index(t, 2, 1)], t.face_ids[0, lattice_index(t, 1, 4)]
+    floor[centre] = 0.001
+    dh[centre] = 0.001
+    dh[high] = 0.009
+    ceiling = np.full(N, 0.03)
+    ceiling[capped] = 0.0005
+    height = run_fold(t, dh, [1e-3, -1e-3, -1e-3], floor, ceiling)
+    # (3, 1): 1 step from AB, on the line through b' = 6 * 3/5 = 3.6: 0.4 of the 3 mm peak, taper 5/6
+    assert height[centre] == pytest.approx(0.001 + 5.0 / 6.0 * 0.4 * 0.003, abs=1e-15)
+    assert height[below] == pytest.approx(2.0 / 3.0 * 0.003, abs=1e-15)  # through b' = 3, taper 4/6
+    assert height[high] == 0.009  # the fold would give it (5/6) 0.4 3 mm = 1 mm
+    assert height[capped] == 0.0005  # through b' = 3 too: (2/6) 3 mm = 1 mm without the ceiling
+
+
+def test_fold_across_keeps_neighbours_as_close_in_height_as_the_edge_does():
+    """Random wrinkle profiles on all three compressed edges of a face: no two neighbouring
+    particles differ in drawn height by more than the largest step between neighbours along an
+    edge (the taper shrinks a row's heights as much as the row's points spread along the edge)."""
+    L = 6
+    t = build_tessellation(np.array([[0, 1, 2]], dtype=np.int32), 3, L)
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        dh = np.zeros(t.n_vertices)
+        inner = t.edge_ids[:, 1:-1].ravel()
+        dh[inner] = rng.uniform(0.0, 0.01, inner.size)
+        height = run_fold(t, dh, [1e-3, 1e-3, 1e-3])
+        edge_step = np.abs(np.diff(dh[t.edge_ids], axis=1)).max()
+        steps = np.abs(height[t.detail_edges[:, 0]] - height[t.detail_edges[:, 1]])
+        assert steps.max() <= edge_step * (1 + 1e-9)
+        assert np.all(height >= dh)
+
+
+def test_fold_across_takes_a_fold_off_where_it_parts_neighbours_beyond_the_limit():
+    """On the unit face at level 6 (lattice spacing 1/6 m, its diagonals 0.24 m), wrinkles
+    0.15 m high on the edges and two interior particles raised 0.3 m by S106 (scaled up so that
+    heights matter against the spacing), neighbour limit 0.3 m: without the limit some folds
+    part a raised particle from a neighbour farther than that; with it no edge with a raised
+    end is too long, a particle is either at its fold or back at its Δh, and some folds stay."""
+    L = 6
+    t = build_tessellation(np.array([[0, 1, 2]], dtype=np.int32), 3, L)
+    dh = np.zeros(t.n_vertices)
+    dh[t.edge_ids[:, 2:-1:2].ravel()] = 0.15
+    dh[np.random.default_rng(0).choice(t.face_ids[0, t.interior_local], 2, replace=False)] = 0.3
+    e0, e1 = t.detail_edges.T
+
+    def raised_too_long(h):
+        ps = np.zeros((t.n_vertices, 3))
+        ps[:, [0, 2]] = t.owner_weights[:, 1:]
+        ps[:, 1] = h
+        long = np.linalg.norm(ps[e0] - ps[e1], axis=1) > 0.3 + 1e-12
+        return np.sum(long & ((h[e0] > dh[e0]) | (h[e1] > dh[e1])))
+
+    free = run_fold(t, dh, [1, 1, 1], max_height=1.0)
+    assert raised_too_long(free) > 0
+    limited = run_fold(t, dh, [1, 1, 1], max_height=1.0, d_max=0.3)
+    assert raised_too_long(limited) == 0
+    assert np.all((limited == free) | (limited == dh)) and np.any(limited > dh)
