@@ -23,8 +23,8 @@ from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
 from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights,
-                       elastic_forces, fold_across, fold_edges, fold_lines, length_displacement, match_required_length, normal_force,
-                       offset_along_normals, other_part_seeds, penetration_floor, shading_normals)
+                       elastic_forces, fold_across, fold_edges, fold_lines, length_displacement, match_required_length,
+                       normal_force, offset_along_normals, other_part_seeds, penetration_floor, shading_normals)
 
 
 @dataclass(frozen=True)
@@ -265,8 +265,8 @@ class DetailedSurface:
                           s.stamp, s.start_h, st.widen_folds, s.fold, s.p)
         if st.fold_across:
             fold_across(s.p_smoothed, s.n_pn, s.dh, s.floor, s.ceiling, t.face_ids, t.face_edges, s.edge_required,
-                        m.fold_src, m.fold_weight, m.fold_local_edges, m.fold_edge_ids, m.d_max, m.height_allowance,
-                        s.height, s.p)
+                        t.interior_local, m.fold_src, m.fold_weight, m.fold_local_edges, m.fold_edge_ids, m.d_max,
+                        m.height_allowance, s.height, s.p)
         else:
             s.height[:] = s.dh
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)

@@ -1154,8 +1154,8 @@ def fold_edges(tess) -> tuple[np.ndarray, np.ndarray]:
 
 
 @kernel
-def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_required, fold_src, fold_weight,
-                local_edges, face_edge_ids, d_max, allowance, height, p):
+def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_required, interior_local, fold_src,
+                fold_weight, local_edges, face_edge_ids, d_max, allowance, height, p):
     """Decision (folds across the compression, S106 step 6 as drawn): S106 raises the particles
     along a compressed coarse edge (ΔLE_required > 0), which gives the edge its length back, but
     its wrinkle stays a bump a few particles wide on that edge, where cloth buckles into a fold
@@ -1169,7 +1169,8 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
     of a face the taper shrinks the heights as much as the row's points spread along the edge,
     so no two neighbours differ in height more than the edge's particles do; where a fold still
     parts two neighbours beyond S106 step 5's limit (d_max, allowance: `apply_constraints`';
-    local_edges, face_edge_ids: `fold_edges`) it is taken off them. height (N,): the drawn
+    local_edges, face_edge_ids: `fold_edges`) it is taken off them. interior_local: the
+    face-interior lattice points (the only ones `fold_lines` puts on a fold line). height (N,): the drawn
     heights, written; p: written where raised."""
     for i in range(dh.shape[0]):
         height[i] = dh[i]
@@ -1178,10 +1179,9 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
         for s in range(3):
             if edge_required[face_edges[f, s]] <= 0.0:
                 continue
-            for k in range(face_ids.shape[1]):
+            for q in range(interior_local.shape[0]):
+                k = interior_local[q]
                 taper = fold_weight[s, k, 1]
-                if taper <= 0.0:
-                    continue
                 v0, v1 = face_ids[f, fold_src[s, k, 0]], face_ids[f, fold_src[s, k, 1]]
                 w = fold_weight[s, k, 0]
                 wrinkle = (1.0 - w) * (dh[v0] - floor[v0]) + w * (dh[v1] - floor[v1])
@@ -1193,18 +1193,20 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
                     height[vid] = h
                     raised = True
         if raised:
-            _settle_fold(p_smoothed, n_pn, dh, face_ids, f, local_edges, face_edge_ids, d_max, allowance, height, p)
+            _settle_fold(p_smoothed, n_pn, dh, face_ids, f, interior_local, local_edges, face_edge_ids, d_max,
+                         allowance, height, p)
 
 
 @helper
-def _settle_fold(p_smoothed, n_pn, dh, face_ids, f, local_edges, face_edge_ids, d_max, allowance, height, p):
+def _settle_fold(p_smoothed, n_pn, dh, face_ids, f, interior_local, local_edges, face_edge_ids, d_max, allowance,
+                 height, p):
     """Face f's raised particles drawn, and taken back to their Δh where they part two neighbours
     beyond S106 step 5's limit: the taper bounds height steps, not distances, and a fold beside
     a steep wrinkle of S106 can part them. A raised particle is inside f, and so are all its
     edges; round after round until none is too long (each particle goes back once, so this
     ends; an edge left too long was so before the folds)."""
-    for k in range(face_ids.shape[1]):
-        vid = face_ids[f, k]
+    for q in range(interior_local.shape[0]):
+        vid = face_ids[f, interior_local[q]]
         if height[vid] > dh[vid]:
             for a in range(3):
                 p[vid, a] = p_smoothed[vid, a] + height[vid] * n_pn[vid, a]
@@ -1215,7 +1217,8 @@ def _settle_fold(p_smoothed, n_pn, dh, face_ids, f, local_edges, face_edge_ids, 
             i, j = face_ids[f, local_edges[k, 0]], face_ids[f, local_edges[k, 1]]
             if height[i] <= dh[i] and height[j] <= dh[j]:
                 continue
-            if _dist2(p, i, j) <= _limit2(p_smoothed, i, j, d_max[face_edge_ids[f, k]], allowance):
+            d2, lim = _dist2(p, i, j), d_max[face_edge_ids[f, k]]
+            if d2 <= lim * lim or d2 <= _limit2(p_smoothed, i, j, lim, allowance):  # the limit is d_max or more
                 continue
             if height[i] > dh[i]:
                 _set_height(p_smoothed, n_pn, height, p, i, dh[i])

@@ -198,8 +198,8 @@ def run_fold(t, dh, required, floor=None, ceiling=None, max_height=0.03, d_max=1
     p = p_smoothed + dh[:, None] * n_pn
     d_max = np.full(len(t.detail_edges), d_max)  # 1 m: no neighbour limit on this unit face
     local, ids = fold_edges(t)
-    fold_across(p_smoothed, n_pn, dh, floor, ceiling, t.face_ids, t.face_edges, np.asarray(required, float), src,
-                weight, local, ids, d_max, 0.0, height, p)
+    fold_across(p_smoothed, n_pn, dh, floor, ceiling, t.face_ids, t.face_edges, np.asarray(required, float),
+                t.interior_local, src, weight, local, ids, d_max, 0.0, height, p)
     np.testing.assert_allclose(p, p_smoothed + height[:, None] * n_pn, atol=1e-15)
     return height
 
