@@ -43,6 +43,13 @@ LAYER_SLOPE = 0.5  # m of lift given up per m along the outer surface away from 
 MAX_LAYER_LIFT = 0.03  # m: no vertex is lifted farther (the inner garment's heights reach 3 cm)
 SPREAD_SWEEPS = 2  # forward and backward sweeps over the outer edges that ease the lifts off
 FACING = 0.25  # an outer vertex whose normal is within about 75° of the inner surface's is over it
+# an outer vertex is under (or over) the inner surface where it lies within 45° of the inner's
+# normal at its closest point q ((p - q)·n_q)² >= UNDER |p - q|²), beside it (past its edge) elsewhere
+UNDER = 0.5
+# a lift along an outer normal leaning more than 45° off the inner's is taken as if it leaned
+# 45°: it stops short of the tangent plane rather than climbing up to 4 times as far (FACING)
+# and stepping away from its neighbours
+LEAN = 0.7
 WALK_STEPS = 256  # at most this many vertices walked per tracked vertex and frame
 RING_STRETCH = 1.5  # the inner's detailed edges are taken to stretch at most this much (for ring_reach)
 
@@ -104,11 +111,11 @@ def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nb
                     ring_reach, gap, depth, max_lift, dh, ceiling, free_ceiling, q, lift, room):
     """Each candidate's lift along its normal n_o that puts it `gap` over the inner surface
     (its closest point q on the triangles around its nearest inner vertex, the inner's normal
-    n_q there interpolated from the inner's shading normals):
-    over it (side (p - q)·n_q ≥ 0) and nearer than gap, or behind it by less than depth: lift
-    until |p + s n_o - q| = gap on the outer side, s = sqrt(gap² - t²) - h with h = (p - q)·n_o
-    and t² = |p - q|² - h² (t ≥ gap behind: past the inner's edge, not under it: none);
-    otherwise none, and none where n_o turns away from n_q. Returns how many were lifted.
+    n_q there interpolated from the inner's shading normals): where it lies over it by less
+    than gap, or behind it by less than depth (side = (p - q)·n_q), lift until it is gap over
+    the inner's tangent plane at q: s = (gap - side) / max(n_o·n_q, LEAN). None where p lies beside
+    the inner surface rather than over or under it (past its edge: (p - q) more than 45° off
+    n_q, farther than gap), and none where n_o turns away from n_q. Returns how many were lifted.
 
     room[c]: how far the candidate may rise without going into the body: where S103 found a
     body part above it or another one near it (its S106 ceiling under free_ceiling, the
@@ -143,21 +150,16 @@ def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nb
         nn = math.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue
-        if (n_out[i, 0] * nx + n_out[i, 1] * ny + n_out[i, 2] * nz) < FACING * nn:
+        facing = (n_out[i, 0] * nx + n_out[i, 1] * ny + n_out[i, 2] * nz) / nn
+        if facing < FACING:
             continue  # the outer sheet turned away from the inner one (a fold's far side): not over it
-        dx, dy, dz = px - qx, py - qy, pz - qz
-        side = (dx * nx + dy * ny + dz * nz) / nn
-        if side >= 0.0:
-            if best >= gap * gap:
-                continue
-        elif -side > depth:
-            continue
-        h = dx * n_out[i, 0] + dy * n_out[i, 1] + dz * n_out[i, 2]
-        t2 = best - h * h
-        if t2 >= gap * gap:
-            continue
-        s = math.sqrt(gap * gap - t2) - h
-        if s > 0.0 and room[c] > 0.0:
+        side = ((px - qx) * nx + (py - qy) * ny + (pz - qz) * nz) / nn
+        if side >= gap or -side > depth:
+            continue  # over it by the gap already, or another sheet far behind it
+        if side * side < UNDER * best and best >= gap * gap:
+            continue  # beside the inner surface (past its edge), neither over nor under it
+        s = (gap - side) / max(facing, LEAN)  # along n_o, to the gap over the inner's tangent plane at q
+        if room[c] > 0.0:
             lift[c] = min(s, room[c])
             lifted += 1
     return lifted

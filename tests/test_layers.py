@@ -8,8 +8,8 @@ import pytest
 from cloth.coarsen import CoarseMesh
 from cloth.fabric import fabric
 from cloth.garment import Garment
-from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LayerState, layer_outfit, layer_pair,
-                          rest_surface, stack_layer)
+from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState, layer_outfit,
+                          layer_pair, rest_surface, stack_layer)
 from cloth.model import SimSettings, build_cloth_model
 from cloth.surface import SurfaceSettings, build_surface_model
 from cloth.topology import unique_edges
@@ -86,6 +86,29 @@ def test_no_lift_behind_the_inner_sheet_beyond_the_depth_nor_where_the_outer_one
     p = po.copy()
     stack_layer(m, LayerState(m), p, -up(len(p)), pi, up(len(pi)))  # the outer sheet turned over
     np.testing.assert_array_equal(p, po)
+
+
+@pytest.mark.parametrize("degrees", [40.0, 60.0])
+def test_an_outer_sheet_leaning_against_the_inner_one_comes_over_its_tangent_plane(degrees):
+    """The outer sheet's normals lean 40° off the inner's (a top's hem over a skirt bulging in a
+    stride), its vertices 4 mm behind the inner sheet: each rises along its own normal until it
+    is exactly LAYER_GAP over the inner's plane, s = (gap + 4 mm) / cos 40°. Before, the line
+    along its normal passing farther than the gap from its closest inner point read as past the
+    inner's edge, and the inner showed through. Leaning 60°, beyond 45°, each rises as far as
+    it would leaning 45° (cos taken as LEAN): short of the gap, not twice the distance."""
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    lean = np.radians(degrees)
+    normals = np.tile([np.sin(lean), np.cos(lean), 0.0], (len(po), 1))
+    p = po.copy()
+    stack_layer(m, LayerState(m), p, normals, pi, up(len(pi)))
+    x = po[:, 0]
+    inside = (x > 0.12 - 1e-9) & (x < 0.24 + 1e-9)  # their lifts land over the inner sheet
+    lift = (0.004 + LAYER_GAP) / max(np.cos(lean), LEAN)
+    np.testing.assert_allclose(p[inside] - po[inside], lift * normals[inside], atol=1e-12)
+    if np.cos(lean) >= LEAN:
+        np.testing.assert_allclose(p[inside, 1], 0.004 + LAYER_GAP, atol=1e-12)
+    else:  # 6 mm / 0.7 along a normal 60° off: 4.29 mm up, over the inner sheet but short of the gap
+        assert np.all((p[inside, 1] > 0.004) & (p[inside, 1] < 0.004 + LAYER_GAP))
 
 
 def test_the_lift_follows_the_inner_sheet_as_it_slides_and_keeps_out_of_a_body_above():
