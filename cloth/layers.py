@@ -113,13 +113,15 @@ def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nb
     (its closest point q on the triangles around its nearest inner vertex, the inner's normal
     n_q there interpolated from the inner's shading normals): where it lies over it by less
     than gap, or behind it by less than depth (side = (p - q)·n_q), lift until it is gap over
-    the inner's tangent plane at q: s = (gap - side) / max(n_o·n_q, LEAN). None where p lies beside
-    the inner surface rather than over or under it (past its edge: (p - q) more than 45° off
-    n_q, farther than gap), and none where n_o turns away from n_q. Returns how many were lifted.
+    the inner's tangent plane at q: s = (gap - side) / max(n_o·n_q, LEAN). None where p lies
+    beside the inner surface rather than over or under it (past its edge: (p - q) more than 45°
+    off n_q, farther than gap), and none where n_o turns away from n_q. Returns how many were
+    lifted.
 
     room[c]: how far the candidate may rise without going into the body: where S103 found a
     body part above it or another one near it (its S106 ceiling under free_ceiling, the
-    max_height it has with none), its ceiling less its height Δh; elsewhere max_lift."""
+    max_height it has with none), its ceiling less its drawn height (dh: Δh, or the fold across
+    the compression drawn there); elsewhere max_lift."""
     lifted = 0
     for c in range(candidates.shape[0]):
         i = candidates[c]

@@ -1127,10 +1127,10 @@ def fold_lines(lattice: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]
     edge_point = (lambda m: (m, 0), lambda m: (L - m, m), lambda m: (0, m))
     for k, (b, c) in enumerate(lattice):
         a = L - b - c
+        if a == 0 or b == 0 or c == 0:
+            continue  # on a coarse edge: its heights are its own wrinkles' (S106), folds run inside faces
         # per edge: the point's depth from it, and its position along it as seen from the opposite corner
         for s, (depth, along, rest) in enumerate(((c, b, a + b), (a, c, b + c), (b, c, a + c))):
-            if a == 0 or b == 0 or c == 0:
-                continue  # on a coarse edge: its heights are its own wrinkles' (S106), folds run inside faces
             u = L * along / rest
             lo = min(int(math.floor(u + 1e-9)), L - 1)
             src[s, k] = (local[edge_point[s](lo)], local[edge_point[s](lo + 1)])
@@ -1170,8 +1170,8 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
     so no two neighbours differ in height more than the edge's particles do; where a fold still
     parts two neighbours beyond S106 step 5's limit (d_max, allowance: `apply_constraints`';
     local_edges, face_edge_ids: `fold_edges`) it is taken off them. interior_local: the
-    face-interior lattice points (the only ones `fold_lines` puts on a fold line). height (N,): the drawn
-    heights, written; p: written where raised."""
+    face-interior lattice points (the only ones `fold_lines` puts on a fold line). height (N,):
+    the drawn heights, written; p: written where raised."""
     for i in range(dh.shape[0]):
         height[i] = dh[i]
     for f in range(face_ids.shape[0]):
