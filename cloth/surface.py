@@ -23,8 +23,9 @@ from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
 from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights,
-                       elastic_forces, fold_across, fold_edges, fold_lines, length_displacement, match_required_length,
-                       normal_force, offset_along_normals, other_part_seeds, penetration_floor, shading_normals)
+                       elastic_forces, fold_across, fold_lines, fold_quads, length_displacement, match_required_length,
+                       normal_force, offset_along_normals, other_part_seeds, penetration_floor, quad_lattice,
+                       shading_normals)
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,9 @@ class SurfaceSettings:
     # running across the compression, tapering off towards the opposite corners (Decision,
     # `wrinkles.fold_across`); the carried Δh is the same either way
     fold_across: bool = True
+    # ... straight across each coarse quad to its opposite edge, so that parallel compressed edges
+    # join into one fold (False: every face's folds run to its opposite corners, as in a lone triangle)
+    fold_quads: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -91,8 +95,12 @@ class SurfaceModel:
     height_allowance: float  # (d_max² - rest²) / d_max² = 1 - 1/ratio²: S106 step 5 on stretched edges
     fold_src: np.ndarray  # (3, P, 2) int32: `wrinkles.fold_lines`, the folds across the compression
     fold_weight: np.ndarray  # (3, P, 2) float64
-    fold_local_edges: np.ndarray  # (Le, 2) int32: `wrinkles.fold_edges`, where a fold can part neighbours
-    fold_edge_ids: np.ndarray  # (T, Le) int32
+    fold_groups: np.ndarray  # (G, 2) int32: `wrinkles.fold_quads`, the faces drawn together (a quad's halves)
+    fold_corner: np.ndarray  # (T,) int8
+    fold_quad_edges: np.ndarray  # (T, 4) int32
+    fold_quad_flip: np.ndarray  # (T, 4) uint8
+    fold_quad_points: np.ndarray  # (3, Q) int32: `wrinkles.quad_lattice`
+    fold_quad_rs: np.ndarray  # (3, Q, 2) int32
 
     @property
     def n_vertices(self) -> int:
@@ -121,10 +129,12 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
     f = cloth.fabric
     straight = np.linalg.norm(x[tess.coarse_edges[:, 0]] - x[tess.coarse_edges[:, 1]], axis=1)
     es, ei = vertex_cells(tess.n_vertices, d_edges)
+    faces = cloth.faces if settings.fold_quads else np.full((0, 4), -1, dtype=np.int32)
     return SurfaceModel(tess, settings, cloth, edge_rest, straight, d_edges, f.max_neighbour_ratio * rest_len,
                         f.max_neighbour_ratio * seg, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
                         1.0 - 1.0 / f.max_neighbour_ratio**2, *fold_lines(tess.lattice, tess.level),
-                        *fold_edges(tess))
+                        *fold_quads(tess.coarse_triangles, faces, tess.coarse_edges),
+                        *quad_lattice(tess.lattice, tess.level))
 
 
 class SurfaceState:
@@ -139,6 +149,9 @@ class SurfaceState:
         self.normals = np.zeros((N, 3))  # S106 shading normals
         self.dh = np.zeros(N)  # Δh, carried to the next frame (Δh_last_frame)
         self.height = np.zeros(N)  # the drawn heights: Δh, or more in a fold across the compression
+        self.fold_raised = np.zeros((2, 2 * len(m.tess.lattice)), dtype=np.int32)  # fold_across scratch
+        self.fold_wrinkle = np.zeros((E, L1))
+        self.fold_peak = np.zeros(E)
         self.dh_pen = np.zeros(N)  # S103 Δh_penetration
         self.sd = np.zeros(N)  # S103 signed distance of tested particles (inf: untested)
         self.facing = np.zeros(N)  # S103: n_i . n_body at each tested particle's closest body point
@@ -264,9 +277,11 @@ class DetailedSurface:
                           m.d_edge_start, m.d_edge_ids, st.constraint_passes, st.max_height, s.flat_edge, s.moved,
                           s.stamp, s.start_h, st.widen_folds, s.fold, s.p)
         if st.fold_across:
-            fold_across(s.p_smoothed, s.n_pn, s.dh, s.floor, s.ceiling, t.face_ids, t.face_edges, s.edge_required,
-                        t.interior_local, m.fold_src, m.fold_weight, m.fold_local_edges, m.fold_edge_ids, m.d_max,
-                        m.height_allowance, s.height, s.p)
+            fold_across(s.p_smoothed, s.n_pn, s.dh, s.floor, s.ceiling, t.face_ids, t.face_edges, t.edge_ids,
+                        s.edge_required, t.interior_local, m.fold_src, m.fold_weight, m.fold_groups, m.fold_corner,
+                        m.fold_quad_edges, m.fold_quad_flip, m.fold_quad_points, m.fold_quad_rs, m.d_edges, m.d_max,
+                        m.d_edge_start, m.d_edge_ids, m.height_allowance, s.fold_wrinkle, s.fold_peak, s.fold_raised,
+                        s.height, s.p)
         else:
             s.height[:] = s.dh
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)

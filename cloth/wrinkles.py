@@ -14,8 +14,6 @@ import numpy as np
 from .collision import deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
 from .geometry import add_face_normal
 from .jit import FAST_ARITHMETIC, helper, kernel
-from .pn import lattice_triangles
-from .topology import unique_edges
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -1138,93 +1136,247 @@ def fold_lines(lattice: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]
     return src, weight
 
 
-def fold_edges(tess) -> tuple[np.ndarray, np.ndarray]:
-    """The lattice edges with a face-interior end, where a fold can part two neighbours:
-    (Le, 2) int32 local lattice indices, and per face the detailed edge each one is, (T, Le)
-    int32 into tess.detail_edges."""
-    local, _ = unique_edges(lattice_triangles(tess.level))
-    inner = np.zeros(len(tess.lattice), dtype=bool)
-    inner[tess.interior_local] = True
-    local = local[inner[local[:, 0]] | inner[local[:, 1]]].astype(np.int32)
-    ends = np.sort(tess.face_ids[:, local], axis=2).astype(np.int64)  # (T, Le, 2)
-    N = tess.n_vertices
-    keys = tess.detail_edges[:, 0].astype(np.int64) * N + tess.detail_edges[:, 1]
-    ids = np.searchsorted(keys, ends[..., 0] * N + ends[..., 1])
-    return local, ids.astype(np.int32)
+def fold_quads(triangles: np.ndarray, faces: np.ndarray, coarse_edges: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The coarse quads' halves, for folds that run straight across a quad. A quad ABCD split
+    along a diagonal is two triangles; each has a corner O off the diagonal, the next corner N
+    and the previous P in its winding, and O' (the other half's O) across the diagonal. In the
+    unit square O = (0, 0), P = (1, 0), N = (0, 1), O' = (1, 1), a lattice point of weights
+    (w_O, w_N, w_P) lies at (r, s) = (w_P, w_N). The quad's four edges in that frame: e0 = OP
+    (s = 0, along r from O), e1 = NO' (s = 1, along r from N), e2 = ON (r = 0, along s from O),
+    e3 = PO' (r = 1, along s from P).
+
+    Returns groups (G, 2) int32: the triangles drawn together (a quad's halves; a triangle
+    that is no half of a quad alone, -1 second); corner (T,) int8: each triangle's O (0-2;
+    -1 for a lone triangle); edges (T, 4) int32: e0-e3 as coarse edges (rows of coarse_edges,
+    sorted pairs); flip (T, 4) uint8: 1 where the edge's parameter runs from its high vertex to
+    its low one (the reverse of Tessellation.edge_ids' rows)."""
+    tris = np.asarray(triangles)
+    edge_of = {(int(a), int(b)): e for e, (a, b) in enumerate(coarse_edges)}
+    tri_of = {frozenset(map(int, t)): k for k, t in enumerate(tris)}
+    T = len(tris)
+    corner = np.full(T, -1, dtype=np.int8)
+    edges = np.full((T, 4), -1, dtype=np.int32)
+    flip = np.zeros((T, 4), dtype=np.uint8)
+    partner = np.full(T, -1, dtype=np.int64)
+    for f in np.asarray(faces):
+        if len(f) < 4 or f[3] < 0:
+            continue
+        a, b, c, d = map(int, f)
+        for one, two in (((a, b, c), (a, c, d)), ((a, b, d), (b, c, d))):
+            k1, k2 = tri_of.get(frozenset(one)), tri_of.get(frozenset(two))
+            if k1 is not None and k2 is not None:
+                partner[k1], partner[k2] = k2, k1
+                break
+    for k in np.flatnonzero(partner >= 0):
+        other = set(map(int, tris[partner[k]]))
+        t = [int(v) for v in tris[k]]
+        o = next(i for i in range(3) if t[i] not in other)
+        O, N, P = t[o], t[(o + 1) % 3], t[(o + 2) % 3]
+        O2 = next(v for v in other if v not in t)
+        corner[k] = o
+        for j, (u, v) in enumerate(((O, P), (N, O2), (O, N), (P, O2))):
+            edges[k, j] = edge_of[(min(u, v), max(u, v))]
+            flip[k, j] = u > v
+    groups = [(k, partner[k]) for k in range(T) if partner[k] < 0 or k < partner[k]]
+    return np.array(groups, dtype=np.int32).reshape(-1, 2), corner, edges, flip
+
+
+def quad_lattice(lattice: np.ndarray, level: int) -> tuple[np.ndarray, np.ndarray]:
+    """For each choice of a face's corner O (0, 1, 2; `fold_quads`): the lattice points a fold
+    across the quad draws, those off the edges ON and OP (the face's interior and the
+    diagonal's inner points), and their (r, s) in lattice steps. Returns points (3, Q) int32
+    local indices and rs (3, Q, 2) int32."""
+    L = level
+    b, c = np.asarray(lattice).T.astype(np.int64)
+    w = np.stack([L - b - c, b, c])  # weights of corners 0, 1, 2, in lattice steps
+    points, rs = [], []
+    for o in range(3):
+        r, s = w[(o + 2) % 3], w[(o + 1) % 3]
+        k = np.flatnonzero((r > 0) & (s > 0))
+        points.append(k)
+        rs.append(np.stack([r[k], s[k]], axis=1))
+    return np.array(points, dtype=np.int32), np.array(rs, dtype=np.int32)
+
+
+@helper
+def _edge_wrinkles(dh, floor, edge_ids, edge_required, wrinkle, peak):
+    """Each compressed coarse edge's wrinkle (heights above the floors) along it, low vertex to
+    high, and its largest; zeros on the others."""
+    for e in range(edge_ids.shape[0]):
+        top = 0.0
+        if edge_required[e] > 0.0:
+            for m in range(edge_ids.shape[1]):
+                v = edge_ids[e, m]
+                w = max(dh[v] - floor[v], 0.0)
+                wrinkle[e, m] = w
+                top = max(top, w)
+        else:
+            for m in range(edge_ids.shape[1]):
+                wrinkle[e, m] = 0.0
+        peak[e] = top
+
+
+@helper
+def _draw_fold(dh, floor, ceiling, vid, fold, height, raised, count):
+    """Particle vid drawn at floor + fold (never above its ceiling, never below what it has),
+    listed in raised the first time it rises above Δh; returns the list's new length."""
+    h = min(floor[vid] + fold, ceiling[vid])
+    if h > height[vid]:
+        if height[vid] <= dh[vid]:
+            raised[count] = vid
+            count += 1
+        height[vid] = h
+    return count
+
+
+@helper
+def _corner_folds(dh, floor, ceiling, face_ids, f, s, interior_local, fold_src, fold_weight, height, raised, count):
+    """Face f's interior drawn with the fold of its edge s (0: AB, 1: BC, 2: CA) running to the
+    opposite corner (`fold_lines`)."""
+    for q in range(interior_local.shape[0]):
+        k = interior_local[q]
+        v0, v1 = face_ids[f, fold_src[s, k, 0]], face_ids[f, fold_src[s, k, 1]]
+        w = fold_weight[s, k, 0]
+        wrinkle = (1.0 - w) * (dh[v0] - floor[v0]) + w * (dh[v1] - floor[v1])
+        if wrinkle > 0.0:
+            count = _draw_fold(dh, floor, ceiling, face_ids[f, k], fold_weight[s, k, 1] * wrinkle, height, raised,
+                               count)
+    return count
+
+
+@helper
+def _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edges, quad_flip, quad_points, quad_rs,
+                height, raised, count):
+    """Half f of a quad drawn with the folds of the quad's compressed edges straight across it:
+    at (r, s), (1 - s) W0(r) + s W1(r) from the edges along r, (1 - r) W2(s) + r W3(s) from
+    those along s (`fold_quads`' frame), the larger of the two."""
+    e0, e1, e2, e3 = quad_edges[f, 0], quad_edges[f, 1], quad_edges[f, 2], quad_edges[f, 3]
+    along_r, along_s = peak[e0] > 0.0 or peak[e1] > 0.0, peak[e2] > 0.0 or peak[e3] > 0.0
+    if not (along_r or along_s):
+        return count
+    o = corner[f]
+    L = wrinkle.shape[1] - 1
+    inv = 1.0 / L
+    f0, f1, f2, f3 = quad_flip[f, 0], quad_flip[f, 1], quad_flip[f, 2], quad_flip[f, 3]
+    for q in range(quad_points.shape[1]):
+        r, s = quad_rs[o, q, 0], quad_rs[o, q, 1]
+        fold = 0.0
+        if along_r:  # the edges s = 0 and s = 1, at r
+            fold = ((L - s) * wrinkle[e0, L - r if f0 else r] + s * wrinkle[e1, L - r if f1 else r]) * inv
+        if along_s:
+            fold = max(fold, ((L - r) * wrinkle[e2, L - s if f2 else s] + r * wrinkle[e3, L - s if f3 else s]) * inv)
+        if fold > 0.0:
+            count = _draw_fold(dh, floor, ceiling, face_ids[f, quad_points[o, q]], fold, height, raised, count)
+    return count
 
 
 @kernel
-def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_required, interior_local, fold_src,
-                fold_weight, local_edges, face_edge_ids, d_max, allowance, height, p):
+def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_ids, edge_required, interior_local,
+                fold_src, fold_weight, groups, corner, quad_edges, quad_flip, quad_points, quad_rs, d_edges, d_max,
+                d_edge_start, d_edge_ids, allowance, wrinkle, peak, raised, height, p):
     """Decision (folds across the compression, S106 step 6 as drawn): S106 raises the particles
     along a compressed coarse edge (ΔLE_required > 0), which gives the edge its length back, but
     its wrinkle stays a bump a few particles wide on that edge, where cloth buckles into a fold
     running across the compression. Each such edge's wrinkle heights above their floors are
-    carried into its faces along the lines towards the opposite corner, tapering to nothing
-    there: a particle at `depth` steps from the edge on the line through edge position t is
-    drawn at least floor + (1 - depth / L) (Δh - floor)(t), never above its S106 ceiling (a
-    body part above or beside it), never lower than its Δh. The particles on coarse edges (and
-    so every edge's arc length), the coarse vertices and the carried Δh (next frame's
-    Δh_last_frame) are unchanged: only the face interiors as drawn take the folds. Along a row
-    of a face the taper shrinks the heights as much as the row's points spread along the edge,
-    so no two neighbours differ in height more than the edge's particles do; where a fold still
-    parts two neighbours beyond S106 step 5's limit (d_max, allowance: `apply_constraints`';
-    local_edges, face_edge_ids: `fold_edges`) it is taken off them. interior_local: the
-    face-interior lattice points (the only ones `fold_lines` puts on a fold line). height (N,):
-    the drawn heights, written; p: written where raised."""
+    carried across its faces, a particle drawn at least floor + fold, never above its S106
+    ceiling (a body part above or beside it), never lower than its Δh:
+
+    * in a coarse quad (`fold_quads`), straight across to the opposite edge, blended linearly
+      with that edge's wrinkle at the same place (a quad's two parallel compressed edges join
+      into folds that run from one to the other; one alone tapers to nothing at the other), the
+      folds of the two directions drawn to the larger; the diagonal's inner particles are drawn
+      too, and the diagonal's own wrinkle runs to the corners off it;
+    * in a lone triangle, along the lines towards the opposite corner (`fold_lines`), tapering
+      to nothing there.
+
+    The particles on the coarse edges the folds come from (so every edge's arc length), the
+    coarse vertices and the carried Δh (next frame's Δh_last_frame) are unchanged: only the
+    drawn surface takes the folds. Where a fold parts two neighbours beyond S106 step 5's limit
+    (d_max, allowance: `apply_constraints`') it is taken off them. wrinkle (E, L + 1), peak (E,),
+    raised (2, at least two faces' lattice points): scratch; height (N,): the drawn heights,
+    written; p: written where raised."""
     for i in range(dh.shape[0]):
         height[i] = dh[i]
-    for f in range(face_ids.shape[0]):
-        raised = False
-        for s in range(3):
-            if edge_required[face_edges[f, s]] <= 0.0:
+    _edge_wrinkles(dh, floor, edge_ids, edge_required, wrinkle, peak)
+    for g in range(groups.shape[0]):
+        count = 0
+        for h in range(2):
+            f = groups[g, h]
+            if f < 0:
                 continue
-            for q in range(interior_local.shape[0]):
-                k = interior_local[q]
-                taper = fold_weight[s, k, 1]
-                v0, v1 = face_ids[f, fold_src[s, k, 0]], face_ids[f, fold_src[s, k, 1]]
-                w = fold_weight[s, k, 0]
-                wrinkle = (1.0 - w) * (dh[v0] - floor[v0]) + w * (dh[v1] - floor[v1])
-                if wrinkle <= 0.0:
-                    continue
-                vid = face_ids[f, k]
-                h = min(floor[vid] + taper * wrinkle, ceiling[vid])
-                if h > height[vid]:
-                    height[vid] = h
-                    raised = True
-        if raised:
-            _settle_fold(p_smoothed, n_pn, dh, face_ids, f, interior_local, local_edges, face_edge_ids, d_max,
-                         allowance, height, p)
+            o = corner[f]
+            if o < 0:
+                for s in range(3):
+                    if edge_required[face_edges[f, s]] > 0.0:
+                        count = _corner_folds(dh, floor, ceiling, face_ids, f, s, interior_local, fold_src,
+                                              fold_weight, height, raised[0], count)
+                continue
+            count = _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edges, quad_flip,
+                                quad_points, quad_rs, height, raised[0], count)
+            diagonal = (o + 1) % 3  # the edge from N to P
+            if edge_required[face_edges[f, diagonal]] > 0.0:
+                count = _corner_folds(dh, floor, ceiling, face_ids, f, diagonal, interior_local, fold_src,
+                                      fold_weight, height, raised[0], count)
+        if count > 0:
+            _settle_fold(p_smoothed, n_pn, dh, raised[0], count, d_edges, d_max, d_edge_start, d_edge_ids, allowance,
+                         raised[1], height, p)
 
 
 @helper
-def _settle_fold(p_smoothed, n_pn, dh, face_ids, f, interior_local, local_edges, face_edge_ids, d_max, allowance,
+def _parts_too_far(p_smoothed, p, d_edges, d_max, allowance, e, i):
+    """The neighbour of i across detailed edge e, if they are farther apart than S106 step 5's
+    limit (d_max or more: `_limit2`), else -1."""
+    j = d_edges[e, 0] + d_edges[e, 1] - i
+    d2, lim = _dist2(p, i, j), d_max[e]
+    if d2 <= lim * lim or d2 <= _limit2(p_smoothed, i, j, lim, allowance):
+        return -1
+    return j
+
+
+@helper
+def _settle_fold(p_smoothed, n_pn, dh, raised, count, d_edges, d_max, d_edge_start, d_edge_ids, allowance, back,
                  height, p):
-    """Face f's raised particles drawn, and taken back to their Δh where they part two neighbours
-    beyond S106 step 5's limit: the taper bounds height steps, not distances, and a fold beside
-    a steep wrinkle of S106 can part them. A raised particle is inside f, and so are all its
-    edges; round after round until none is too long (each particle goes back once, so this
-    ends; an edge left too long was so before the folds)."""
-    for q in range(interior_local.shape[0]):
-        vid = face_ids[f, interior_local[q]]
-        if height[vid] > dh[vid]:
-            for a in range(3):
-                p[vid, a] = p_smoothed[vid, a] + height[vid] * n_pn[vid, a]
-    changed = True
-    while changed:
-        changed = False
-        for k in range(local_edges.shape[0]):
-            i, j = face_ids[f, local_edges[k, 0]], face_ids[f, local_edges[k, 1]]
-            if height[i] <= dh[i] and height[j] <= dh[j]:
+    """The raised particles of one face or quad drawn, and taken back to their Δh where they
+    part a neighbour beyond S106 step 5's limit: the folds bound height steps, not distances,
+    and a fold beside a steep wrinkle of S106 can part them. A raised particle's neighbours
+    lie in its face or quad (those on its outer edges are never raised). Every raised
+    particle's edges are checked once; after that only the edges of those taken back (listed
+    in back), until none is left too long (each particle goes back once, so this ends; an edge
+    left too long was so before the folds)."""
+    for q in range(count):
+        vid = raised[q]
+        for a in range(3):
+            p[vid, a] = p_smoothed[vid, a] + height[vid] * n_pn[vid, a]
+    n_back = 0
+    for q in range(count):
+        i = raised[q]
+        if height[i] <= dh[i]:
+            continue
+        for k in range(d_edge_start[i], d_edge_start[i + 1]):
+            j = _parts_too_far(p_smoothed, p, d_edges, d_max, allowance, d_edge_ids[k], i)
+            if j < 0:
                 continue
-            d2, lim = _dist2(p, i, j), d_max[face_edge_ids[f, k]]
-            if d2 <= lim * lim or d2 <= _limit2(p_smoothed, i, j, lim, allowance):  # the limit is d_max or more
-                continue
-            if height[i] > dh[i]:
-                _set_height(p_smoothed, n_pn, height, p, i, dh[i])
+            _set_height(p_smoothed, n_pn, height, p, i, dh[i])
+            back[n_back] = i
+            n_back += 1
             if height[j] > dh[j]:
                 _set_height(p_smoothed, n_pn, height, p, j, dh[j])
-            changed = True
+                back[n_back] = j
+                n_back += 1
+            break
+    q = 0
+    while q < n_back:  # a particle taken back moved away from its raised neighbours
+        c = back[q]
+        q += 1
+        for k in range(d_edge_start[c], d_edge_start[c + 1]):
+            e = d_edge_ids[k]
+            j = d_edges[e, 0] + d_edges[e, 1] - c
+            if height[j] <= dh[j] or _parts_too_far(p_smoothed, p, d_edges, d_max, allowance, e, c) < 0:
+                continue
+            _set_height(p_smoothed, n_pn, height, p, j, dh[j])
+            back[n_back] = j
+            n_back += 1
 
 
 @kernel

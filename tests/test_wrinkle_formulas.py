@@ -1,14 +1,16 @@
 """SPEC.md S104 and S106 formulas, kernel by kernel, on cases worked out by hand: the transfer
 rates and the force interpolation along a bent chain, the three-direction average inside a
 face, the normal force, ΔL_expected's sign rule with Δh_length and its clamp, the blended
-shading normals, and the folds carried across the compression (Decision)."""
+shading normals, and the folds carried across the compression (Decision): to a lone triangle's
+opposite corner, straight across a quad."""
 
 import numpy as np
 import pytest
 
 from cloth.pn import build_tessellation
-from cloth.wrinkles import (UNTESTED, deformation_heights, elastic_forces, fold_across, fold_edges, fold_lines,
-                            normal_force, penetration_floor, shading_normals)
+from cloth.topology import triangulate, unique_edges, vertex_cells
+from cloth.wrinkles import (UNTESTED, deformation_heights, elastic_forces, fold_across, fold_lines, fold_quads,
+                            normal_force, penetration_floor, quad_lattice, shading_normals)
 
 
 def single_face(level, corners):
@@ -186,20 +188,28 @@ def test_fold_lines_run_from_each_edge_to_the_opposite_corner():
     assert np.all(weight[:, on_edges, 1] == 0.0) and np.all(weight[:, ~on_edges, 1] > 0.0)
 
 
-def run_fold(t, dh, required, floor=None, ceiling=None, max_height=0.03, d_max=1.0):
+def run_fold(t, dh, required, floor=None, ceiling=None, max_height=0.03, d_max=1.0, faces=None, p_smoothed=None):
+    """fold_across on tessellation t (its coarse triangles lone, or halves of the quads in
+    faces); the reference surface flat in XZ (or p_smoothed), the heights along +Y."""
     N = t.n_vertices
-    p_smoothed = np.zeros((N, 3))
-    p_smoothed[:, [0, 2]] = t.owner_weights[:, 1:]  # any surface: the heights are along +Y
+    if p_smoothed is None:
+        p_smoothed = np.zeros((N, 3))
+        p_smoothed[:, [0, 2]] = t.owner_weights[:, 1:]  # any surface: the heights are along +Y
     n_pn = np.tile([0.0, 1.0, 0.0], (N, 1))
     floor = np.zeros(N) if floor is None else floor
     ceiling = np.full(N, max_height) if ceiling is None else ceiling
+    faces = np.full((0, 4), -1, dtype=np.int32) if faces is None else faces
     src, weight = fold_lines(t.lattice, t.level)
+    groups, corner, quad_edges, flip = fold_quads(t.coarse_triangles, faces, t.coarse_edges)
+    points, rs = quad_lattice(t.lattice, t.level)
     height = np.full(N, np.nan)
     p = p_smoothed + dh[:, None] * n_pn
     d_max = np.full(len(t.detail_edges), d_max)  # 1 m: no neighbour limit on this unit face
-    local, ids = fold_edges(t)
-    fold_across(p_smoothed, n_pn, dh, floor, ceiling, t.face_ids, t.face_edges, np.asarray(required, float),
-                t.interior_local, src, weight, local, ids, d_max, 0.0, height, p)
+    start, ids = vertex_cells(N, t.detail_edges)
+    fold_across(p_smoothed, n_pn, dh, floor, ceiling, t.face_ids, t.face_edges, t.edge_ids, np.asarray(required, float),
+                t.interior_local, src, weight, groups, corner, quad_edges, flip, points, rs, t.detail_edges, d_max,
+                start, ids, 0.0, np.zeros(t.edge_ids.shape), np.zeros(len(t.edge_ids)),
+                np.zeros((2, 2 * len(t.lattice)), np.int32), height, p)
     np.testing.assert_allclose(p, p_smoothed + height[:, None] * n_pn, atol=1e-15)
     return height
 
@@ -300,3 +310,162 @@ def test_fold_across_takes_a_fold_off_where_it_parts_neighbours_beyond_the_limit
     limited = run_fold(t, dh, [1, 1, 1], max_height=1.0, d_max=0.3)
     assert raised_too_long(limited) == 0
     assert np.all((limited == free) | (limited == dh)) and np.any(limited > dh)
+
+
+UNIT_SQUARE = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 1.0], [0.0, 0.0, 1.0]])  # A, B, C, D in XZ
+
+
+def unit_quad(level, first=0):
+    """The quad ABCD on the unit square (u along X, v along Z), written from corner `first` so
+    that the split (along the shorter diagonal, here the first one written) is AC for first 0
+    and BD for first 1; its tessellation, the detailed vertices' (u, v) and the faces."""
+    faces = np.roll(np.arange(4, dtype=np.int32), -first)[None, :]
+    tris, _ = triangulate(faces, UNIT_SQUARE)
+    t = build_tessellation(tris, 4, level)
+    corners = UNIT_SQUARE[t.coarse_triangles[t.owner_face]]  # (N, 3, 3)
+    p = np.einsum("nk,nkd->nd", t.owner_weights, corners)
+    return t, p, faces
+
+
+def coarse_edge(t, i, j):
+    return int(np.flatnonzero((t.coarse_edges[:, 0] == min(i, j)) & (t.coarse_edges[:, 1] == max(i, j)))[0])
+
+
+def edge_profile(t, i, j, heights):
+    """dh with `heights` (L + 1) along the coarse edge from vertex i to vertex j."""
+    e = coarse_edge(t, i, j)
+    ids = t.edge_ids[e] if i < j else t.edge_ids[e][::-1]
+    return ids, np.asarray(heights, float)
+
+
+def test_fold_quads_finds_each_quads_halves_and_their_frames():
+    """A quad ABCD (0-3) split along AC and a lone triangle B E C: the quad's halves are drawn
+    together, each with its corner off the diagonal (B in ABC, D in ACD) and its four edges in
+    the frame O, N, P, O': for ABC, O = B, N = C, P = A, O' = D, so e0 = BA, e1 = CD, e2 = BC,
+    e3 = AD, with the parameter running from B, C, B and A."""
+    faces = np.array([[0, 1, 2, 3], [1, 4, 2, -1]], dtype=np.int32)
+    tris = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 2]], dtype=np.int32)
+    edges, _ = unique_edges(tris)
+    groups, corner, quad_edges, flip = fold_quads(tris, faces, edges)
+    np.testing.assert_array_equal(groups, [[0, 1], [2, -1]])
+    np.testing.assert_array_equal(corner, [1, 2, -1])
+    def index(i, j):
+        return int(np.flatnonzero((edges[:, 0] == min(i, j)) & (edges[:, 1] == max(i, j)))[0])
+    np.testing.assert_array_equal(quad_edges[0], [index(1, 0), index(2, 3), index(1, 2), index(0, 3)])
+    np.testing.assert_array_equal(flip[0], [1, 0, 0, 0])
+    # ACD: O = D, N = A, P = C, O' = B: e0 = DC, e1 = AB, e2 = DA, e3 = CB
+    np.testing.assert_array_equal(quad_edges[1], [index(3, 2), index(0, 1), index(3, 0), index(2, 1)])
+    np.testing.assert_array_equal(flip[1], [1, 0, 1, 1])
+    assert np.all(quad_edges[2] == -1)
+
+
+@pytest.mark.parametrize("first", [0, 1])
+def test_a_fold_runs_straight_across_a_quad_blending_its_two_edges(first):
+    """Level 6, wrinkles on the quad's compressed edges AB (v = 0) and DC (v = 1), none on the
+    others or the diagonal: every particle off the quad's outer edges, the diagonal's included,
+    is drawn at (1 - v) W_AB(u) + v W_DC(u), whichever diagonal splits the quad; AB alone
+    compressed, the fold tapers to nothing at DC; the outer edges keep their heights."""
+    L = 6
+    t, uv, faces = unit_quad(L, first)
+    u, v = uv[:, 0], uv[:, 2]
+    rng = np.random.default_rng(first)
+    w_ab, w_dc = np.zeros(L + 1), np.zeros(L + 1)
+    w_ab[1:L] = rng.uniform(0.0, 0.008, L - 1)
+    w_dc[1:L] = rng.uniform(0.0, 0.008, L - 1)
+    dh = np.zeros(t.n_vertices)
+    ab, _ = edge_profile(t, 0, 1, w_ab)
+    dc, _ = edge_profile(t, 3, 2, w_dc)
+    dh[ab], dh[dc] = w_ab, w_dc
+    required = np.full(len(t.coarse_edges), -1e-3)
+    inside = (u > 1e-9) & (u < 1 - 1e-9) & (v > 1e-9) & (v < 1 - 1e-9)
+    m = np.rint(u * L).astype(int)
+    for both in (True, False):
+        required[coarse_edge(t, 0, 1)] = 1e-3
+        required[coarse_edge(t, 3, 2)] = 1e-3 if both else -1e-3
+        height = run_fold(t, dh, required, faces=faces, p_smoothed=uv)
+        expected = (1 - v) * w_ab[m] + (v * w_dc[m] if both else 0.0)
+        np.testing.assert_allclose(height[inside], expected[inside], atol=1e-15)
+        np.testing.assert_array_equal(height[~inside], dh[~inside])
+    # a ridge from AB's peak to DC's at the same place runs straight across at the peaks' heights
+    assert np.sum(inside & (m == 3)) == L - 1
+
+
+def test_crossing_folds_in_a_quad_draw_the_higher():
+    """AB (v = 0) and BC (u = 1) compressed: (u, v) drawn at the larger of (1 - v) W_AB(u) and
+    u W_BC(v); a compressed diagonal adds its own fold towards the corners off it."""
+    L = 6
+    t, uv, faces = unit_quad(L)
+    u, v = uv[:, 0], uv[:, 2]
+    w = 0.001 * np.array([0, 2, 5, 6, 5, 2, 0], float)
+    dh = np.zeros(t.n_vertices)
+    ab, _ = edge_profile(t, 0, 1, w)
+    bc, _ = edge_profile(t, 1, 2, w[::-1] * 0.5)
+    dh[ab], dh[bc] = w, w[::-1] * 0.5
+    required = np.full(len(t.coarse_edges), -1e-3)
+    required[[coarse_edge(t, 0, 1), coarse_edge(t, 1, 2)]] = 1e-3
+    height = run_fold(t, dh, required, faces=faces, p_smoothed=uv)
+    inside = (u > 1e-9) & (u < 1 - 1e-9) & (v > 1e-9) & (v < 1 - 1e-9)
+    mu, mv = np.rint(u * L).astype(int), np.rint(v * L).astype(int)
+    expected = np.maximum((1 - v) * w[mu], u * 0.5 * w[::-1][mv])
+    np.testing.assert_allclose(height[inside], expected[inside], atol=1e-15)
+    diagonal = coarse_edge(t, 0, 2)
+    dh[t.edge_ids[diagonal, 1:-1]] = 0.02  # a tall wrinkle on AC, compressed
+    required[diagonal] = 1e-3
+    height = run_fold(t, dh, required, faces=faces, p_smoothed=uv)
+    centre_b = t.face_ids[0, np.flatnonzero((t.lattice[:, 0] == 2) & (t.lattice[:, 1] == 2))[0]]
+    assert height[centre_b] == pytest.approx(max(2 / 3 * 0.02, expected[centre_b]), abs=1e-15)
+
+
+def test_folds_across_a_quad_keep_neighbour_steps_within_one_and_a_half_edge_steps():
+    """Random wrinkles (zero at the corners) on all four compressed outer edges of a quad: a step
+    along a row blends the two edges' steps; one across the rows moves the blend by a wrinkle's
+    height over L, and a wrinkle is at most L/2 edge steps high (it starts from zero at the
+    corners), so half a step; along the lattice's diagonal the two add up. No two neighbours
+    differ by more than 1.5 times the largest step along an edge (the larger of two folds
+    keeps that bound)."""
+    L = 6
+    t, uv, faces = unit_quad(L)
+    rng = np.random.default_rng(3)
+    outer = [coarse_edge(t, i, (i + 1) % 4) for i in range(4)]
+    required = np.full(len(t.coarse_edges), -1e-3)
+    required[outer] = 1e-3
+    worst = 0.0
+    for _ in range(50):
+        dh = np.zeros(t.n_vertices)
+        inner = t.edge_ids[outer, 1:-1].ravel()
+        dh[inner] = rng.uniform(0.0, 0.01, inner.size)
+        height = run_fold(t, dh, required, faces=faces, p_smoothed=uv)
+        edge_step = np.abs(np.diff(dh[t.edge_ids[outer]], axis=1)).max()
+        steps = np.abs(height[t.detail_edges[:, 0]] - height[t.detail_edges[:, 1]])
+        worst = max(worst, steps.max() / edge_step)
+        assert np.all(height >= dh)
+    assert worst <= 1.5 + 1e-9
+
+
+def test_a_fold_across_a_quad_is_taken_off_where_it_parts_neighbours_beyond_the_limit():
+    """The unit quad at level 6 (spacing 1/6 m), all its edges compressed: a smooth 0.3 m
+    wrinkle on AB and 0.4 m spikes at every other particle of BC; neighbour limit 0.3 m. Without
+    the limit the spikes' folds rise beside lower particles (the diagonal's among the raised),
+    farther than that; with it no raised particle is, each is at its fold or back at its Δh, and
+    the smooth fold stays, on the diagonal too."""
+    L = 6
+    t, uv, faces = unit_quad(L)
+    dh = np.zeros(t.n_vertices)
+    dh[t.edge_ids[coarse_edge(t, 0, 1)]] = 0.1 * np.array([0, 1, 2, 3, 2, 1, 0])
+    dh[t.edge_ids[coarse_edge(t, 1, 2), 1::2]] = 0.4
+    diagonal = t.edge_ids[coarse_edge(t, 0, 2)]
+    e0, e1 = t.detail_edges.T
+
+    def raised_too_long(h):
+        ps = uv.copy()
+        ps[:, 1] = h
+        long = np.linalg.norm(ps[e0] - ps[e1], axis=1) > 0.3 + 1e-12
+        return np.sum(long & ((h[e0] > dh[e0]) | (h[e1] > dh[e1])))
+
+    required = np.ones(len(t.coarse_edges))
+    free = run_fold(t, dh, required, max_height=1.0, faces=faces, p_smoothed=uv)
+    assert raised_too_long(free) > 0
+    limited = run_fold(t, dh, required, max_height=1.0, d_max=0.3, faces=faces, p_smoothed=uv)
+    assert raised_too_long(limited) == 0
+    assert np.all((limited == free) | (limited == dh))
+    assert 0 < np.sum(limited > dh) < np.sum(free > dh) and np.any(limited[diagonal] > dh[diagonal])
