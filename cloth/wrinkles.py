@@ -1247,10 +1247,11 @@ def _corner_folds(dh, floor, ceiling, face_ids, f, s, interior_local, fold_src, 
 
 @helper
 def _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edges, quad_flip, quad_points, quad_rs,
-                height, raised, count):
+                diagonal_too, height, raised, count):
     """Half f of a quad drawn with the folds of the quad's compressed edges straight across it:
     at (r, s), (1 - s) W0(r) + s W1(r) from the edges along r, (1 - r) W2(s) + r W3(s) from
-    those along s (`fold_quads`' frame), the larger of the two."""
+    those along s (`fold_quads`' frame), the larger of the two; the diagonal's particles
+    (r + s = L) only where diagonal_too."""
     e0, e1, e2, e3 = quad_edges[f, 0], quad_edges[f, 1], quad_edges[f, 2], quad_edges[f, 3]
     along_r, along_s = peak[e0] > 0.0 or peak[e1] > 0.0, peak[e2] > 0.0 or peak[e3] > 0.0
     if not (along_r or along_s):
@@ -1261,6 +1262,8 @@ def _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edg
     f0, f1, f2, f3 = quad_flip[f, 0], quad_flip[f, 1], quad_flip[f, 2], quad_flip[f, 3]
     for q in range(quad_points.shape[1]):
         r, s = quad_rs[o, q, 0], quad_rs[o, q, 1]
+        if r + s == L and not diagonal_too:
+            continue
         fold = 0.0
         if along_r:  # the edges s = 0 and s = 1, at r
             fold = ((L - s) * wrinkle[e0, L - r if f0 else r] + s * wrinkle[e1, L - r if f1 else r]) * inv
@@ -1286,12 +1289,13 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
       with that edge's wrinkle at the same place (a quad's two parallel compressed edges join
       into folds that run from one to the other; one alone tapers to nothing at the other), the
       folds of the two directions drawn to the larger; the diagonal's inner particles are drawn
-      too, and the diagonal's own wrinkle runs to the corners off it;
+      too, unless the diagonal is compressed itself: then they keep S106's heights, and its
+      wrinkle runs to the corners off it;
     * in a lone triangle, along the lines towards the opposite corner (`fold_lines`), tapering
       to nothing there.
 
-    The particles on the coarse edges the folds come from (so every edge's arc length), the
-    coarse vertices and the carried Δh (next frame's Δh_last_frame) are unchanged: only the
+    The particles on the coarse edges, but for a quad's uncompressed diagonal (so every
+    compressed edge's arc length, S105's measure), the coarse vertices and the carried Δh (next frame's Δh_last_frame) are unchanged: only the
     drawn surface takes the folds. Where a fold parts two neighbours beyond S106 step 5's limit
     (d_max, allowance: `apply_constraints`') it is taken off them. wrinkle (E, L + 1), peak (E,),
     raised (2, at least two faces' lattice points): scratch; height (N,): the drawn heights,
@@ -1312,10 +1316,11 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
                         count = _corner_folds(dh, floor, ceiling, face_ids, f, s, interior_local, fold_src,
                                               fold_weight, height, raised[0], count)
                 continue
-            count = _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edges, quad_flip,
-                                quad_points, quad_rs, height, raised[0], count)
             diagonal = (o + 1) % 3  # the edge from N to P
-            if edge_required[face_edges[f, diagonal]] > 0.0:
+            compressed = edge_required[face_edges[f, diagonal]] > 0.0
+            count = _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edges, quad_flip,
+                                quad_points, quad_rs, not compressed, height, raised[0], count)
+            if compressed:
                 count = _corner_folds(dh, floor, ceiling, face_ids, f, diagonal, interior_local, fold_src,
                                       fold_weight, height, raised[0], count)
         if count > 0:

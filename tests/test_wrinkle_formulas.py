@@ -392,7 +392,8 @@ def test_a_fold_runs_straight_across_a_quad_blending_its_two_edges(first):
 
 def test_crossing_folds_in_a_quad_draw_the_higher():
     """AB (v = 0) and BC (u = 1) compressed: (u, v) drawn at the larger of (1 - v) W_AB(u) and
-    u W_BC(v); a compressed diagonal adds its own fold towards the corners off it."""
+    u W_BC(v). A compressed diagonal adds its own fold towards the corners off it, and its
+    particles keep their heights (its arc length is S105's measure)."""
     L = 6
     t, uv, faces = unit_quad(L)
     u, v = uv[:, 0], uv[:, 2]
@@ -409,11 +410,13 @@ def test_crossing_folds_in_a_quad_draw_the_higher():
     expected = np.maximum((1 - v) * w[mu], u * 0.5 * w[::-1][mv])
     np.testing.assert_allclose(height[inside], expected[inside], atol=1e-15)
     diagonal = coarse_edge(t, 0, 2)
-    dh[t.edge_ids[diagonal, 1:-1]] = 0.02  # a tall wrinkle on AC, compressed
+    dh[t.edge_ids[diagonal, 3]] = 0.02  # a tall wrinkle in the middle of AC, compressed
     required[diagonal] = 1e-3
     height = run_fold(t, dh, required, faces=faces, p_smoothed=uv)
     centre_b = t.face_ids[0, np.flatnonzero((t.lattice[:, 0] == 2) & (t.lattice[:, 1] == 2))[0]]
     assert height[centre_b] == pytest.approx(max(2 / 3 * 0.02, expected[centre_b]), abs=1e-15)
+    np.testing.assert_array_equal(height[t.edge_ids[diagonal]], dh[t.edge_ids[diagonal]])
+    assert np.any(expected[t.edge_ids[diagonal]] > dh[t.edge_ids[diagonal]])  # a stretched one would rise
 
 
 def test_folds_across_a_quad_keep_neighbour_steps_within_one_and_a_half_edge_steps():
@@ -443,7 +446,7 @@ def test_folds_across_a_quad_keep_neighbour_steps_within_one_and_a_half_edge_ste
 
 
 def test_a_fold_across_a_quad_is_taken_off_where_it_parts_neighbours_beyond_the_limit():
-    """The unit quad at level 6 (spacing 1/6 m), all its edges compressed: a smooth 0.3 m
+    """The unit quad at level 6 (spacing 1/6 m), its outer edges compressed: a smooth 0.3 m
     wrinkle on AB and 0.4 m spikes at every other particle of BC; neighbour limit 0.3 m. Without
     the limit the spikes' folds rise beside lower particles (the diagonal's among the raised),
     farther than that; with it no raised particle is, each is at its fold or back at its Δh, and
@@ -463,6 +466,7 @@ def test_a_fold_across_a_quad_is_taken_off_where_it_parts_neighbours_beyond_the_
         return np.sum(long & ((h[e0] > dh[e0]) | (h[e1] > dh[e1])))
 
     required = np.ones(len(t.coarse_edges))
+    required[coarse_edge(t, 0, 2)] = -1.0  # the diagonal stretched: its particles are drawn too
     free = run_fold(t, dh, required, max_height=1.0, faces=faces, p_smoothed=uv)
     assert raised_too_long(free) > 0
     limited = run_fold(t, dh, required, max_height=1.0, d_max=0.3, faces=faces, p_smoothed=uv)
