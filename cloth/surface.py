@@ -57,11 +57,11 @@ class SurfaceSettings:
     # neighbour distance (its neighbours rise), rather than coming down (Decision)
     widen_folds: bool = True
     # S106 step 6 as drawn: a compressed coarse edge's wrinkle is carried into its faces as a fold
-    # running across the compression, tapering off towards the opposite corners (Decision,
-    # `wrinkles.fold_across`); the carried Δh is the same either way
+    # running across the compression (Decision, `wrinkles.fold_across`); the carried Δh is the same
+    # either way
     fold_across: bool = True
-    # ... straight across each coarse quad to its opposite edge, so that parallel compressed edges
-    # join into one fold (False: every face's folds run to its opposite corners, as in a lone triangle)
+    # the folds run straight across each coarse quad to its opposite edge, where two facing wrinkles
+    # of parallel edges join (False: every face's to its opposite corners, as in a lone triangle)
     fold_quads: bool = True
 
     def __post_init__(self):

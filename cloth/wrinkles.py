@@ -1295,11 +1295,11 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
       to nothing there.
 
     The particles on the coarse edges, but for a quad's uncompressed diagonal (so every
-    compressed edge's arc length, S105's measure), the coarse vertices and the carried Δh (next frame's Δh_last_frame) are unchanged: only the
-    drawn surface takes the folds. Where a fold parts two neighbours beyond S106 step 5's limit
-    (d_max, allowance: `apply_constraints`') it is taken off them. wrinkle (E, L + 1), peak (E,),
-    raised (2, at least two faces' lattice points): scratch; height (N,): the drawn heights,
-    written; p: written where raised."""
+    compressed edge's arc length, S105's measure), the coarse vertices and the carried Δh (next
+    frame's Δh_last_frame) are unchanged: only the drawn surface takes the folds. Where a fold
+    parts two neighbours beyond S106 step 5's limit (d_max, allowance: `apply_constraints`') it
+    is taken off them. wrinkle (E, L + 1), peak (E,), raised (2, at least two faces' lattice
+    points): scratch; height (N,): the drawn heights, written; p: written where raised."""
     for i in range(dh.shape[0]):
         height[i] = dh[i]
     _edge_wrinkles(dh, floor, edge_ids, edge_required, wrinkle, peak)

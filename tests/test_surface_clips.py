@@ -1,5 +1,6 @@
 """The detailed surface through a real clip with every outfit: finite, heights within their
-bounds, unit shading normals, the coarse vertices on the surface, and the layering (the top
+bounds, unit shading normals, the coarse vertices on the surface, the folds across the
+compression drawn only outwards over the quad-dominant coarse faces, and the layering (the top
 lifted over the bottom) along the top's normals only, outward and bounded."""
 
 import numpy as np
@@ -21,7 +22,14 @@ def test_surface_through_the_run_clip(body, data, outfit):
             assert lift.min() >= 0.0 and lift.max() <= lm.max_lift
             layered[lm.outer][lm.candidates] -= lift[:, None] * session.detailed[lm.outer][1][lm.candidates]
         for surf, (_, n), p, x in zip(session.surfaces, session.detailed, layered, positions):
-            s, st = surf.state, surf.model.settings
+            s, st, m = surf.state, surf.model.settings, surf.model
+            if not checked:  # every coarse triangle drawn once, most of them as halves of quads
+                faces = m.fold_groups[m.fold_groups >= 0]
+                np.testing.assert_array_equal(np.sort(faces), np.arange(len(m.tess.coarse_triangles)))
+                assert np.mean(m.fold_corner >= 0) > 0.5
+            # as drawn: Δh, or higher in a fold across the compression
+            assert np.all(s.height >= s.dh)
+            np.testing.assert_allclose(p, s.p_smoothed + s.height[:, None] * s.n_pn, atol=1e-12)
             assert np.isfinite(p).all() and np.isfinite(n).all()
             assert s.dh.min() >= -st.max_height and s.dh.max() <= 2 * st.max_height
             # below the reference surface only where S103 found a body part above (Decision)
