@@ -97,8 +97,8 @@ class SurfaceModel:
     fold_weight: np.ndarray  # (3, P, 2) float64
     fold_groups: np.ndarray  # (G, 2) int32: `wrinkles.fold_quads`, the faces drawn together (a quad's halves)
     fold_corner: np.ndarray  # (T,) int8
-    fold_quad_edges: np.ndarray  # (T, 4) int32
-    fold_quad_flip: np.ndarray  # (T, 4) uint8
+    fold_quad_edges: np.ndarray  # (T, 5) int32
+    fold_quad_flip: np.ndarray  # (T, 5) uint8
     fold_quad_points: np.ndarray  # (3, Q) int32: `wrinkles.quad_lattice`
     fold_quad_rs: np.ndarray  # (3, Q, 2) int32
 

@@ -1144,20 +1144,20 @@ def fold_quads(triangles: np.ndarray, faces: np.ndarray, coarse_edges: np.ndarra
     unit square O = (0, 0), P = (1, 0), N = (0, 1), O' = (1, 1), a lattice point of weights
     (w_O, w_N, w_P) lies at (r, s) = (w_P, w_N). The quad's four edges in that frame: e0 = OP
     (s = 0, along r from O), e1 = NO' (s = 1, along r from N), e2 = ON (r = 0, along s from O),
-    e3 = PO' (r = 1, along s from P).
+    e3 = PO' (r = 1, along s from P), and the diagonal e4 = NP (along r from N).
 
     Returns groups (G, 2) int32: the triangles drawn together (a quad's halves; a triangle
     that is no half of a quad alone, -1 second); corner (T,) int8: each triangle's O (0-2;
-    -1 for a lone triangle); edges (T, 4) int32: e0-e3 as coarse edges (rows of coarse_edges,
-    sorted pairs); flip (T, 4) uint8: 1 where the edge's parameter runs from its high vertex to
+    -1 for a lone triangle); edges (T, 5) int32: e0-e4 as coarse edges (rows of coarse_edges,
+    sorted pairs); flip (T, 5) uint8: 1 where the edge's parameter runs from its high vertex to
     its low one (the reverse of Tessellation.edge_ids' rows)."""
     tris = np.asarray(triangles)
     edge_of = {(int(a), int(b)): e for e, (a, b) in enumerate(coarse_edges)}
     tri_of = {frozenset(map(int, t)): k for k, t in enumerate(tris)}
     T = len(tris)
     corner = np.full(T, -1, dtype=np.int8)
-    edges = np.full((T, 4), -1, dtype=np.int32)
-    flip = np.zeros((T, 4), dtype=np.uint8)
+    edges = np.full((T, 5), -1, dtype=np.int32)
+    flip = np.zeros((T, 5), dtype=np.uint8)
     partner = np.full(T, -1, dtype=np.int64)
     for f in np.asarray(faces):
         if len(f) < 4 or f[3] < 0:
@@ -1175,7 +1175,7 @@ def fold_quads(triangles: np.ndarray, faces: np.ndarray, coarse_edges: np.ndarra
         O, N, P = t[o], t[(o + 1) % 3], t[(o + 2) % 3]
         O2 = next(v for v in other if v not in t)
         corner[k] = o
-        for j, (u, v) in enumerate(((O, P), (N, O2), (O, N), (P, O2))):
+        for j, (u, v) in enumerate(((O, P), (N, O2), (O, N), (P, O2), (N, P))):
             edges[k, j] = edge_of[(min(u, v), max(u, v))]
             flip[k, j] = u > v
     groups = [(k, partner[k]) for k in range(T) if partner[k] < 0 or k < partner[k]]
@@ -1274,6 +1274,31 @@ def _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edg
     return count
 
 
+@helper
+def _diagonal_folds(dh, floor, ceiling, face_ids, f, wrinkle, corner, quad_edges, quad_flip, quad_points, quad_rs,
+                    height, raised, count):
+    """Half f of a quad drawn with the fold of its compressed diagonal NP, compressed along
+    itself: straight across it, parallel to the quad's other diagonal OO'. The line through
+    (r, s) meets the diagonal t = (r - s + L) / 2 steps from N, (L - r - s) / 2 from it, and
+    runs on to the edge ON or OP, min(t, L - t) from it: drawn at the diagonal's wrinkle at t
+    (halfway between two of its particles where t is not whole) times the taper 1 - depth /
+    min(t, L - t), which is r / t or s / (L - t)."""
+    e, flip = quad_edges[f, 4], quad_flip[f, 4]
+    o = corner[f]
+    L = wrinkle.shape[1] - 1
+    for q in range(quad_points.shape[1]):
+        r, s = quad_rs[o, q, 0], quad_rs[o, q, 1]
+        t2 = r - s + L  # twice t
+        if r + s == L:
+            continue  # on the diagonal: its own particles
+        lo, hi = t2 // 2, (t2 + 1) // 2
+        w = 0.5 * (wrinkle[e, L - lo if flip else lo] + wrinkle[e, L - hi if flip else hi])
+        if w > 0.0:
+            taper = 2.0 * r / t2 if t2 <= L else 2.0 * s / (2 * L - t2)
+            count = _draw_fold(dh, floor, ceiling, face_ids[f, quad_points[o, q]], taper * w, height, raised, count)
+    return count
+
+
 @kernel
 def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge_ids, edge_required, interior_local,
                 fold_src, fold_weight, groups, corner, quad_edges, quad_flip, quad_points, quad_rs, d_edges, d_max,
@@ -1290,7 +1315,7 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
       into folds that run from one to the other; one alone tapers to nothing at the other), the
       folds of the two directions drawn to the larger; the diagonal's inner particles are drawn
       too, unless the diagonal is compressed itself: then they keep S106's heights, and its
-      wrinkle runs to the corners off it;
+      wrinkle runs straight across it, parallel to the other diagonal (`_diagonal_folds`);
     * in a lone triangle, along the lines towards the opposite corner (`fold_lines`), tapering
       to nothing there.
 
@@ -1316,13 +1341,12 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
                         count = _corner_folds(dh, floor, ceiling, face_ids, f, s, interior_local, fold_src,
                                               fold_weight, height, raised[0], count)
                 continue
-            diagonal = (o + 1) % 3  # the edge from N to P
-            compressed = edge_required[face_edges[f, diagonal]] > 0.0
+            compressed = edge_required[quad_edges[f, 4]] > 0.0  # the diagonal
             count = _quad_folds(dh, floor, ceiling, face_ids, f, wrinkle, peak, corner, quad_edges, quad_flip,
                                 quad_points, quad_rs, not compressed, height, raised[0], count)
-            if compressed:
-                count = _corner_folds(dh, floor, ceiling, face_ids, f, diagonal, interior_local, fold_src,
-                                      fold_weight, height, raised[0], count)
+            if compressed and peak[quad_edges[f, 4]] > 0.0:
+                count = _diagonal_folds(dh, floor, ceiling, face_ids, f, wrinkle, corner, quad_edges, quad_flip,
+                                        quad_points, quad_rs, height, raised[0], count)
         if count > 0:
             _settle_fold(p_smoothed, n_pn, dh, raised[0], count, d_edges, d_max, d_edge_start, d_edge_ids, allowance,
                          raised[1], height, p)

@@ -342,7 +342,7 @@ def test_fold_quads_finds_each_quads_halves_and_their_frames():
     """A quad ABCD (0-3) split along AC and a lone triangle B E C: the quad's halves are drawn
     together, each with its corner off the diagonal (B in ABC, D in ACD) and its four edges in
     the frame O, N, P, O': for ABC, O = B, N = C, P = A, O' = D, so e0 = BA, e1 = CD, e2 = BC,
-    e3 = AD, with the parameter running from B, C, B and A."""
+    e3 = AD and the diagonal e4 = CA, with the parameter running from B, C, B, A and C."""
     faces = np.array([[0, 1, 2, 3], [1, 4, 2, -1]], dtype=np.int32)
     tris = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 2]], dtype=np.int32)
     edges, _ = unique_edges(tris)
@@ -351,11 +351,11 @@ def test_fold_quads_finds_each_quads_halves_and_their_frames():
     np.testing.assert_array_equal(corner, [1, 2, -1])
     def index(i, j):
         return int(np.flatnonzero((edges[:, 0] == min(i, j)) & (edges[:, 1] == max(i, j)))[0])
-    np.testing.assert_array_equal(quad_edges[0], [index(1, 0), index(2, 3), index(1, 2), index(0, 3)])
-    np.testing.assert_array_equal(flip[0], [1, 0, 0, 0])
-    # ACD: O = D, N = A, P = C, O' = B: e0 = DC, e1 = AB, e2 = DA, e3 = CB
-    np.testing.assert_array_equal(quad_edges[1], [index(3, 2), index(0, 1), index(3, 0), index(2, 1)])
-    np.testing.assert_array_equal(flip[1], [1, 0, 1, 1])
+    np.testing.assert_array_equal(quad_edges[0], [index(1, 0), index(2, 3), index(1, 2), index(0, 3), index(2, 0)])
+    np.testing.assert_array_equal(flip[0], [1, 0, 0, 0, 1])
+    # ACD: O = D, N = A, P = C, O' = B: e0 = DC, e1 = AB, e2 = DA, e3 = CB, e4 = AC
+    np.testing.assert_array_equal(quad_edges[1], [index(3, 2), index(0, 1), index(3, 0), index(2, 1), index(0, 2)])
+    np.testing.assert_array_equal(flip[1], [1, 0, 1, 1, 0])
     assert np.all(quad_edges[2] == -1)
 
 
@@ -392,8 +392,8 @@ def test_a_fold_runs_straight_across_a_quad_blending_its_two_edges(first):
 
 def test_crossing_folds_in_a_quad_draw_the_higher():
     """AB (v = 0) and BC (u = 1) compressed: (u, v) drawn at the larger of (1 - v) W_AB(u) and
-    u W_BC(v). A compressed diagonal adds its own fold towards the corners off it, and its
-    particles keep their heights (its arc length is S105's measure)."""
+    u W_BC(v). A compressed diagonal adds its own fold across it, and its particles keep their
+    heights (its arc length is S105's measure)."""
     L = 6
     t, uv, faces = unit_quad(L)
     u, v = uv[:, 0], uv[:, 2]
@@ -473,3 +473,33 @@ def test_a_fold_across_a_quad_is_taken_off_where_it_parts_neighbours_beyond_the_
     assert raised_too_long(limited) == 0
     assert np.all((limited == free) | (limited == dh))
     assert 0 < np.sum(limited > dh) < np.sum(free > dh) and np.any(limited[diagonal] > dh[diagonal])
+
+
+def test_a_compressed_diagonal_folds_parallel_to_the_other_diagonal():
+    """A 20 mm wrinkle on the quad's compressed diagonal AC, 2 steps from C (level 6), nothing
+    else: in ABC (O = B, N = C, P = A) the line through (r, s) = (1, 3) parallel to BD meets AC
+    at t = (1 - 3 + 6) / 2 = 2 steps from C, 1 step (of 2) from it towards AB or BC: half the
+    wrinkle, 10 mm (the corner rule would have drawn it from t = 1.5, towards B). (1, 2) meets
+    AC halfway between the particles 2 and 3 from C (10 mm), 1.5 of 2.5 steps from it: 4 mm.
+    The same in ACD by symmetry; the diagonal's and the outer edges' particles keep theirs."""
+    L = 6
+    t, uv, faces = unit_quad(L)
+    diagonal = coarse_edge(t, 0, 2)
+    dh = np.zeros(t.n_vertices)
+    dh[t.edge_ids[diagonal, L - 2]] = 0.02  # edge_ids run from A (0) to C (2)
+    required = np.full(len(t.coarse_edges), -1e-3)
+    required[diagonal] = 1e-3
+    height = run_fold(t, dh, required, faces=faces, p_smoothed=uv)
+
+    def at(face, weights):  # the detailed vertex of a face at lattice weights of its corners 0, 1, 2
+        k = np.flatnonzero((t.lattice[:, 0] == weights[1]) & (t.lattice[:, 1] == weights[2]))[0]
+        return t.face_ids[face, k]
+
+    assert tuple(t.coarse_triangles[0]) == (0, 1, 2) and tuple(t.coarse_triangles[1]) == (0, 2, 3)
+    # ABC: weights (A, B, C) = (r, L - r - s, s); ACD: O = D, N = A, P = C, weights (A, C, D) = (s, r, L - r - s)
+    assert height[at(0, (1, 2, 3))] == pytest.approx(0.01, abs=1e-15)
+    assert height[at(0, (1, 3, 2))] == pytest.approx(0.004, abs=1e-15)
+    # in ACD, C is P: t counts from A, so the wrinkle is at t = 4; (r, s) = (3, 1) meets it: r - s + 6 = 8
+    assert height[at(1, (1, 3, 2))] == pytest.approx(0.01, abs=1e-15)
+    np.testing.assert_array_equal(height[t.edge_ids.ravel()], dh[t.edge_ids.ravel()])
+    assert np.all(height >= dh) and np.count_nonzero(height > dh) > 4
