@@ -150,8 +150,8 @@ class SurfaceState:
         self.dh = np.zeros(N)  # Δh, carried to the next frame (Δh_last_frame)
         self.height = np.zeros(N)  # the drawn heights: Δh, or more in a fold across the compression
         self.fold_raised = np.zeros((2, 2 * len(m.tess.lattice)), dtype=np.int32)  # fold_across scratch
-        self.fold_wrinkle = np.zeros((E, L1))
-        self.fold_peak = np.zeros(E)
+        self.fold_wrinkle = np.zeros((E, L1))  # fold_across: each compressed coarse edge's wrinkle along it
+        self.fold_peak = np.zeros(E)  # and its highest
         self.dh_pen = np.zeros(N)  # S103 Δh_penetration
         self.sd = np.zeros(N)  # S103 signed distance of tested particles (inf: untested)
         self.facing = np.zeros(N)  # S103: n_i . n_body at each tested particle's closest body point
