@@ -71,6 +71,7 @@ class LayerModel:
     # its triangles reach from it): a point farther than depth + this from the vertex is over none of them
     spread_edges: np.ndarray  # (S, 2) int32: outer detailed edges between candidates, as candidate indices
     spread_drop: np.ndarray  # (S,) m: LAYER_SLOPE × each one's rest length
+    spread_limit: np.ndarray  # (S,) m: each one's maximum neighbour distance (S106's d_max; inf: none)
     gap: float = LAYER_GAP
     depth: float = LAYER_DEPTH
     max_lift: float = MAX_LAYER_LIFT
@@ -86,6 +87,7 @@ class LayerState:
         self.no_heights = np.zeros(int(m.candidates.max()) + 1 if len(m.candidates) else 0)
         self.q = np.zeros(3)
         self.lifted = 0  # candidates lifted in the last frame (before the easing)
+        self.bound = np.zeros(len(m.spread_edges))  # m: how long each spread edge may be after the lifts
 
 
 @kernel
@@ -189,6 +191,53 @@ def ease_lifts(edges, drop, lift, sweeps):
 
 
 @kernel
+def edge_bounds(p_out, candidates, edges, limit, bound):
+    """How long each edge between candidates may be once lifted: its maximum neighbour distance,
+    or its length before the lifts where that is longer (the lifts make no edge too long that
+    was not so already)."""
+    for k in range(edges.shape[0]):
+        a, b = candidates[edges[k, 0]], candidates[edges[k, 1]]
+        d = math.sqrt((p_out[a, 0] - p_out[b, 0]) ** 2 + (p_out[a, 1] - p_out[b, 1]) ** 2
+                      + (p_out[a, 2] - p_out[b, 2]) ** 2)
+        bound[k] = max(limit[k], d)
+
+
+@helper
+def _raise_to_bound(p_out, n_out, i, li, j, lj, bound):
+    """The smallest lift of i, at least li, that puts it within bound of j lifted by lj (the
+    lower root of |c + l n_i|² = bound², c = p_i - p_j - lj n_j); li where no lift reaches it."""
+    cx = p_out[i, 0] - p_out[j, 0] - lj * n_out[j, 0]
+    cy = p_out[i, 1] - p_out[j, 1] - lj * n_out[j, 1]
+    cz = p_out[i, 2] - p_out[j, 2] - lj * n_out[j, 2]
+    cn = cx * n_out[i, 0] + cy * n_out[i, 1] + cz * n_out[i, 2]
+    disc = cn * cn - (cx * cx + cy * cy + cz * cz) + bound * bound
+    if disc < 0.0:
+        return li
+    low = -cn - math.sqrt(disc)
+    return low if low > li else li
+
+
+@kernel
+def bound_lift_steps(p_out, n_out, candidates, edges, bound, lift, room, sweeps):
+    """Where two neighbours' lifts part them farther than their edge's bound (`edge_bounds`:
+    the lifts pull apart neighbours whose normals diverge), the lower lift rises until they are
+    within it, as far as its room allows; sweeps over the edges in both orders."""
+    for _ in range(sweeps):
+        for r in range(2):
+            for q in range(edges.shape[0]):
+                k = q if r == 0 else edges.shape[0] - 1 - q
+                a, b = edges[k, 0], edges[k, 1]
+                la, lb = min(lift[a], room[a]), min(lift[b], room[b])
+                if la <= 0.0 and lb <= 0.0:
+                    continue  # neither lifted: the edge is as it was
+                i, j = candidates[a], candidates[b]
+                if la <= lb:
+                    lift[a] = min(_raise_to_bound(p_out, n_out, i, la, j, lb, bound[k]), room[a])
+                else:
+                    lift[b] = min(_raise_to_bound(p_out, n_out, j, lb, i, la, bound[k]), room[b])
+
+
+@kernel
 def apply_lifts(p_out, n_out, candidates, lift, room):
     """Each candidate moved along its normal by its eased lift, within its room."""
     for c in range(candidates.shape[0]):
@@ -216,6 +265,8 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
                                max_height, s.q, s.lift, s.room)
     if s.lifted:
         ease_lifts(m.spread_edges, m.spread_drop, s.lift, SPREAD_SWEEPS)
+        edge_bounds(p_out, m.candidates, m.spread_edges, m.spread_limit, s.bound)
+        bound_lift_steps(p_out, n_out, m.candidates, m.spread_edges, s.bound, s.lift, s.room, SPREAD_SWEEPS)
         apply_lifts(p_out, n_out, m.candidates, s.lift, s.room)
 
 
@@ -229,8 +280,10 @@ def nearest(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.nda
 
 
 def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.ndarray, inner_rest: np.ndarray,
-               inner_triangles: np.ndarray, inner_edges: np.ndarray, reach: float = LAYER_REACH) -> LayerModel:
-    """The layer model of one pair from the two garments' detailed meshes at rest (m)."""
+               inner_triangles: np.ndarray, inner_edges: np.ndarray, reach: float = LAYER_REACH,
+               outer_limit: np.ndarray | None = None) -> LayerModel:
+    """The layer model of one pair from the two garments' detailed meshes at rest (m);
+    outer_limit: the outer's maximum neighbour distance per edge (None: no limit)."""
     dist, index = nearest(outer_rest, inner_rest)
     candidates = np.flatnonzero(dist < reach).astype(np.int32)
     slot = np.full(len(outer_rest), -1, dtype=np.int64)
@@ -239,6 +292,7 @@ def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.n
     keep = (slot[e[:, 0]] >= 0) & (slot[e[:, 1]] >= 0)
     spread = slot[e[keep]].astype(np.int32)
     rest_len = np.linalg.norm(outer_rest[e[keep, 0]] - outer_rest[e[keep, 1]], axis=1)
+    limit = np.full(len(rest_len), np.inf) if outer_limit is None else np.asarray(outer_limit, dtype=float)[keep]
     ns, ni = vertex_neighbours(len(inner_rest), np.asarray(inner_edges))
     ts, ti = vertex_cells(len(inner_rest), np.asarray(inner_triangles))
     ie = np.asarray(inner_edges, dtype=np.int64)
@@ -248,7 +302,7 @@ def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.n
     np.maximum.at(longest, ie[:, 1], inner_len)
     return LayerModel(outer, inner, candidates, index[candidates].copy(), ns, ni, ts, ti,
                       np.ascontiguousarray(inner_triangles, dtype=np.int32), RING_STRETCH * longest,
-                      np.ascontiguousarray(spread), LAYER_SLOPE * rest_len)
+                      np.ascontiguousarray(spread), LAYER_SLOPE * rest_len, limit)
 
 
 def rest_surface(model: SurfaceModel) -> np.ndarray:
@@ -276,7 +330,7 @@ def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[Laye
             outer, inner = (a, b) if np.median(off_a) >= np.median(off_b) else (b, a)
             mo, mi = models[outer], models[inner]
             pairs.append(layer_pair(outer, inner, rest[outer], mo.d_edges, rest[inner], mi.tess.triangles,
-                                    mi.d_edges))
+                                    mi.d_edges, outer_limit=mo.d_max))
     return stacking_order(pairs, len(models))
 
 
@@ -297,5 +351,5 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "ease_lifts", "layer_outfit", "layer_pair", "lift_over_inner", "nearest", "rest_surface", "stack_layer",
+           "bound_lift_steps", "ease_lifts", "edge_bounds", "layer_outfit", "layer_pair", "lift_over_inner", "nearest", "rest_surface", "stack_layer",
            "stacking_order"]

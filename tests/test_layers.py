@@ -8,8 +8,8 @@ import pytest
 from cloth.coarsen import CoarseMesh
 from cloth.fabric import fabric
 from cloth.garment import Garment
-from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState, layer_outfit,
-                          layer_pair, rest_surface, stack_layer)
+from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState, bound_lift_steps,
+                          edge_bounds, layer_outfit, layer_pair, rest_surface, stack_layer)
 from cloth.model import SimSettings, build_cloth_model
 from cloth.surface import SurfaceSettings, build_surface_model
 from cloth.topology import unique_edges
@@ -187,3 +187,40 @@ def test_three_garments_are_stacked_from_the_inside_out():
         mid = (rest[0][:, 0] > 0.02) & (rest[0][:, 0] < 0.14)  # away from the sheets' edges
         np.testing.assert_allclose(p["shirt"][mid, 1], 0.017 + LAYER_GAP, atol=1e-9)
         np.testing.assert_allclose(p["jacket"][mid, 1], 0.017 + 2 * LAYER_GAP, atol=1e-9)
+
+
+def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound():
+    """Two outer neighbours 10 mm apart, normals +Y, the first lifted 20 mm and the second not
+    at all (20 mm apart once lifted). With a maximum neighbour distance of 11 mm the second
+    rises to the smallest lift that brings them exactly 11 mm apart, 20 - sqrt(11² - 10²) mm
+    (the lower root); the first keeps its lift. An edge 15 mm long before the lifts may stay
+    15 mm long; where no lift of the lower one brings them nearer (normals leaning 45° away
+    from each other) it is left; the room caps a rise."""
+    p = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    n = up(2)
+    candidates, edges = np.array([0, 1], np.int32), np.array([[0, 1]], np.int32)
+
+    def lifted(limit, lifts, room=(1.0, 1.0), points=p, normals=n):
+        bound = np.zeros(1)
+        edge_bounds(points, candidates, edges, np.array([limit]), bound)
+        lift = np.array(lifts, float)
+        bound_lift_steps(points, normals, candidates, edges, bound, lift, np.array(room, float), 2)
+        q = points + lift[:, None] * normals
+        return lift, np.linalg.norm(q[0] - q[1])
+
+    lift, d = lifted(0.011, [0.02, 0.0])
+    assert lift[0] == 0.02 and lift[1] == pytest.approx(0.02 - np.sqrt(0.011**2 - 0.01**2), abs=1e-15)
+    assert d == pytest.approx(0.011, abs=1e-15)
+    lift, d = lifted(0.011, [0.0, 0.02])  # the other way round
+    assert lift[1] == 0.02 and d == pytest.approx(0.011, abs=1e-15)
+    long = p.copy()
+    long[1, 0] = 0.015
+    _, d = lifted(0.011, [0.02, 0.0], points=long)
+    assert d == pytest.approx(0.015, abs=1e-15)  # as long as before the lifts, no longer
+    apart = np.array([[-1.0, 1.0, 0.0], [1.0, 1.0, 0.0]]) / np.sqrt(2.0)
+    lift, d = lifted(0.011, [0.02, 0.0], normals=apart)  # 28 mm apart, and farther if the second rises
+    assert lift[1] == 0.0 and d > 0.027
+    lift, d = lifted(0.011, [0.02, 0.0], room=(1.0, 0.001))
+    assert lift[1] == 0.001 and d > 0.011
+    lift, d = lifted(0.011, [0.0, 0.0])
+    assert np.all(lift == 0.0) and d == pytest.approx(0.01, abs=1e-15)
