@@ -10,7 +10,8 @@ each outer garment's detailed vertices that lie within LAYER_GAP over the inner 
 detailed surface of this frame, or behind it by less than LAYER_DEPTH, are lifted along their
 own normals until they are LAYER_GAP over it; the lifts then ease off along the outer surface
 by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
-stepping), and are never negative. It is a pass on the drawn surfaces only: no garment's state
+stepping), a lower lift rises where two neighbours' lifts part them beyond the outer's maximum
+neighbour distance (or their length before the lifts), and lifts are never negative. It is a pass on the drawn surfaces only: no garment's state
 (its coarse cloth, its Δh) sees it, so each garment's simulation stays what it is alone, and the
 pass never moves a vertex towards the body.
 
@@ -352,5 +353,5 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "bound_lift_steps", "ease_lifts", "edge_bounds", "layer_outfit", "layer_pair", "lift_over_inner", "nearest", "rest_surface", "stack_layer",
-           "stacking_order"]
+           "bound_lift_steps", "ease_lifts", "edge_bounds", "layer_outfit", "layer_pair", "lift_over_inner", "nearest",
+           "rest_surface", "stack_layer", "stacking_order"]
