@@ -11,9 +11,9 @@ detailed surface of this frame, or behind it by less than LAYER_DEPTH, are lifte
 own normals until they are LAYER_GAP over it; the lifts then ease off along the outer surface
 by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
 stepping), a lower lift rises where two neighbours' lifts part them beyond the outer's maximum
-neighbour distance (or their length before the lifts), and lifts are never negative. It is a pass on the drawn surfaces only: no garment's state
-(its coarse cloth, its Δh) sees it, so each garment's simulation stays what it is alone, and the
-pass never moves a vertex towards the body.
+neighbour distance (or their length before the lifts), and lifts are never negative. It is a
+pass on the drawn surfaces only: no garment's state (its coarse cloth, its Δh) sees it, so each
+garment's simulation stays what it is alone, and the pass never moves a vertex towards the body.
 
 Which garment is outer, and which of its vertices can meet the inner one, is found once from the
 rest surfaces: where two garments come within LAYER_BAND of each other, the one farther from the
