@@ -1337,7 +1337,7 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
             o = corner[f]
             if o < 0:
                 for s in range(3):
-                    if edge_required[face_edges[f, s]] > 0.0:
+                    if peak[face_edges[f, s]] > 0.0:  # compressed, with a wrinkle
                         count = _corner_folds(dh, floor, ceiling, face_ids, f, s, interior_local, fold_src,
                                               fold_weight, height, raised[0], count)
                 continue
@@ -1353,14 +1353,11 @@ def fold_across(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges, edge
 
 
 @helper
-def _parts_too_far(p_smoothed, p, d_edges, d_max, allowance, e, i):
-    """The neighbour of i across detailed edge e, if they are farther apart than S106 step 5's
-    limit (d_max or more: `_limit2`), else -1."""
-    j = d_edges[e, 0] + d_edges[e, 1] - i
+def _too_far(p_smoothed, p, d_max, allowance, e, i, j):
+    """Whether neighbours i and j (detailed edge e) are farther apart than S106 step 5's limit
+    (d_max or more: `_limit2`)."""
     d2, lim = _dist2(p, i, j), d_max[e]
-    if d2 <= lim * lim or d2 <= _limit2(p_smoothed, i, j, lim, allowance):
-        return -1
-    return j
+    return d2 > lim * lim and d2 > _limit2(p_smoothed, i, j, lim, allowance)
 
 
 @helper
@@ -1383,8 +1380,9 @@ def _settle_fold(p_smoothed, n_pn, dh, raised, count, d_edges, d_max, d_edge_sta
         if height[i] <= dh[i]:
             continue
         for k in range(d_edge_start[i], d_edge_start[i + 1]):
-            j = _parts_too_far(p_smoothed, p, d_edges, d_max, allowance, d_edge_ids[k], i)
-            if j < 0:
+            e = d_edge_ids[k]
+            j = d_edges[e, 0] + d_edges[e, 1] - i
+            if not _too_far(p_smoothed, p, d_max, allowance, e, i, j):
                 continue
             _set_height(p_smoothed, n_pn, height, p, i, dh[i])
             back[n_back] = i
@@ -1401,7 +1399,7 @@ def _settle_fold(p_smoothed, n_pn, dh, raised, count, d_edges, d_max, d_edge_sta
         for k in range(d_edge_start[c], d_edge_start[c + 1]):
             e = d_edge_ids[k]
             j = d_edges[e, 0] + d_edges[e, 1] - c
-            if height[j] <= dh[j] or _parts_too_far(p_smoothed, p, d_edges, d_max, allowance, e, c) < 0:
+            if height[j] <= dh[j] or not _too_far(p_smoothed, p, d_max, allowance, e, c, j):
                 continue
             _set_height(p_smoothed, n_pn, height, p, j, dh[j])
             back[n_back] = j
