@@ -11,15 +11,22 @@ detailed surface of this frame, or behind it by less than LAYER_DEPTH, are lifte
 own normals until they are LAYER_GAP over it; the lifts then ease off along the outer surface
 by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
 stepping), a lower lift rises where two neighbours' lifts part them beyond the outer's maximum
-neighbour distance (or their length before the lifts), and lifts are never negative. It is a
-pass on the drawn surfaces only: no garment's state (its coarse cloth, its Δh) sees it, so each
-garment's simulation stays what it is alone, and the pass never moves a vertex towards the body.
+neighbour distance (or their length before the lifts), and where its room stops it short the
+higher lift gives way to that bound; lifts are never negative. A lift stops where S103 left a
+body part above the outer vertex (a hand on the hip). What is left there is done from below:
+the inner garment's vertices still within LAYER_GAP under the (lifted) outer surface, or in
+front of it by less than LAYER_DEPTH, are pressed along their reference normals to LAYER_GAP
+under it, as far as the body below them allows (S103's distance, `SurfaceState.body_floor`),
+eased off and kept within the inner's edge bounds the same way.
+It is a pass on the drawn surfaces only: no garment's state (its coarse cloth, its Δh) sees
+it, so each garment's simulation stays what it is alone; the outer never moves towards the
+body, the inner never away from it.
 
 Which garment is outer, and which of its vertices can meet the inner one, is found once from the
 rest surfaces: where two garments come within LAYER_BAND of each other, the one farther from the
-body there is outer (the shipped tops sit 1-2 mm outside the bottoms' waistbands), and its
-vertices within LAYER_REACH of the inner garment are tested each frame, each tracking its nearest
-inner vertex by a walk over the inner mesh (as S101 tracks the body's).
+body there is outer (the shipped tops sit 1-2 mm outside the bottoms' waistbands), and each
+garment's vertices within LAYER_REACH of the other are tested each frame, each tracking its
+nearest vertex of the other garment by a walk over that one's mesh (as S101 tracks the body's).
 """
 
 from __future__ import annotations
@@ -36,24 +43,45 @@ from .surface import rest_surface as surface_at_rest
 from .topology import vertex_cells, vertex_neighbours
 
 LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
-LAYER_REACH = 0.03  # m: an outer vertex this near the inner garment at rest is tested every frame
+LAYER_REACH = 0.03  # m: a vertex this near the other garment at rest is tested every frame
 LAYER_GAP = 0.002  # m: the outer surface is kept this far over the inner one
-LAYER_DEPTH = 0.01  # m: an outer vertex at most this far behind the inner surface is brought over it
+LAYER_DEPTH = 0.01  # m: a vertex at most this far on the wrong side of the other surface is brought past it
 # (the inner's wrinkles poking through are 6-10 mm high; farther behind it is another sheet)
-LAYER_SLOPE = 0.5  # m of lift given up per m along the outer surface away from a lifted vertex
-MAX_LAYER_LIFT = 0.03  # m: no vertex is lifted farther (the inner garment's heights reach 3 cm)
-SPREAD_SWEEPS = 2  # forward and backward sweeps over the outer edges that ease the lifts off
-BOUND_SWEEPS = 1  # ... that keep lifted neighbours within their edge's bound (a second changed 0.1 % of edges)
-FACING = 0.25  # an outer vertex whose normal is within about 75° of the inner surface's is over it
-# an outer vertex is under (or over) the inner surface where it lies within 45° of the inner's
-# normal at its closest point q ((p - q)·n_q)² >= UNDER |p - q|²), beside it (past its edge) elsewhere
+LAYER_SLOPE = 0.5  # m of lift given up per m along the surface away from a lifted (pressed) vertex
+MAX_LAYER_LIFT = 0.03  # m: no vertex is moved farther (the inner garment's heights reach 3 cm)
+SPREAD_SWEEPS = 2  # forward and backward sweeps over the edges that ease the lifts off
+BOUND_SWEEPS = 1  # ... that keep moved neighbours within their edge's bound (a second changed 0.1 % of edges)
+FACING = 0.25  # a vertex whose normal is within about 75° of the other surface's faces it
+# a vertex is under (or over) the other surface where it lies within 45° of that one's normal
+# at its closest point q ((p - q)·n_q)² >= UNDER |p - q|²), beside it (past its edge) elsewhere
 UNDER = 0.5
-# a lift along an outer normal leaning more than 45° off the inner's is taken as if it leaned
-# 45°: it stops short of the tangent plane rather than climbing up to 4 times as far (FACING)
+# a move along a normal leaning more than 45° off the other surface's is taken as if it leaned
+# 45°: it stops short of the tangent plane rather than going up to 4 times as far (FACING)
 # and stepping away from its neighbours
 LEAN = 0.7
 WALK_STEPS = 256  # at most this many vertices walked per tracked vertex and frame
-RING_STRETCH = 1.5  # the inner's detailed edges are taken to stretch at most this much (for ring_reach)
+RING_STRETCH = 1.5  # the detailed edges are taken to stretch at most this much (for ring_reach)
+OVER_SIDE, UNDER_SIDE = 1.0, -1.0  # the side of the other surface a garment is kept on (the way it moves)
+
+
+@dataclass
+class SheetTrack:
+    """What does not change for one garment of a pair: its detailed vertices that can meet the
+    other garment (the candidates), the other's mesh they are tracked on, and the edges between
+    candidates along which their moves ease off."""
+
+    candidates: np.ndarray  # (C,) int32: the garment's detailed vertices tested every frame
+    rest_nearest: np.ndarray  # (C,) int32: each one's nearest detailed vertex of the other garment at rest
+    nbr_start: np.ndarray  # (No + 1,) int64: CSR of the other garment's detailed vertices' neighbours
+    nbr_ids: np.ndarray  # int32
+    tri_start: np.ndarray  # (No + 1,) int64: CSR of the other's detailed triangles around each vertex
+    tri_ids: np.ndarray  # int32
+    triangles: np.ndarray  # (To, 3) int32: the other's detailed triangles
+    ring_reach: np.ndarray  # (No,) m: RING_STRETCH × the longest rest edge at each of the other's vertices (how
+    # far its triangles reach from it): a point farther than depth + this from the vertex is over none of them
+    spread_edges: np.ndarray  # (S, 2) int32: the garment's detailed edges between candidates, as candidate indices
+    spread_drop: np.ndarray  # (S,) m: LAYER_SLOPE × each one's rest length
+    spread_limit: np.ndarray  # (S,) m: each one's maximum neighbour distance (S106's d_max; inf: none)
 
 
 @dataclass
@@ -62,34 +90,35 @@ class LayerModel:
 
     outer: int  # garment indices in the outfit
     inner: int
-    candidates: np.ndarray  # (C,) int32: the outer detailed vertices tested every frame
-    rest_nearest: np.ndarray  # (C,) int32: each one's nearest inner detailed vertex at rest
-    nbr_start: np.ndarray  # (Ni + 1,) int64: CSR of the inner detailed vertices' neighbours
-    nbr_ids: np.ndarray  # int32
-    tri_start: np.ndarray  # (Ni + 1,) int64: CSR of the inner detailed triangles around each vertex
-    tri_ids: np.ndarray  # int32
-    triangles: np.ndarray  # (Ti, 3) int32: the inner detailed triangles
-    ring_reach: np.ndarray  # (Ni,) m: RING_STRETCH × the longest rest edge at each inner vertex (how far
-    # its triangles reach from it): a point farther than depth + this from the vertex is over none of them
-    spread_edges: np.ndarray  # (S, 2) int32: outer detailed edges between candidates, as candidate indices
-    spread_drop: np.ndarray  # (S,) m: LAYER_SLOPE × each one's rest length
-    spread_limit: np.ndarray  # (S,) m: each one's maximum neighbour distance (S106's d_max; inf: none)
+    over: SheetTrack  # the outer's vertices, lifted over the inner
+    under: SheetTrack  # the inner's vertices, pressed under the outer where it did not rise enough
     gap: float = LAYER_GAP
     depth: float = LAYER_DEPTH
     max_lift: float = MAX_LAYER_LIFT
+
+
+class SheetMoves:
+    """Per-frame arrays of one garment of a pair: how far each candidate moves along its normal
+    (outwards for the outer, inwards for the inner)."""
+
+    def __init__(self, t: SheetTrack):
+        self.nearest = t.rest_nearest.copy()  # each candidate's nearest vertex of the other garment, tracked
+        self.move = np.zeros(len(t.candidates))  # m, along its normal, out (lift) or in (press)
+        self.room = np.zeros(len(t.candidates))  # m: how far each may move (lift_room, press_room)
+        self.bound = np.zeros(len(t.spread_edges))  # m: how long each spread edge may be after the moves
+        self.moved = 0  # candidates moved in the last frame (before the easing)
+        size = int(t.candidates.max()) + 1 if len(t.candidates) else 0
+        self.no_heights = np.zeros(size)  # a garment with no body near: height 0, nothing above
+        self.no_floor = np.full(size, -np.inf)  # ... nothing below
 
 
 class LayerState:
     """Per-frame arrays of one layer pair."""
 
     def __init__(self, m: LayerModel):
-        self.nearest = m.rest_nearest.copy()  # each candidate's nearest inner vertex, tracked
-        self.lift = np.zeros(len(m.candidates))  # m, along the outer normal
-        self.room = np.zeros(len(m.candidates))  # m: how far each may rise (lift_over_inner)
-        self.no_heights = np.zeros(int(m.candidates.max()) + 1 if len(m.candidates) else 0)
+        self.lift = SheetMoves(m.over)
+        self.press = SheetMoves(m.under)
         self.q = np.zeros(3)
-        self.lifted = 0  # candidates lifted in the last frame (before the easing)
-        self.bound = np.zeros(len(m.spread_edges))  # m: how long each spread edge may be after the lifts
 
 
 @kernel
@@ -111,37 +140,52 @@ def walk_nearest_vertex(px, py, pz, x, nbr_start, nbr_ids, start, steps):
 
 
 @kernel
-def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids, tris,
-                    ring_reach, gap, depth, max_lift, dh, ceiling, free_ceiling, q, lift, room):
-    """Each candidate's lift along its normal n_o that puts it `gap` over the inner surface
-    (its closest point q on the triangles around its nearest inner vertex, the inner's normal
-    n_q there interpolated from the inner's shading normals): where it lies over it by less
-    than gap, or behind it by less than depth (side = (p - q)·n_q), lift until it is gap over
-    the inner's tangent plane at q: s = (gap - side) / max(n_o·n_q, LEAN). None where p lies
-    beside the inner surface rather than over or under it (past its edge: (p - q) more than 45°
-    off n_q, farther than gap), and none where n_o turns away from n_q. Returns how many were
-    lifted.
-
-    room[c]: how far the candidate may rise without going into the body: where S103 found a
+def lift_room(candidates, height, ceiling, free_ceiling, max_lift, room):
+    """How far each outer candidate may rise without going into the body: where S103 found a
     body part above it or another one near it (its S106 ceiling under free_ceiling, the
-    max_height it has with none), its ceiling less its drawn height (dh: Δh, or the fold across
-    the compression drawn there); elsewhere max_lift."""
-    lifted = 0
+    max_height it has with none), its ceiling less its drawn height (Δh, or the fold across the
+    compression drawn there); elsewhere max_lift."""
     for c in range(candidates.shape[0]):
         i = candidates[c]
-        room[c] = max_lift if ceiling[i] >= free_ceiling else min(max_lift, max(0.0, ceiling[i] - dh[i]))
-        px, py, pz = p_out[i, 0], p_out[i, 1], p_out[i, 2]
-        v = walk_nearest_vertex(px, py, pz, p_in, nbr_start, nbr_ids, nearest[c], WALK_STEPS)
+        room[c] = max_lift if ceiling[i] >= free_ceiling else min(max_lift, max(0.0, ceiling[i] - height[i]))
+
+
+@kernel
+def press_room(candidates, height, body_floor, max_lift, room):
+    """How far each inner candidate may come down along its normal without coming nearer the
+    body than S103's clearance: its drawn height less its body floor, at most max_lift."""
+    for c in range(candidates.shape[0]):
+        i = candidates[c]
+        room[c] = min(max_lift, max(0.0, height[i] - body_floor[i]))
+
+
+@kernel
+def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids, tris,
+                       ring_reach, side, gap, depth, room, q, move):
+    """How far each candidate of a garment (p, its normals n) moves along side × n to lie `gap`
+    on its side of the other garment's surface (p_ref: its closest point q on the triangles
+    around its nearest vertex there; the other's normal n_q at q interpolated from its shading
+    normals n_ref): side +1 keeps an outer garment over the inner one, side -1 an inner one
+    under the outer. With h = side (p - q)·n_q how far p lies on its side: where h < gap but
+    h > -depth, the move s = (gap - h) / max(n·n_q, LEAN) puts it gap past the other's tangent
+    plane at q, within room. None where p lies beside the other surface rather than over or
+    under it (past its edge: (p - q) more than 45° off n_q, farther than gap), and none where n
+    turns away from n_q. Returns how many candidates move."""
+    moved = 0
+    for c in range(candidates.shape[0]):
+        i = candidates[c]
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        v = walk_nearest_vertex(px, py, pz, p_ref, nbr_start, nbr_ids, nearest[c], WALK_STEPS)
         nearest[c] = v
-        lift[c] = 0.0
+        move[c] = 0.0
         far = max(gap, depth) + ring_reach[v]
-        if (p_in[v, 0] - px) ** 2 + (p_in[v, 1] - py) ** 2 + (p_in[v, 2] - pz) ** 2 > far * far:
-            continue  # nowhere near the inner surface (most of a loose top's band, most frames)
+        if (p_ref[v, 0] - px) ** 2 + (p_ref[v, 1] - py) ** 2 + (p_ref[v, 2] - pz) ** 2 > far * far:
+            continue  # nowhere near the other surface (most of a loose top's band, most frames)
         best, bt, bv, bw = np.inf, -1, 0.0, 0.0
         qx, qy, qz = 0.0, 0.0, 0.0
         for k in range(tri_start[v], tri_start[v + 1]):
             t = tri_ids[k]
-            wv, ww = closest_point_triangle(px, py, pz, p_in, tris[t, 0], tris[t, 1], tris[t, 2], q)
+            wv, ww = closest_point_triangle(px, py, pz, p_ref, tris[t, 0], tris[t, 1], tris[t, 2], q)
             d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
             if d2 < best:
                 best, bt, bv, bw = d2, t, wv, ww
@@ -150,68 +194,68 @@ def lift_over_inner(p_out, n_out, p_in, n_in, candidates, nearest, nbr_start, nb
             continue
         a, b, e = tris[bt, 0], tris[bt, 1], tris[bt, 2]
         bu = 1.0 - bv - bw
-        nx = bu * n_in[a, 0] + bv * n_in[b, 0] + bw * n_in[e, 0]
-        ny = bu * n_in[a, 1] + bv * n_in[b, 1] + bw * n_in[e, 1]
-        nz = bu * n_in[a, 2] + bv * n_in[b, 2] + bw * n_in[e, 2]
+        nx = bu * n_ref[a, 0] + bv * n_ref[b, 0] + bw * n_ref[e, 0]
+        ny = bu * n_ref[a, 1] + bv * n_ref[b, 1] + bw * n_ref[e, 1]
+        nz = bu * n_ref[a, 2] + bv * n_ref[b, 2] + bw * n_ref[e, 2]
         nn = math.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue
-        facing = (n_out[i, 0] * nx + n_out[i, 1] * ny + n_out[i, 2] * nz) / nn
+        facing = (n[i, 0] * nx + n[i, 1] * ny + n[i, 2] * nz) / nn
         if facing < FACING:
-            continue  # the outer sheet turned away from the inner one (a fold's far side): not over it
-        side = ((px - qx) * nx + (py - qy) * ny + (pz - qz) * nz) / nn
-        if side >= gap or -side > depth:
-            continue  # over it by the gap already, or another sheet far behind it
-        if side * side < UNDER * best and best >= gap * gap:
-            continue  # beside the inner surface (past its edge), neither over nor under it
-        s = (gap - side) / max(facing, LEAN)  # along n_o, to the gap over the inner's tangent plane at q
+            continue  # the sheet turned away from the other one (a fold's far side): not over it
+        h = side * ((px - qx) * nx + (py - qy) * ny + (pz - qz) * nz) / nn
+        if h >= gap or -h > depth:
+            continue  # on its side by the gap already, or another sheet far on the other side
+        if h * h < UNDER * best and best >= gap * gap:
+            continue  # beside the other surface (past its edge), neither over nor under it
+        s = (gap - h) / max(facing, LEAN)  # along side × n, to the gap past the other's tangent plane at q
         if room[c] > 0.0:
-            lift[c] = min(s, room[c])
-            lifted += 1
-    return lifted
+            move[c] = min(s, room[c])
+            moved += 1
+    return moved
 
 
 @helper
-def _ease_edge(edges, drop, lift, k):
+def _ease_edge(edges, drop, move, k):
     a, b = edges[k, 0], edges[k, 1]
-    if lift[b] - drop[k] > lift[a]:
-        lift[a] = lift[b] - drop[k]
-    elif lift[a] - drop[k] > lift[b]:
-        lift[b] = lift[a] - drop[k]
+    if move[b] - drop[k] > move[a]:
+        move[a] = move[b] - drop[k]
+    elif move[a] - drop[k] > move[b]:
+        move[b] = move[a] - drop[k]
 
 
 @kernel
-def ease_lifts(edges, drop, lift, sweeps):
-    """Each lift at least its neighbour's minus the edge's drop (LAYER_SLOPE × its length),
-    relaxed by sweeps over the edges in both orders: the lifts fall off along the outer
-    surface as a cone, never below what lift_over_inner asked."""
+def ease_lifts(edges, drop, move, sweeps):
+    """Each move at least its neighbour's minus the edge's drop (LAYER_SLOPE × its length),
+    relaxed by sweeps over the edges in both orders: the moves fall off along the surface as a
+    cone, never below what offsets_from_sheet asked."""
     for _ in range(sweeps):
         for k in range(edges.shape[0]):
-            _ease_edge(edges, drop, lift, k)
+            _ease_edge(edges, drop, move, k)
         for k in range(edges.shape[0] - 1, -1, -1):
-            _ease_edge(edges, drop, lift, k)
+            _ease_edge(edges, drop, move, k)
 
 
 @kernel
-def edge_bounds(p_out, candidates, edges, limit, bound):
-    """How long each edge between candidates may be once lifted: its maximum neighbour distance,
-    or its length before the lifts where that is longer (the lifts make no edge too long that
+def edge_bounds(p, candidates, edges, limit, bound):
+    """How long each edge between candidates may be once moved: its maximum neighbour distance,
+    or its length before the moves where that is longer (the moves make no edge too long that
     was not so already)."""
     for k in range(edges.shape[0]):
         a, b = candidates[edges[k, 0]], candidates[edges[k, 1]]
-        d = math.sqrt((p_out[a, 0] - p_out[b, 0]) ** 2 + (p_out[a, 1] - p_out[b, 1]) ** 2
-                      + (p_out[a, 2] - p_out[b, 2]) ** 2)
+        d = math.sqrt((p[a, 0] - p[b, 0]) ** 2 + (p[a, 1] - p[b, 1]) ** 2 + (p[a, 2] - p[b, 2]) ** 2)
         bound[k] = max(limit[k], d)
 
 
 @helper
-def _raise_to_bound(p_out, n_out, i, li, j, lj, bound):
-    """The smallest lift of i, at least li, that puts it within bound of j lifted by lj (the
-    lower root of |c + l n_i|² = bound², c = p_i - p_j - lj n_j); li where no lift reaches it."""
-    cx = p_out[i, 0] - p_out[j, 0] - lj * n_out[j, 0]
-    cy = p_out[i, 1] - p_out[j, 1] - lj * n_out[j, 1]
-    cz = p_out[i, 2] - p_out[j, 2] - lj * n_out[j, 2]
-    cn = cx * n_out[i, 0] + cy * n_out[i, 1] + cz * n_out[i, 2]
+def _raise_to_bound(p, n, side, i, li, j, lj, bound):
+    """The smallest move of i along side × n_i, at least li, that puts it within bound of j
+    moved by lj (the lower root of |c + l u_i|² = bound², u = side × n, c = p_i - p_j - lj u_j);
+    li where no move reaches it."""
+    cx = p[i, 0] - p[j, 0] - side * lj * n[j, 0]
+    cy = p[i, 1] - p[j, 1] - side * lj * n[j, 1]
+    cz = p[i, 2] - p[j, 2] - side * lj * n[j, 2]
+    cn = side * (cx * n[i, 0] + cy * n[i, 1] + cz * n[i, 2])
     disc = cn * cn - (cx * cx + cy * cy + cz * cz) + bound * bound
     if disc < 0.0:
         return li
@@ -220,56 +264,110 @@ def _raise_to_bound(p_out, n_out, i, li, j, lj, bound):
 
 
 @kernel
-def bound_lift_steps(p_out, n_out, candidates, edges, bound, lift, room, sweeps):
-    """Where two neighbours' lifts part them farther than their edge's bound (`edge_bounds`:
-    the lifts pull apart neighbours whose normals diverge), the lower lift rises until they are
-    within it, as far as its room allows; sweeps over the edges in both orders."""
+def bound_lift_steps(p, n, side, candidates, edges, bound, move, room, sweeps):
+    """Where two neighbours' moves along side × n part them farther than their edge's bound
+    (`edge_bounds`: moves along normals that diverge pull neighbours apart), the smaller move
+    grows until they are within it, as far as its room allows; sweeps over the edges in both
+    orders."""
     for _ in range(sweeps):
         for r in range(2):
             for q in range(edges.shape[0]):
                 k = q if r == 0 else edges.shape[0] - 1 - q
                 a, b = edges[k, 0], edges[k, 1]
-                la, lb = min(lift[a], room[a]), min(lift[b], room[b])
+                la, lb = min(move[a], room[a]), min(move[b], room[b])
                 if la <= 0.0 and lb <= 0.0:
-                    continue  # neither lifted: the edge is as it was
+                    continue  # neither moved: the edge is as it was
                 i, j = candidates[a], candidates[b]
                 if la <= lb:
-                    lift[a] = min(_raise_to_bound(p_out, n_out, i, la, j, lb, bound[k]), room[a])
+                    move[a] = min(_raise_to_bound(p, n, side, i, la, j, lb, bound[k]), room[a])
                 else:
-                    lift[b] = min(_raise_to_bound(p_out, n_out, j, lb, i, la, bound[k]), room[b])
+                    move[b] = min(_raise_to_bound(p, n, side, j, lb, i, la, bound[k]), room[b])
+
+
+@helper
+def _lower_to_bound(p, n, side, i, li, j, lj, bound):
+    """The largest move of i along side × n_i, at most li and not negative, that puts it within
+    bound of j moved by lj (the upper root of |c + l u_i|² = bound², as in _raise_to_bound);
+    li where no move reaches it."""
+    cx = p[i, 0] - p[j, 0] - side * lj * n[j, 0]
+    cy = p[i, 1] - p[j, 1] - side * lj * n[j, 1]
+    cz = p[i, 2] - p[j, 2] - side * lj * n[j, 2]
+    cn = side * (cx * n[i, 0] + cy * n[i, 1] + cz * n[i, 2])
+    disc = cn * cn - (cx * cx + cy * cy + cz * cz) + bound * bound
+    if disc < 0.0:
+        return li
+    high = -cn + math.sqrt(disc)
+    return max(0.0, high) if high < li else li
 
 
 @kernel
-def apply_lifts(p_out, n_out, candidates, lift, room):
-    """Each candidate moved along its normal by its eased lift, within its room."""
+def yield_to_bounds(p, n, side, candidates, edges, bound, move, room, sweeps):
+    """Where two neighbours' moves still part them farther than their edge's bound (the
+    smaller one's room held it, `bound_lift_steps`), the larger move shrinks until they are
+    within it; sweeps over the edges in both orders."""
+    for _ in range(sweeps):
+        for r in range(2):
+            for q in range(edges.shape[0]):
+                k = q if r == 0 else edges.shape[0] - 1 - q
+                a, b = edges[k, 0], edges[k, 1]
+                la, lb = min(move[a], room[a]), min(move[b], room[b])
+                if la <= 0.0 and lb <= 0.0:
+                    continue
+                i, j = candidates[a], candidates[b]
+                if la > lb:
+                    move[a] = _lower_to_bound(p, n, side, i, la, j, lb, bound[k])
+                else:
+                    move[b] = _lower_to_bound(p, n, side, j, lb, i, la, bound[k])
+
+
+@kernel
+def apply_lifts(p, n, side, candidates, move, room):
+    """Each candidate moved along side × its normal by its eased move, within its room."""
     for c in range(candidates.shape[0]):
-        s = min(lift[c], room[c])
-        if s > 0.0:
+        s = side * min(move[c], room[c])
+        if s != 0.0:
             i = candidates[c]
-            p_out[i, 0] += s * n_out[i, 0]
-            p_out[i, 1] += s * n_out[i, 1]
-            p_out[i, 2] += s * n_out[i, 2]
+            p[i, 0] += s * n[i, 0]
+            p[i, 1] += s * n[i, 1]
+            p[i, 2] += s * n[i, 2]
+
+
+def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: np.ndarray, p_ref: np.ndarray,
+                n_ref: np.ndarray, side: float, q: np.ndarray) -> None:
+    """One garment of a pair moved to its side of the other (its room already set)."""
+    s.moved = offsets_from_sheet(p, n, p_ref, n_ref, t.candidates, s.nearest, t.nbr_start, t.nbr_ids, t.tri_start,
+                                 t.tri_ids, t.triangles, t.ring_reach, side, m.gap, m.depth, s.room, q, s.move)
+    if s.moved:
+        ease_lifts(t.spread_edges, t.spread_drop, s.move, SPREAD_SWEEPS)
+        edge_bounds(p, t.candidates, t.spread_edges, t.spread_limit, s.bound)
+        bound_lift_steps(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS)
+        yield_to_bounds(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS)
+        apply_lifts(p, n, side, t.candidates, s.move, s.room)
 
 
 def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarray, p_in: np.ndarray,
-                n_in: np.ndarray, outer: SurfaceState | None = None, max_height: float = 0.0) -> None:
+                n_in: np.ndarray, outer: SurfaceState | None = None, inner: SurfaceState | None = None,
+                max_height: float = 0.0) -> None:
     """Lift the outer garment's detailed positions p_out (N, 3), in place, over the inner
-    garment's detailed surface (p_in, n_in) of the same frame (the module's Decision).
-    n_out: the outer's shading normals (unit, away from the body); outer: its surface state,
-    whose drawn heights and S106 ceilings the lifts keep to where S103 found a body part above or
-    beside a vertex (a ceiling under max_height, its SurfaceSettings'); None: no body near."""
+    garment's detailed surface (p_in, n_in) of the same frame, then press p_in, in place, under
+    what is left above it (the module's Decision). n_out, n_in: the shading normals (unit, away
+    from the body). outer: the outer's surface state, whose drawn heights and S106 ceilings the
+    lifts keep to where S103 found a body part above or beside a vertex (a ceiling under
+    max_height, its SurfaceSettings'); inner: the inner's, whose vertices are pressed along
+    their reference normals (n_pn) no lower than their body floors; None: no body near."""
+    lift, press = s.lift, s.press
     if outer is None:
-        dh = ceiling = s.no_heights
+        lift_room(m.over.candidates, lift.no_heights, lift.no_heights, 0.0, m.max_lift, lift.room)
     else:
-        dh, ceiling = outer.height, outer.ceiling
-    s.lifted = lift_over_inner(p_out, n_out, p_in, n_in, m.candidates, s.nearest, m.nbr_start, m.nbr_ids, m.tri_start,
-                               m.tri_ids, m.triangles, m.ring_reach, m.gap, m.depth, m.max_lift, dh, ceiling,
-                               max_height, s.q, s.lift, s.room)
-    if s.lifted:
-        ease_lifts(m.spread_edges, m.spread_drop, s.lift, SPREAD_SWEEPS)
-        edge_bounds(p_out, m.candidates, m.spread_edges, m.spread_limit, s.bound)
-        bound_lift_steps(p_out, n_out, m.candidates, m.spread_edges, s.bound, s.lift, s.room, BOUND_SWEEPS)
-        apply_lifts(p_out, n_out, m.candidates, s.lift, s.room)
+        lift_room(m.over.candidates, outer.height, outer.ceiling, max_height, m.max_lift, lift.room)
+    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, OVER_SIDE, s.q)
+    if inner is None:
+        press_room(m.under.candidates, press.no_heights, press.no_floor, m.max_lift, press.room)
+        n_press = n_in
+    else:
+        press_room(m.under.candidates, inner.height, inner.body_floor, m.max_lift, press.room)
+        n_press = inner.n_pn
+    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, UNDER_SIDE, s.q)
 
 
 def nearest(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -281,30 +379,40 @@ def nearest(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.nda
     return np.linalg.norm(pts - tgt[index], axis=1), index.astype(np.int32)
 
 
-def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_edges: np.ndarray, inner_rest: np.ndarray,
-               inner_triangles: np.ndarray, inner_edges: np.ndarray, reach: float = LAYER_REACH,
-               outer_limit: np.ndarray | None = None) -> LayerModel:
-    """The layer model of one pair from the two garments' detailed meshes at rest (m);
-    outer_limit: the outer's maximum neighbour distance per edge (None: no limit)."""
-    dist, index = nearest(outer_rest, inner_rest)
+def sheet_track(rest: np.ndarray, edges: np.ndarray, other_rest: np.ndarray, other_triangles: np.ndarray,
+                other_edges: np.ndarray, reach: float = LAYER_REACH, limit: np.ndarray | None = None) -> SheetTrack:
+    """One garment's side of a pair from the two detailed meshes at rest (m): its vertices within
+    reach of the other garment; limit: its maximum neighbour distance per edge (None: no limit)."""
+    dist, index = nearest(rest, other_rest)
     candidates = np.flatnonzero(dist < reach).astype(np.int32)
-    slot = np.full(len(outer_rest), -1, dtype=np.int64)
+    slot = np.full(len(rest), -1, dtype=np.int64)
     slot[candidates] = np.arange(len(candidates))
-    e = np.asarray(outer_edges, dtype=np.int64)
+    e = np.asarray(edges, dtype=np.int64)
     keep = (slot[e[:, 0]] >= 0) & (slot[e[:, 1]] >= 0)
     spread = slot[e[keep]].astype(np.int32)
-    rest_len = np.linalg.norm(outer_rest[e[keep, 0]] - outer_rest[e[keep, 1]], axis=1)
-    limit = np.full(len(rest_len), np.inf) if outer_limit is None else np.asarray(outer_limit, dtype=float)[keep]
-    ns, ni = vertex_neighbours(len(inner_rest), np.asarray(inner_edges))
-    ts, ti = vertex_cells(len(inner_rest), np.asarray(inner_triangles))
-    ie = np.asarray(inner_edges, dtype=np.int64)
-    longest = np.zeros(len(inner_rest))
-    inner_len = np.linalg.norm(inner_rest[ie[:, 0]] - inner_rest[ie[:, 1]], axis=1)
-    np.maximum.at(longest, ie[:, 0], inner_len)
-    np.maximum.at(longest, ie[:, 1], inner_len)
-    return LayerModel(outer, inner, candidates, index[candidates].copy(), ns, ni, ts, ti,
-                      np.ascontiguousarray(inner_triangles, dtype=np.int32), RING_STRETCH * longest,
+    rest_len = np.linalg.norm(rest[e[keep, 0]] - rest[e[keep, 1]], axis=1)
+    limit = np.full(len(rest_len), np.inf) if limit is None else np.asarray(limit, dtype=float)[keep]
+    ns, ni = vertex_neighbours(len(other_rest), np.asarray(other_edges))
+    ts, ti = vertex_cells(len(other_rest), np.asarray(other_triangles))
+    oe = np.asarray(other_edges, dtype=np.int64)
+    longest = np.zeros(len(other_rest))
+    other_len = np.linalg.norm(other_rest[oe[:, 0]] - other_rest[oe[:, 1]], axis=1)
+    np.maximum.at(longest, oe[:, 0], other_len)
+    np.maximum.at(longest, oe[:, 1], other_len)
+    return SheetTrack(candidates, index[candidates].copy(), ns, ni, ts, ti,
+                      np.ascontiguousarray(other_triangles, dtype=np.int32), RING_STRETCH * longest,
                       np.ascontiguousarray(spread), LAYER_SLOPE * rest_len, limit)
+
+
+def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_triangles: np.ndarray, outer_edges: np.ndarray,
+               inner_rest: np.ndarray, inner_triangles: np.ndarray, inner_edges: np.ndarray,
+               reach: float = LAYER_REACH, outer_limit: np.ndarray | None = None,
+               inner_limit: np.ndarray | None = None) -> LayerModel:
+    """The layer model of one pair from the two garments' detailed meshes at rest (m);
+    outer_limit, inner_limit: each one's maximum neighbour distance per edge (None: no limit)."""
+    over = sheet_track(outer_rest, outer_edges, inner_rest, inner_triangles, inner_edges, reach, outer_limit)
+    under = sheet_track(inner_rest, inner_edges, outer_rest, outer_triangles, outer_edges, reach, inner_limit)
+    return LayerModel(outer, inner, over, under)
 
 
 def rest_surface(model: SurfaceModel) -> np.ndarray:
@@ -331,8 +439,8 @@ def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[Laye
             off_b, _ = nearest(rest[b][in_b], body_rest)
             outer, inner = (a, b) if np.median(off_a) >= np.median(off_b) else (b, a)
             mo, mi = models[outer], models[inner]
-            pairs.append(layer_pair(outer, inner, rest[outer], mo.d_edges, rest[inner], mi.tess.triangles,
-                                    mi.d_edges, outer_limit=mo.d_max))
+            pairs.append(layer_pair(outer, inner, rest[outer], mo.tess.triangles, mo.d_edges, rest[inner],
+                                    mi.tess.triangles, mi.d_edges, outer_limit=mo.d_max, inner_limit=mi.d_max))
     return stacking_order(pairs, len(models))
 
 
@@ -353,5 +461,6 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "bound_lift_steps", "ease_lifts", "edge_bounds", "layer_outfit", "layer_pair", "lift_over_inner", "nearest",
-           "rest_surface", "stack_layer", "stacking_order"]
+           "SheetMoves", "SheetTrack", "apply_lifts", "bound_lift_steps", "ease_lifts", "edge_bounds", "layer_outfit",
+           "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "press_room", "rest_surface", "sheet_track",
+           "stack_layer", "stacking_order"]

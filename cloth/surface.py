@@ -166,6 +166,7 @@ class SurfaceState:
         self.part, self.part_vertex, self.part_d2 = part_scratch()  # other_part_seeds scratch
         self.floor = np.zeros(N)  # S106: the lowest and highest heights S103 allows
         self.ceiling = np.zeros(N)
+        self.body_floor = np.zeros(N)  # S103: the lowest height the body allows (penetration_floor; cloth.layers)
         self.ef = np.zeros((N, 3))  # S104 elastic force, N
         self.vf = np.zeros(N)  # S104 normal force, N
         self.required = np.zeros(N)  # S105 ΔL_required,i, m
@@ -250,7 +251,8 @@ class DetailedSurface:
                                             s.body_face, s.part_face, face_n, s.q, face_tip, st.tip_share,
                                             st.clearance, st.contact_margin,
                                             st.face_margin, st.penetration_iterations, st.max_lift, st.max_height)
-        penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.max_height, s.floor, s.ceiling)
+        penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
+                          st.max_height, s.floor, s.ceiling, s.body_floor)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0

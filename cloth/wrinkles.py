@@ -1407,7 +1407,8 @@ def _settle_fold(p_smoothed, n_pn, dh, raised, count, d_edges, d_max, d_edge_sta
 
 
 @kernel
-def penetration_floor(dh, sd, facing, other, dh_pen, clearance, max_height, floor, ceiling):
+def penetration_floor(dh, sd, facing, other, dh_pen, clearance, untested_reach, max_height, floor, ceiling,
+                      body_floor):
     """The lowest and highest heights S106 may give each particle without undoing S103.
 
     An untested particle: from the reference surface (0) to max_height. A tested one whose
@@ -1418,13 +1419,22 @@ def penetration_floor(dh, sd, facing, other, dh_pen, clearance, max_height, floo
     another body part near the particle (other: its distance, before S103 moved it by
     dh_pen), the particle may rise by no more than that distance beyond the clearance either:
     in the gap between the torso and an arm resting on the cloth a wrinkle would rise into
-    the arm."""
+    the arm.
+
+    body_floor: the lowest height the body allows, below the reference surface too (for the
+    layering's press, cloth.layers): a tested particle whose body lies below it, its distance
+    beyond the clearance down from its height (every body point lies at least that distance
+    away, so no point that near comes closer than the clearance); an untested one,
+    untested_reach down (none of its parents came within S103's contact margin); one with a
+    body part above it, its floor."""
     for i in range(dh.shape[0]):
         if sd[i] == UNTESTED:
             floor[i] = 0.0
             ceiling[i] = max_height
+            body_floor[i] = dh[i] - untested_reach
         elif facing[i] >= 0.0:
-            floor[i] = max(0.0, dh[i] - max(0.0, sd[i] - clearance))
+            body_floor[i] = dh[i] - max(0.0, sd[i] - clearance)
+            floor[i] = max(0.0, body_floor[i])
             ceiling[i] = max_height
             gap = other[i] - abs(dh_pen[i]) - clearance  # a ball this wide around p is outside the other parts
             if gap < max_height:
@@ -1432,3 +1442,4 @@ def penetration_floor(dh, sd, facing, other, dh_pen, clearance, max_height, floo
         else:
             ceiling[i] = min(max_height, dh[i] + max(0.0, sd[i] - clearance))
             floor[i] = min(0.0, ceiling[i])
+            body_floor[i] = floor[i]

@@ -140,7 +140,7 @@ class OutfitSession:
         that finds them busy is stepped on the calling thread alone); default: its own;
         layers: the outfit's layer pairs (`cloth.layers`, shared between sessions; default: found
         from the surface models, `outfit_layers`), whose outer detailed surfaces are kept over the
-        inner ones after every garment has stepped."""
+        inner ones (and the inner ones under the outer) after every garment has stepped."""
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
         if surface_models is None and surface is not None:
@@ -149,7 +149,8 @@ class OutfitSession:
         if layers is None:
             layers = outfit_layers(outfit, surface_models, body.n_visible) if surface_models else []
         self.layers = [(lm, LayerState(lm)) for lm in layers]
-        self.outer_garments = {lm.outer for lm in layers}  # handed to on_garment only once layered
+        # handed to on_garment only once layered (the outer lifted, the inner pressed)
+        self.layered_garments = {lm.outer for lm in layers} | {lm.inner for lm in layers}
         self.layer_seconds = 0.0
         self._detailed: list = [None] * len(self.sims)
         self._frame = None
@@ -182,9 +183,9 @@ class OutfitSession:
         updated on the calling thread while the helpers' garments start.
         on_garment(k, positions): called on the thread that stepped garment k, as soon as it is
         done (a service publishes it there while the other garments are still stepping); its
-        detailed surface is `garment_surface(k)`. A garment worn over another (`self.layers`) is
-        handed over on the calling thread once every garment is done and its surface is lifted
-        over the inner one's."""
+        detailed surface is `garment_surface(k)`. A garment worn over or under another
+        (`self.layers`) is handed over on the calling thread once every garment is done and the
+        pair's surfaces are layered."""
         self.pose.update_surface(body_vertices)
         self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt, on_garment)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
@@ -214,12 +215,13 @@ class OutfitSession:
             t0 = time.perf_counter()
             for lm, ls in self.layers:
                 (p_out, n_out), (p_in, n_in) = self._detailed[lm.outer], self._detailed[lm.inner]
-                outer = self.surfaces[lm.outer]
-                stack_layer(lm, ls, p_out, n_out, p_in, n_in, outer.state, outer.model.settings.max_height)
+                outer, inner = self.surfaces[lm.outer], self.surfaces[lm.inner]
+                stack_layer(lm, ls, p_out, n_out, p_in, n_in, outer.state, inner.state,
+                            outer.model.settings.max_height)
             self.layer_seconds = time.perf_counter() - t0
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
             if on_garment is not None:
-                for k in sorted(self.outer_garments):
+                for k in sorted(self.layered_garments):
                     on_garment(k, out[k])
         return out
 
@@ -242,8 +244,8 @@ class OutfitSession:
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
                                           surface_dt, self.pose.grid, self.pose.face_tips())
             self.surface_seconds[k] = surf.stage_seconds
-        if on_garment is not None and not (surface and k in self.outer_garments):
-            on_garment(k, x)  # an outer garment's once it is layered (step_cloth)
+        if on_garment is not None and not (surface and k in self.layered_garments):
+            on_garment(k, x)  # a layered garment's once it is layered (step_cloth)
         return x
 
     def close(self) -> None:

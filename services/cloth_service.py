@@ -184,7 +184,7 @@ class GarmentSession:
         if sim.surfaces:
             pn, col, deform = (float(x) * 1000 for x in sim.surface_seconds[k])
             meta.update(pn_ms=round(pn, 4), collision_ms=round(col, 4), deformation_ms=round(deform, 4))
-            if k in sim.outer_garments:  # lifted over the garment under it once both were done (cloth.layers)
+            if k in sim.layered_garments:  # kept over (under) the garment under (over) it once both were done
                 meta["layer_ms"] = round(sim.layer_seconds * 1000, 4)
         self._p32[k][:] = p
         self._n32[k][:] = n

@@ -9,7 +9,7 @@ from cloth.coarsen import CoarseMesh
 from cloth.fabric import fabric
 from cloth.garment import Garment
 from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState, bound_lift_steps,
-                          edge_bounds, layer_outfit, layer_pair, rest_surface, stack_layer)
+                          edge_bounds, layer_outfit, layer_pair, rest_surface, stack_layer, yield_to_bounds)
 from cloth.model import SimSettings, build_cloth_model
 from cloth.surface import SurfaceSettings, build_surface_model
 from cloth.topology import unique_edges
@@ -40,20 +40,21 @@ def up(n: int) -> np.ndarray:
 
 def outer_and_inner(inner_y: float, outer_y: float = 0.0):
     """An outer sheet over x in [0, 0.4] at outer_y and an inner one over [0.1, 0.3] at inner_y."""
-    po, _, eo = grid(0.0, 0.4, outer_y)
+    po, to, eo = grid(0.0, 0.4, outer_y)
     pi, ti, ei = grid(0.1, 0.3, inner_y)
-    return po, eo, pi, ti, ei, layer_pair(0, 1, po, eo, pi, ti, ei)
+    return po, eo, pi, ti, ei, layer_pair(0, 1, po, to, eo, pi, ti, ei)
 
 
 def test_an_outer_sheet_behind_the_inner_one_is_brought_over_it_and_eases_off_beyond_its_edge():
     """The inner sheet 4 mm above the outer one (its wrinkles poking through): over the inner
     sheet the outer comes to exactly LAYER_GAP above it; beyond the inner's edge the lift falls
     off by LAYER_SLOPE along the outer sheet (one 1 cm step: 6 - 5 = 1 mm; two: none), and
-    nothing comes down."""
+    nothing of it comes down. The inner sheet stays, but for its two edges across x: there the
+    outer slopes down within the gap of them, and they come down less than a millimetre."""
     po, eo, pi, ti, ei, m = outer_and_inner(0.004)
-    p = po.copy()
+    p, q = po.copy(), pi.copy()
     s = LayerState(m)
-    stack_layer(m, s, p, up(len(p)), pi, up(len(pi)))
+    stack_layer(m, s, p, up(len(p)), q, up(len(q)))
     x = po[:, 0]
     over = (x > 0.1 - 1e-9) & (x < 0.3 + 1e-9)
     np.testing.assert_allclose(p[over, 1], 0.004 + LAYER_GAP, atol=1e-12)
@@ -62,7 +63,10 @@ def test_an_outer_sheet_behind_the_inner_one_is_brought_over_it_and_eases_off_be
     far = (x < 0.08 + 1e-9) | (x > 0.32 - 1e-9)
     assert np.all(p[far, 1] == 0.0)
     np.testing.assert_array_equal(p[:, [0, 2]], po[:, [0, 2]])  # along the normals only
-    assert s.lifted == int(over.sum())
+    assert s.lift.moved == int(over.sum())
+    rim = np.isclose(pi[:, 0], 0.1) | np.isclose(pi[:, 0], 0.3)
+    assert np.all(q[~rim] == pi[~rim]) and np.all((q[rim, 1] < 0.004) & (q[rim, 1] > 0.003))
+    assert s.press.moved == int(rim.sum())
 
 
 @pytest.mark.parametrize("outer_y, lifted_to", [(0.005, 0.004 + LAYER_GAP), (0.0061, None), (0.01, None)])
@@ -132,9 +136,59 @@ def test_the_lift_follows_the_inner_sheet_as_it_slides_and_keeps_out_of_a_body_a
     ceiling[held] = 0.001
     state = SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling)
     p = po.copy()
-    stack_layer(m, s, p, up(len(p)), pi + [0.03, 0.0, 0.0], up(len(pi)), state, max_height)
+    stack_layer(m, s, p, up(len(p)), pi + [0.03, 0.0, 0.0], up(len(pi)), state, max_height=max_height)
     np.testing.assert_allclose(p[held, 1], 0.001, atol=1e-12)
     np.testing.assert_allclose(p[over & ~held, 1], 0.004 + LAYER_GAP, atol=1e-12)
+
+
+def held_outer(inner_y: float = 0.004):
+    """The inner sheet inner_y over the outer one, which a body part holds down where z < 0.05
+    (its S106 ceiling at its height: no room to rise)."""
+    po, eo, pi, ti, ei, m = outer_and_inner(inner_y)
+    ceiling = np.full(len(po), 0.03)
+    held = po[:, 2] < 0.05 - 1e-9
+    ceiling[held] = 0.0
+    return po, pi, m, SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling), held
+
+
+def test_where_the_outer_sheet_cannot_rise_the_inner_one_is_pressed_under_it_and_eases_off():
+    """The inner sheet 4 mm over the outer one, the outer held down where z < 0.05: there the
+    inner comes down to exactly LAYER_GAP under the outer (6 mm along its normal); elsewhere
+    the outer rises to the gap over it and the inner stays (but for its edges across x, as in
+    the first test), but next to the held part, where
+    the outer slopes up, the inner comes down part of the way (at z = 0.04 at least the 6 mm
+    press less LAYER_SLOPE × 1 cm). No inner vertex is left over the outer sheet."""
+    po, pi, m, outer, held = held_outer()
+    p, q = po.copy(), pi.copy()
+    s = LayerState(m)
+    stack_layer(m, s, p, up(len(p)), q, up(len(q)), outer, max_height=0.03)
+    assert np.all(p[held, 1] == 0.0)
+    z = pi[:, 2]
+    np.testing.assert_allclose(q[z < 0.035, 1], -LAYER_GAP, atol=1e-12)
+    assert np.all(q[np.isclose(z, 0.04), 1] <= 0.004 - (0.004 + LAYER_GAP - LAYER_SLOPE * H) + 1e-12)
+    rim = np.isclose(pi[:, 0], 0.1) | np.isclose(pi[:, 0], 0.3)  # (as in the first test)
+    assert np.all(q[(z > 0.055) & ~rim, 1] == 0.004)
+    np.testing.assert_array_equal(q[:, [0, 2]], pi[:, [0, 2]])  # along the normals only
+    over = {(round(a, 6), round(c, 6)): y for a, y, c in p}  # the outer sheet right over each (the same x, z)
+    assert np.all(q[:, 1] < np.array([over[round(a, 6), round(c, 6)] for a, _, c in q]))
+    assert s.press.moved > 0
+
+
+def test_the_press_stops_at_the_body_floor_and_not_beyond_the_depth():
+    """The same, the inner's body floor 3 mm under its height (S103: the body 4 mm below, 1 mm
+    clearance): the held part comes down 3 mm, to 1 mm over the outer sheet, not to the gap
+    under it. An inner sheet more than LAYER_DEPTH over the outer one is another sheet, left."""
+    po, pi, m, outer, held = held_outer()
+    inner = SimpleNamespace(height=np.zeros(len(pi)), body_floor=np.full(len(pi), -0.003), n_pn=up(len(pi)))
+    p, q = po.copy(), pi.copy()
+    stack_layer(m, LayerState(m), p, up(len(p)), q, up(len(q)), outer, inner, max_height=0.03)
+    z = pi[:, 2]
+    np.testing.assert_allclose(q[z < 0.035, 1], 0.001, atol=1e-12)
+    assert np.all(q[:, 1] >= 0.001 - 1e-12)
+    po, pi, m, outer, held = held_outer(LAYER_DEPTH + 0.002)
+    p, q = po.copy(), pi.copy()
+    stack_layer(m, LayerState(m), p, up(len(p)), q, up(len(q)), outer, max_height=0.03)
+    np.testing.assert_array_equal(q, pi)
 
 
 def sheet(x0: float, y: float, material: str, nx: int = 5, nz: int = 3, spacing: float = 0.04):
@@ -189,22 +243,28 @@ def test_three_garments_are_stacked_from_the_inside_out():
         np.testing.assert_allclose(p["jacket"][mid, 1], 0.017 + 2 * LAYER_GAP, atol=1e-9)
 
 
-def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound():
+@pytest.mark.parametrize("side", [1.0, -1.0])
+def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound(side):
     """Two outer neighbours 10 mm apart, normals +Y, the first lifted 20 mm and the second not
     at all (20 mm apart once lifted). With a maximum neighbour distance of 11 mm the second
     rises to the smallest lift that brings them exactly 11 mm apart, 20 - sqrt(11² - 10²) mm
     (the lower root); the first keeps its lift. An edge 15 mm long before the lifts may stay
     15 mm long; where no lift of the lower one brings them nearer (normals leaning 45° away
-    from each other) it is left; the room caps a rise."""
+    from each other) it is left; the room caps a rise, and then the higher lift may give way
+    (`yield_to_bounds`), down to the upper root. The same for an inner garment pressed down
+    (side -1) along normals that point the other way."""
     p = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
     n = up(2)
     candidates, edges = np.array([0, 1], np.int32), np.array([[0, 1]], np.int32)
 
-    def lifted(limit, lifts, room=(1.0, 1.0), points=p, normals=n):
+    def lifted(limit, lifts, room=(1.0, 1.0), points=p, normals=n, give_way=False):
         bound = np.zeros(1)
         edge_bounds(points, candidates, edges, np.array([limit]), bound)
-        lift = np.array(lifts, float)
-        bound_lift_steps(points, normals, candidates, edges, bound, lift, np.array(room, float), 2)
+        lift, rooms = np.array(lifts, float), np.array(room, float)
+        bound_lift_steps(points, side * normals, side, candidates, edges, bound, lift, rooms, 2)
+        if give_way:
+            yield_to_bounds(points, side * normals, side, candidates, edges, bound, lift, rooms, 1)
+        lift = np.minimum(lift, rooms)
         q = points + lift[:, None] * normals
         return lift, np.linalg.norm(q[0] - q[1])
 
@@ -222,5 +282,11 @@ def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound():
     assert lift[1] == 0.0 and d > 0.027
     lift, d = lifted(0.011, [0.02, 0.0], room=(1.0, 0.001))
     assert lift[1] == 0.001 and d > 0.011
+    # giving way (yield_to_bounds): the higher comes down to the upper root, 1 + sqrt(11² - 10²) mm
+    lift, d = lifted(0.011, [0.02, 0.0], room=(1.0, 0.001), give_way=True)
+    assert lift[1] == 0.001 and lift[0] == pytest.approx(0.001 + np.sqrt(0.011**2 - 0.01**2), abs=1e-15)
+    assert d == pytest.approx(0.011, abs=1e-15)
+    lift, d = lifted(0.011, [0.02, 0.0], room=(1.0, 0.0), normals=apart, give_way=True)  # leaning apart: down
+    assert 0.0 < lift[0] < 0.002 and d == pytest.approx(0.011, abs=1e-15)  # to 1.4 mm, where they part 11 mm
     lift, d = lifted(0.011, [0.0, 0.0])
     assert np.all(lift == 0.0) and d == pytest.approx(0.01, abs=1e-15)

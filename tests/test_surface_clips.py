@@ -1,7 +1,8 @@
 """The detailed surface through a real clip with every outfit: finite, heights within their
 bounds, unit shading normals, the coarse vertices on the surface, the folds across the
 compression drawn only outwards over the quad-dominant coarse faces, and the layering (the top
-lifted over the bottom) along the top's normals only, outward and bounded."""
+lifted over the bottom along the top's normals, outward and bounded; the bottom pressed under
+the top along its reference normals, no lower than the body allows)."""
 
 import numpy as np
 import pytest
@@ -12,15 +13,24 @@ from services.cloth_job import OUTFITS, run_cloth_clip
 
 @pytest.mark.parametrize("outfit", OUTFITS)
 def test_surface_through_the_run_clip(body, data, outfit):
-    checked, lifted = [], []
+    checked, lifted, pressed = [], [], []
 
     def on_frame(index, session, body_frame, positions):
         layered = [p.copy() for p, _ in session.detailed]
-        lifted.append(sum(ls.lifted for _, ls in session.layers))
-        for lm, ls in session.layers:  # take the layering's lifts off again (cloth.layers.apply_lifts)
-            lift = np.minimum(ls.lift, ls.room)
+        lifted.append(sum(ls.lift.moved for _, ls in session.layers))
+        pressed.append(sum(ls.press.moved for _, ls in session.layers))
+        for lm, ls in session.layers:  # take the layering's lifts and presses off again (cloth.layers.apply_lifts)
+            lift = np.minimum(ls.lift.move, ls.lift.room)
             assert lift.min() >= 0.0 and lift.max() <= lm.max_lift
-            layered[lm.outer][lm.candidates] -= lift[:, None] * session.detailed[lm.outer][1][lm.candidates]
+            c = lm.over.candidates
+            layered[lm.outer][c] -= lift[:, None] * session.detailed[lm.outer][1][c]
+            # the inner's along its reference normals, down to no lower than its body floor
+            inner = session.surfaces[lm.inner].state
+            press = np.minimum(ls.press.move, ls.press.room)
+            c = lm.under.candidates
+            assert press.min() >= 0.0 and press.max() <= lm.max_lift
+            assert np.all((press == 0.0) | (inner.height[c] - press >= inner.body_floor[c] - 1e-12))
+            layered[lm.inner][c] += press[:, None] * inner.n_pn[c]
         for surf, (_, n), p, x in zip(session.surfaces, session.detailed, layered, positions):
             s, st, m = surf.state, surf.model.settings, surf.model
             if not checked:  # every coarse triangle drawn once, most of them as halves of quads
@@ -46,4 +56,5 @@ def test_surface_through_the_run_clip(body, data, outfit):
     assert report.nan_frames == 0 and len(checked) == report.frames > 30
     layers = outfit != "female_sportsuit01"  # the sport suit's top and bottom do not meet
     assert (len(report.layer_ms) == report.frames) == layers and (sum(lifted) > 0) == layers
+    assert (sum(pressed) > 0) == layers
     assert all(len(v) == report.frames for v in report.surface_ms.values())

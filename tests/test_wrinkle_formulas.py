@@ -149,16 +149,20 @@ def test_penetration_floor_and_ceiling():
     body part 4 mm above at height 1: ceiling 4, floor 0. Decision: another body part 6 mm away
     (before S103 moved the particle by 1 mm), body below: up by 6 - 1 - 1 = 4 mm at most,
     ceiling 2 + 4 = 6; 1.5 mm away: up by 0.5, ceiling 2.5; 0.5 mm away: no rise (ceiling =
-    height 2, never under the floor 0)."""
+    height 2, never under the floor 0).
+    The body floor (cloth.layers' press), untested reach 4 mm: untested at 0, -4; body below at
+    4 mm with height 2, 2 - 3 = -1 (below the reference surface); at 2.5 mm with height 5, 3.5;
+    body above: its floor."""
     inf = UNTESTED
     dh = np.array([0.0, 2.0, 5.0, -3.0, 1.0, 2.0, 2.0, 2.0]) / 1000
     sd = np.array([inf, 4.0, 2.5, 1.5, 4.0, 4.0, 4.0, 4.0]) / 1000
     facing = np.array([0.0, 1.0, 0.9, -1.0, -0.8, 1.0, 1.0, 1.0])
     other = np.array([inf, inf, inf, inf, inf, 6.0, 1.5, 0.5]) / 1000
     dh_pen = np.array([0.0, 0.0, 0.0, -3.0, 0.0, 1.0, 0.0, 0.0]) / 1000
-    floor, ceiling = np.full(8, np.nan), np.full(8, np.nan)
-    penetration_floor(dh, sd, facing, other, dh_pen, 0.001, 0.03, floor, ceiling)
+    floor, ceiling, body_floor = np.full(8, np.nan), np.full(8, np.nan), np.full(8, np.nan)
+    penetration_floor(dh, sd, facing, other, dh_pen, 0.001, 0.004, 0.03, floor, ceiling, body_floor)
     np.testing.assert_allclose(floor * 1000, [0.0, 0.0, 3.5, -2.5, 0.0, 0.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(body_floor * 1000, [-4.0, -1.0, 3.5, -2.5, 0.0, -1.0, -1.0, -1.0], atol=1e-12)
     np.testing.assert_allclose(ceiling * 1000, [30.0, 30.0, 30.0, -2.5, 4.0, 6.0, 2.5, 2.0], atol=1e-12)
 
 
