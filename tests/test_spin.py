@@ -126,16 +126,19 @@ def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
         pool.close()
 
 
-def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, data):
-    """The casual outfit (two garments, coarse and detailed) over 12 run-clip frames: on one
-    thread; on a helper thread beside the caller (own pool, and a shared polling pool); and
-    with the shared pool held by someone else (the frame falls back to one thread). Each
-    garment is handed to on_garment once a frame, done, on the thread that stepped it."""
+@pytest.mark.parametrize("outfit_name", [OUTFITS[0], "female_sportsuit01"])
+def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, data, outfit_name):
+    """The casual and the sport outfit (two garments each, coarse and detailed) over 12
+    run-clip frames: on one thread; on a helper thread beside the caller (own pool, and a
+    shared polling pool); and with the shared pool held by someone else (the frame falls back
+    to one thread). Each garment is handed to on_garment once a frame, done, on the thread that
+    stepped it, but a garment worn over or under another (the casual outfit's T-shirt and
+    jeans, layered once both are done) on the caller's."""
     with BVHSource(data / "mocap" / "cmu_npybvh_example_75f.bvh", every=2, max_frames=14) as source:
         animator = BodyAnimator(body, source.skeleton)
         frames = [animator(f.local_rot, f.root_position).vertices.copy() for f in source][2:]
     mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
-    outfit = load_outfit_models(body, animator, mesh, data / "garments" / OUTFITS[0])
+    outfit = load_outfit_models(body, animator, mesh, data / "garments" / outfit_name)
     shared = SpinPool(1, 0.01)
     runs = []
     try:
@@ -154,8 +157,10 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
                     session.step_cloth(v, 1 / 60, on_garment=on_garment)
                     assert sorted(k for k, *_ in handed) == [0, 1]
                     helper_used = threads == 2 and not hold
+                    assert bool(session.layered_garments) == (outfit_name == OUTFITS[0])
                     for k, ident, x, p in handed:
-                        assert (ident != threading.get_ident()) == (helper_used and k == 1)
+                        on_helper = helper_used and k == 1 and k not in session.layered_garments
+                        assert (ident != threading.get_ident()) == on_helper
                         np.testing.assert_array_equal(x, session.sims[k].state.x)
                         np.testing.assert_array_equal(p, session.detailed[k][0])
             finally:
