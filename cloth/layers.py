@@ -248,10 +248,11 @@ def edge_bounds(p, candidates, edges, limit, bound):
 
 
 @helper
-def _raise_to_bound(p, n, side, i, li, j, lj, bound):
-    """The smallest move of i along side × n_i, at least li, that puts it within bound of j
-    moved by lj (the lower root of |c + l u_i|² = bound², u = side × n, c = p_i - p_j - lj u_j);
-    li where no move reaches it."""
+def _move_to_bound(p, n, side, i, li, j, lj, bound, give_way):
+    """A move of i along side × n_i that puts it within bound of j moved by lj, from the roots
+    of |c + l u_i|² = bound² (u = side × n, c = p_i - p_j - lj u_j): the smallest, at least li
+    (the lower root); giving way, the largest, at most li and not negative (the upper root); li
+    where no move reaches it."""
     cx = p[i, 0] - p[j, 0] - side * lj * n[j, 0]
     cy = p[i, 1] - p[j, 1] - side * lj * n[j, 1]
     cz = p[i, 2] - p[j, 2] - side * lj * n[j, 2]
@@ -259,16 +260,20 @@ def _raise_to_bound(p, n, side, i, li, j, lj, bound):
     disc = cn * cn - (cx * cx + cy * cy + cz * cz) + bound * bound
     if disc < 0.0:
         return li
+    if give_way:
+        high = -cn + math.sqrt(disc)
+        return max(0.0, high) if high < li else li
     low = -cn - math.sqrt(disc)
     return low if low > li else li
 
 
 @kernel
-def bound_lift_steps(p, n, side, candidates, edges, bound, move, room, sweeps):
+def keep_within_bounds(p, n, side, candidates, edges, bound, move, room, sweeps, give_way):
     """Where two neighbours' moves along side × n part them farther than their edge's bound
     (`edge_bounds`: moves along normals that diverge pull neighbours apart), the smaller move
-    grows until they are within it, as far as its room allows; sweeps over the edges in both
-    orders."""
+    grows until they are within it, as far as its room allows; giving way (after that, where
+    the smaller one's room held it), the larger move shrinks until they are. Sweeps over the
+    edges in both orders."""
     for _ in range(sweeps):
         for r in range(2):
             for q in range(edges.shape[0]):
@@ -278,46 +283,10 @@ def bound_lift_steps(p, n, side, candidates, edges, bound, move, room, sweeps):
                 if la <= 0.0 and lb <= 0.0:
                     continue  # neither moved: the edge is as it was
                 i, j = candidates[a], candidates[b]
-                if la <= lb:
-                    move[a] = min(_raise_to_bound(p, n, side, i, la, j, lb, bound[k]), room[a])
+                if (la <= lb) != give_way:  # a: the smaller (or, giving way, the larger) move
+                    move[a] = min(_move_to_bound(p, n, side, i, la, j, lb, bound[k], give_way), room[a])
                 else:
-                    move[b] = min(_raise_to_bound(p, n, side, j, lb, i, la, bound[k]), room[b])
-
-
-@helper
-def _lower_to_bound(p, n, side, i, li, j, lj, bound):
-    """The largest move of i along side × n_i, at most li and not negative, that puts it within
-    bound of j moved by lj (the upper root of |c + l u_i|² = bound², as in _raise_to_bound);
-    li where no move reaches it."""
-    cx = p[i, 0] - p[j, 0] - side * lj * n[j, 0]
-    cy = p[i, 1] - p[j, 1] - side * lj * n[j, 1]
-    cz = p[i, 2] - p[j, 2] - side * lj * n[j, 2]
-    cn = side * (cx * n[i, 0] + cy * n[i, 1] + cz * n[i, 2])
-    disc = cn * cn - (cx * cx + cy * cy + cz * cz) + bound * bound
-    if disc < 0.0:
-        return li
-    high = -cn + math.sqrt(disc)
-    return max(0.0, high) if high < li else li
-
-
-@kernel
-def yield_to_bounds(p, n, side, candidates, edges, bound, move, room, sweeps):
-    """Where two neighbours' moves still part them farther than their edge's bound (the
-    smaller one's room held it, `bound_lift_steps`), the larger move shrinks until they are
-    within it; sweeps over the edges in both orders."""
-    for _ in range(sweeps):
-        for r in range(2):
-            for q in range(edges.shape[0]):
-                k = q if r == 0 else edges.shape[0] - 1 - q
-                a, b = edges[k, 0], edges[k, 1]
-                la, lb = min(move[a], room[a]), min(move[b], room[b])
-                if la <= 0.0 and lb <= 0.0:
-                    continue
-                i, j = candidates[a], candidates[b]
-                if la > lb:
-                    move[a] = _lower_to_bound(p, n, side, i, la, j, lb, bound[k])
-                else:
-                    move[b] = _lower_to_bound(p, n, side, j, lb, i, la, bound[k])
+                    move[b] = min(_move_to_bound(p, n, side, j, lb, i, la, bound[k], give_way), room[b])
 
 
 @kernel
@@ -340,8 +309,8 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
     if s.moved:
         ease_lifts(t.spread_edges, t.spread_drop, s.move, SPREAD_SWEEPS)
         edge_bounds(p, t.candidates, t.spread_edges, t.spread_limit, s.bound)
-        bound_lift_steps(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS)
-        yield_to_bounds(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS)
+        keep_within_bounds(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS, False)
+        keep_within_bounds(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS, True)
         apply_lifts(p, n, side, t.candidates, s.move, s.room)
 
 
@@ -461,6 +430,6 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "SheetMoves", "SheetTrack", "apply_lifts", "bound_lift_steps", "ease_lifts", "edge_bounds", "layer_outfit",
+           "SheetMoves", "SheetTrack", "apply_lifts", "ease_lifts", "edge_bounds", "keep_within_bounds", "layer_outfit",
            "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "press_room", "rest_surface", "sheet_track",
            "stack_layer", "stacking_order"]

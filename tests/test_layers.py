@@ -8,8 +8,8 @@ import pytest
 from cloth.coarsen import CoarseMesh
 from cloth.fabric import fabric
 from cloth.garment import Garment
-from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState, bound_lift_steps,
-                          edge_bounds, layer_outfit, layer_pair, rest_surface, stack_layer, yield_to_bounds)
+from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState, edge_bounds,
+                          keep_within_bounds, layer_outfit, layer_pair, rest_surface, stack_layer)
 from cloth.model import SimSettings, build_cloth_model
 from cloth.surface import SurfaceSettings, build_surface_model
 from cloth.topology import unique_edges
@@ -251,7 +251,7 @@ def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound(side):
     (the lower root); the first keeps its lift. An edge 15 mm long before the lifts may stay
     15 mm long; where no lift of the lower one brings them nearer (normals leaning 45° away
     from each other) it is left; the room caps a rise, and then the higher lift may give way
-    (`yield_to_bounds`), down to the upper root. The same for an inner garment pressed down
+    (`keep_within_bounds`'s give_way), down to the upper root. The same for an inner garment pressed down
     (side -1) along normals that point the other way."""
     p = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
     n = up(2)
@@ -261,9 +261,9 @@ def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound(side):
         bound = np.zeros(1)
         edge_bounds(points, candidates, edges, np.array([limit]), bound)
         lift, rooms = np.array(lifts, float), np.array(room, float)
-        bound_lift_steps(points, side * normals, side, candidates, edges, bound, lift, rooms, 2)
+        keep_within_bounds(points, side * normals, side, candidates, edges, bound, lift, rooms, 2, False)
         if give_way:
-            yield_to_bounds(points, side * normals, side, candidates, edges, bound, lift, rooms, 1)
+            keep_within_bounds(points, side * normals, side, candidates, edges, bound, lift, rooms, 1, True)
         lift = np.minimum(lift, rooms)
         q = points + lift[:, None] * normals
         return lift, np.linalg.norm(q[0] - q[1])
@@ -282,7 +282,7 @@ def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound(side):
     assert lift[1] == 0.0 and d > 0.027
     lift, d = lifted(0.011, [0.02, 0.0], room=(1.0, 0.001))
     assert lift[1] == 0.001 and d > 0.011
-    # giving way (yield_to_bounds): the higher comes down to the upper root, 1 + sqrt(11² - 10²) mm
+    # giving way: the higher comes down to the upper root, 1 + sqrt(11² - 10²) mm
     lift, d = lifted(0.011, [0.02, 0.0], room=(1.0, 0.001), give_way=True)
     assert lift[1] == 0.001 and lift[0] == pytest.approx(0.001 + np.sqrt(0.011**2 - 0.01**2), abs=1e-15)
     assert d == pytest.approx(0.011, abs=1e-15)
