@@ -49,8 +49,8 @@ LAYER_DEPTH = 0.01  # m: a vertex at most this far on the wrong side of the othe
 # (the inner's wrinkles poking through are 6-10 mm high; farther behind it is another sheet)
 LAYER_SLOPE = 0.5  # m of lift given up per m along the surface away from a lifted (pressed) vertex
 MAX_LAYER_LIFT = 0.03  # m: no vertex is moved farther (the inner garment's heights reach 3 cm)
-SPREAD_SWEEPS = 2  # forward and backward sweeps over the edges that ease the lifts off
-BOUND_SWEEPS = 1  # ... that keep moved neighbours within their edge's bound (a second changed 0.1 % of edges)
+# sweeps each way over the edges that keep moved neighbours within their bound (a second changed 0.1 % of edges)
+BOUND_SWEEPS = 1
 FACING = 0.25  # a vertex whose normal is within about 75° of the other surface's faces it
 # a vertex is under (or over) the other surface where it lies within 45° of that one's normal
 # at its closest point q ((p - q)·n_q)² >= UNDER |p - q|²), beside it (past its edge) elsewhere
@@ -80,8 +80,10 @@ class SheetTrack:
     ring_reach: np.ndarray  # (No,) m: RING_STRETCH × the longest rest edge at each of the other's vertices (how
     # far its triangles reach from it): a point farther than depth + this from the vertex is over none of them
     spread_edges: np.ndarray  # (S, 2) int32: the garment's detailed edges between candidates, as candidate indices
-    spread_drop: np.ndarray  # (S,) m: LAYER_SLOPE × each one's rest length
     spread_limit: np.ndarray  # (S,) m: each one's maximum neighbour distance (S106's d_max; inf: none)
+    spread_start: np.ndarray  # (C + 1,) int64: CSR of each candidate's spread edges, both ways
+    spread_nbrs: np.ndarray  # int32: the candidate at the other end
+    spread_nbr_drop: np.ndarray  # m: that edge's drop, LAYER_SLOPE × its rest length
 
 
 @dataclass
@@ -105,7 +107,8 @@ class SheetMoves:
         self.nearest = t.rest_nearest.copy()  # each candidate's nearest vertex of the other garment, tracked
         self.move = np.zeros(len(t.candidates))  # m, along its normal, out (lift) or in (press)
         self.room = np.zeros(len(t.candidates))  # m: how far each may move (lift_room, press_room)
-        self.bound = np.zeros(len(t.spread_edges))  # m: how long each spread edge may be after the moves
+        self.queue = np.zeros(len(t.candidates), dtype=np.int32)  # ease_lifts' scratch
+        self.queued = np.zeros(len(t.candidates), dtype=np.uint8)
         self.moved = 0  # candidates moved in the last frame (before the easing)
         size = int(t.candidates.max()) + 1 if len(t.candidates) else 0
         self.no_heights = np.zeros(size)  # a garment with no body near: height 0, nothing above
@@ -159,18 +162,49 @@ def press_room(candidates, height, body_floor, max_lift, room):
         room[c] = min(max_lift, max(0.0, height[i] - body_floor[i]))
 
 
+@helper
+def closest_in_fan(px, py, pz, x, v, tri_start, tri_ids, tris, q):
+    """Closest point to p on the triangles around vertex v of (x, tris): (d², triangle, a, b, c,
+    wb, wc, qx, qy, qz), the triangle's corners (a, b, c) from v on and the point's weights of b
+    and c. A triangle whose two edges from v both point away from p ((p - v)·(b - v) <= 0 and
+    (p - v)·(c - v) <= 0) has v itself as its closest point and is not computed (a third of them)."""
+    dx, dy, dz = px - x[v, 0], py - x[v, 1], pz - x[v, 2]
+    best = dx * dx + dy * dy + dz * dz
+    bt, ba, bb, bc, bv, bw = -1, v, v, v, 0.0, 0.0
+    qx, qy, qz = x[v, 0], x[v, 1], x[v, 2]
+    for k in range(tri_start[v], tri_start[v + 1]):
+        t = tri_ids[k]
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        if b == v:
+            a, b, c = b, c, a
+        elif c == v:
+            a, b, c = c, a, b
+        if bt < 0:
+            bt, ba, bb, bc = t, a, b, c  # at v, with weights (1, 0, 0), until a triangle is nearer
+        db = (x[b, 0] - x[v, 0]) * dx + (x[b, 1] - x[v, 1]) * dy + (x[b, 2] - x[v, 2]) * dz
+        dc = (x[c, 0] - x[v, 0]) * dx + (x[c, 1] - x[v, 1]) * dy + (x[c, 2] - x[v, 2]) * dz
+        if db <= 0.0 and dc <= 0.0:
+            continue
+        wb, wc = closest_point_triangle(px, py, pz, x, a, b, c, q)
+        d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
+        if d2 < best:
+            best, bt, ba, bb, bc, bv, bw = d2, t, a, b, c, wb, wc
+            qx, qy, qz = q[0], q[1], q[2]
+    return best, bt, ba, bb, bc, bv, bw, qx, qy, qz
+
+
 @kernel
 def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids, tris,
                        ring_reach, side, gap, depth, room, q, move):
     """How far each candidate of a garment (p, its normals n) moves along side × n to lie `gap`
     on its side of the other garment's surface (p_ref: its closest point q on the triangles
-    around its nearest vertex there; the other's normal n_q at q interpolated from its shading
-    normals n_ref): side +1 keeps an outer garment over the inner one, side -1 an inner one
-    under the outer. With h = side (p - q)·n_q how far p lies on its side: where h < gap but
-    h > -depth, the move s = (gap - h) / max(n·n_q, LEAN) puts it gap past the other's tangent
-    plane at q, within room. None where p lies beside the other surface rather than over or
-    under it (past its edge: (p - q) more than 45° off n_q, farther than gap), and none where n
-    turns away from n_q. Returns how many candidates move."""
+    around its nearest vertex there, `closest_in_fan`; the other's normal n_q at q interpolated
+    from its shading normals n_ref): side +1 keeps an outer garment over the inner one, side -1
+    an inner one under the outer. With h = side (p - q)·n_q how far p lies on its side: where
+    h < gap but h > -depth, the move s = (gap - h) / max(n·n_q, LEAN) puts it gap past the
+    other's tangent plane at q, within room. None where p lies beside the other surface rather
+    than over or under it (past its edge: (p - q) more than 45° off n_q, farther than gap), and
+    none where n turns away from n_q. Returns how many candidates move."""
     moved = 0
     for c in range(candidates.shape[0]):
         i = candidates[c]
@@ -181,18 +215,9 @@ def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_i
         far = max(gap, depth) + ring_reach[v]
         if (p_ref[v, 0] - px) ** 2 + (p_ref[v, 1] - py) ** 2 + (p_ref[v, 2] - pz) ** 2 > far * far:
             continue  # nowhere near the other surface (most of a loose top's band, most frames)
-        best, bt, bv, bw = np.inf, -1, 0.0, 0.0
-        qx, qy, qz = 0.0, 0.0, 0.0
-        for k in range(tri_start[v], tri_start[v + 1]):
-            t = tri_ids[k]
-            wv, ww = closest_point_triangle(px, py, pz, p_ref, tris[t, 0], tris[t, 1], tris[t, 2], q)
-            d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
-            if d2 < best:
-                best, bt, bv, bw = d2, t, wv, ww
-                qx, qy, qz = q[0], q[1], q[2]
-        if bt < 0:
+        best, t, a, b, e, bv, bw, qx, qy, qz = closest_in_fan(px, py, pz, p_ref, v, tri_start, tri_ids, tris, q)
+        if t < 0:
             continue
-        a, b, e = tris[bt, 0], tris[bt, 1], tris[bt, 2]
         bu = 1.0 - bv - bw
         nx = bu * n_ref[a, 0] + bv * n_ref[b, 0] + bw * n_ref[e, 0]
         ny = bu * n_ref[a, 1] + bv * n_ref[b, 1] + bw * n_ref[e, 1]
@@ -215,36 +240,35 @@ def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_i
     return moved
 
 
-@helper
-def _ease_edge(edges, drop, move, k):
-    a, b = edges[k, 0], edges[k, 1]
-    if move[b] - drop[k] > move[a]:
-        move[a] = move[b] - drop[k]
-    elif move[a] - drop[k] > move[b]:
-        move[b] = move[a] - drop[k]
-
-
 @kernel
-def ease_lifts(edges, drop, move, sweeps):
-    """Each move at least its neighbour's minus the edge's drop (LAYER_SLOPE × its length),
-    relaxed by sweeps over the edges in both orders: the moves fall off along the surface as a
-    cone, never below what offsets_from_sheet asked."""
-    for _ in range(sweeps):
-        for k in range(edges.shape[0]):
-            _ease_edge(edges, drop, move, k)
-        for k in range(edges.shape[0] - 1, -1, -1):
-            _ease_edge(edges, drop, move, k)
-
-
-@kernel
-def edge_bounds(p, candidates, edges, limit, bound):
-    """How long each edge between candidates may be once moved: its maximum neighbour distance,
-    or its length before the moves where that is longer (the moves make no edge too long that
-    was not so already)."""
-    for k in range(edges.shape[0]):
-        a, b = candidates[edges[k, 0]], candidates[edges[k, 1]]
-        d = math.sqrt((p[a, 0] - p[b, 0]) ** 2 + (p[a, 1] - p[b, 1]) ** 2 + (p[a, 2] - p[b, 2]) ** 2)
-        bound[k] = max(limit[k], d)
+def ease_lifts(nbr_start, nbr_ids, nbr_drop, move, queue, queued):
+    """Each move at least its neighbour's minus the edge's drop (LAYER_SLOPE × its length; the
+    candidates' spread edges as CSR, both ways): the moves fall off along the surface as a cone,
+    never below what offsets_from_sheet asked. Relaxed outwards from the moved candidates, each
+    one queued again when a neighbour raises it (queue, queued: (C,) scratch), to the exact cone."""
+    size = move.shape[0]
+    count = 0
+    for c in range(size):
+        if move[c] > 0.0:
+            queue[count] = c
+            queued[c] = 1
+            count += 1
+    head, tail = 0, count % max(size, 1)
+    while count > 0:
+        a = queue[head]
+        head = (head + 1) % size
+        count -= 1
+        queued[a] = 0
+        for k in range(nbr_start[a], nbr_start[a + 1]):
+            b = nbr_ids[k]
+            m = move[a] - nbr_drop[k]
+            if m > move[b]:
+                move[b] = m
+                if queued[b] == 0:  # at most once in the queue: it never holds more than size
+                    queued[b] = 1
+                    queue[tail] = b
+                    tail = (tail + 1) % size
+                    count += 1
 
 
 @helper
@@ -268,25 +292,30 @@ def _move_to_bound(p, n, side, i, li, j, lj, bound, give_way):
 
 
 @kernel
-def keep_within_bounds(p, n, side, candidates, edges, bound, move, room, sweeps, give_way):
+def keep_within_bounds(p, n, side, candidates, edges, limit, move, room, sweeps, give_way):
     """Where two neighbours' moves along side × n part them farther than their edge's bound
-    (`edge_bounds`: moves along normals that diverge pull neighbours apart), the smaller move
-    grows until they are within it, as far as its room allows; giving way (after that, where
-    the smaller one's room held it), the larger move shrinks until they are. Sweeps over the
-    edges in both orders."""
+    (moves along normals that diverge pull neighbours apart), the smaller move grows until they
+    are within it, as far as its room allows; giving way (after that, where the smaller one's
+    room held it), the larger move shrinks until they are. An edge's bound: its maximum
+    neighbour distance (limit), or its length before the moves where that is longer (the moves
+    make no edge too long that was not so already). Sweeps over the edges in both orders."""
     for _ in range(sweeps):
         for r in range(2):
             for q in range(edges.shape[0]):
                 k = q if r == 0 else edges.shape[0] - 1 - q
                 a, b = edges[k, 0], edges[k, 1]
+                if move[a] <= 0.0 and move[b] <= 0.0:
+                    continue  # neither moved: the edge is as it was (most edges)
                 la, lb = min(move[a], room[a]), min(move[b], room[b])
                 if la <= 0.0 and lb <= 0.0:
-                    continue  # neither moved: the edge is as it was
+                    continue
                 i, j = candidates[a], candidates[b]
+                d = math.sqrt((p[i, 0] - p[j, 0]) ** 2 + (p[i, 1] - p[j, 1]) ** 2 + (p[i, 2] - p[j, 2]) ** 2)
+                bound = max(limit[k], d)
                 if (la <= lb) != give_way:  # a: the smaller (or, giving way, the larger) move
-                    move[a] = min(_move_to_bound(p, n, side, i, la, j, lb, bound[k], give_way), room[a])
+                    move[a] = min(_move_to_bound(p, n, side, i, la, j, lb, bound, give_way), room[a])
                 else:
-                    move[b] = min(_move_to_bound(p, n, side, j, lb, i, la, bound[k], give_way), room[b])
+                    move[b] = min(_move_to_bound(p, n, side, j, lb, i, la, bound, give_way), room[b])
 
 
 @kernel
@@ -307,10 +336,11 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
     s.moved = offsets_from_sheet(p, n, p_ref, n_ref, t.candidates, s.nearest, t.nbr_start, t.nbr_ids, t.tri_start,
                                  t.tri_ids, t.triangles, t.ring_reach, side, m.gap, m.depth, s.room, q, s.move)
     if s.moved:
-        ease_lifts(t.spread_edges, t.spread_drop, s.move, SPREAD_SWEEPS)
-        edge_bounds(p, t.candidates, t.spread_edges, t.spread_limit, s.bound)
-        keep_within_bounds(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS, False)
-        keep_within_bounds(p, n, side, t.candidates, t.spread_edges, s.bound, s.move, s.room, BOUND_SWEEPS, True)
+        ease_lifts(t.spread_start, t.spread_nbrs, t.spread_nbr_drop, s.move, s.queue, s.queued)
+        keep_within_bounds(p, n, side, t.candidates, t.spread_edges, t.spread_limit, s.move, s.room, BOUND_SWEEPS,
+                           False)
+        keep_within_bounds(p, n, side, t.candidates, t.spread_edges, t.spread_limit, s.move, s.room, BOUND_SWEEPS,
+                           True)
         apply_lifts(p, n, side, t.candidates, s.move, s.room)
 
 
@@ -360,17 +390,24 @@ def sheet_track(rest: np.ndarray, edges: np.ndarray, other_rest: np.ndarray, oth
     keep = (slot[e[:, 0]] >= 0) & (slot[e[:, 1]] >= 0)
     spread = slot[e[keep]].astype(np.int32)
     rest_len = np.linalg.norm(rest[e[keep, 0]] - rest[e[keep, 1]], axis=1)
+    drop = LAYER_SLOPE * rest_len
     limit = np.full(len(rest_len), np.inf) if limit is None else np.asarray(limit, dtype=float)[keep]
+    # the spread edges both ways, by candidate (ease_lifts)
+    ends = np.concatenate([spread, spread[:, ::-1]]).astype(np.int64)
+    order = np.argsort(ends[:, 0], kind="stable")
+    spread_start = np.zeros(len(candidates) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(ends[:, 0], minlength=len(candidates)), out=spread_start[1:])
+    triangles = np.ascontiguousarray(other_triangles, dtype=np.int32)
     ns, ni = vertex_neighbours(len(other_rest), np.asarray(other_edges))
-    ts, ti = vertex_cells(len(other_rest), np.asarray(other_triangles))
+    ts, ti = vertex_cells(len(other_rest), triangles)
     oe = np.asarray(other_edges, dtype=np.int64)
     longest = np.zeros(len(other_rest))
     other_len = np.linalg.norm(other_rest[oe[:, 0]] - other_rest[oe[:, 1]], axis=1)
     np.maximum.at(longest, oe[:, 0], other_len)
     np.maximum.at(longest, oe[:, 1], other_len)
-    return SheetTrack(candidates, index[candidates].copy(), ns, ni, ts, ti,
-                      np.ascontiguousarray(other_triangles, dtype=np.int32), RING_STRETCH * longest,
-                      np.ascontiguousarray(spread), LAYER_SLOPE * rest_len, limit)
+    return SheetTrack(candidates, index[candidates].copy(), ns, ni, ts, ti, triangles, RING_STRETCH * longest,
+                      np.ascontiguousarray(spread), limit, spread_start, ends[order, 1].astype(np.int32),
+                      np.concatenate([drop, drop])[order])
 
 
 def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_triangles: np.ndarray, outer_edges: np.ndarray,
@@ -430,6 +467,6 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "SheetMoves", "SheetTrack", "apply_lifts", "ease_lifts", "edge_bounds", "keep_within_bounds", "layer_outfit",
-           "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "press_room", "rest_surface", "sheet_track",
-           "stack_layer", "stacking_order"]
+           "SheetMoves", "SheetTrack", "apply_lifts", "closest_in_fan", "ease_lifts", "keep_within_bounds",
+           "layer_outfit", "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "press_room", "rest_surface",
+           "sheet_track", "stack_layer", "stacking_order"]
