@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import closest_point_triangle, nearest_vertices
+from .geometry import closest_in_fan, nearest_vertices
 from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
 from .surface import rest_surface as surface_at_rest
@@ -160,37 +160,6 @@ def press_room(candidates, height, body_floor, max_lift, room):
     for c in range(candidates.shape[0]):
         i = candidates[c]
         room[c] = min(max_lift, max(0.0, height[i] - body_floor[i]))
-
-
-@helper
-def closest_in_fan(px, py, pz, x, v, tri_start, tri_ids, tris, q):
-    """Closest point to p on the triangles around vertex v of (x, tris): (d², triangle, a, b, c,
-    wb, wc, qx, qy, qz), the triangle's corners (a, b, c) from v on and the point's weights of b
-    and c. A triangle whose two edges from v both point away from p ((p - v)·(b - v) <= 0 and
-    (p - v)·(c - v) <= 0) has v itself as its closest point and is not computed (a third of them)."""
-    dx, dy, dz = px - x[v, 0], py - x[v, 1], pz - x[v, 2]
-    best = dx * dx + dy * dy + dz * dz
-    bt, ba, bb, bc, bv, bw = -1, v, v, v, 0.0, 0.0
-    qx, qy, qz = x[v, 0], x[v, 1], x[v, 2]
-    for k in range(tri_start[v], tri_start[v + 1]):
-        t = tri_ids[k]
-        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        if b == v:
-            a, b, c = b, c, a
-        elif c == v:
-            a, b, c = c, a, b
-        if bt < 0:
-            bt, ba, bb, bc = t, a, b, c  # at v, with weights (1, 0, 0), until a triangle is nearer
-        db = (x[b, 0] - x[v, 0]) * dx + (x[b, 1] - x[v, 1]) * dy + (x[b, 2] - x[v, 2]) * dz
-        dc = (x[c, 0] - x[v, 0]) * dx + (x[c, 1] - x[v, 1]) * dy + (x[c, 2] - x[v, 2]) * dz
-        if db <= 0.0 and dc <= 0.0:
-            continue
-        wb, wc = closest_point_triangle(px, py, pz, x, a, b, c, q)
-        d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
-        if d2 < best:
-            best, bt, ba, bb, bc, bv, bw = d2, t, a, b, c, wb, wc
-            qx, qy, qz = q[0], q[1], q[2]
-    return best, bt, ba, bb, bc, bv, bw, qx, qy, qz
 
 
 @kernel
@@ -467,6 +436,6 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "SheetMoves", "SheetTrack", "apply_lifts", "closest_in_fan", "ease_lifts", "keep_within_bounds",
+           "SheetMoves", "SheetTrack", "apply_lifts", "ease_lifts", "keep_within_bounds",
            "layer_outfit", "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "press_room", "rest_surface",
            "sheet_track", "stack_layer", "stacking_order"]

@@ -8,8 +8,8 @@ import pytest
 from cloth.coarsen import CoarseMesh
 from cloth.fabric import fabric
 from cloth.garment import Garment
-from cloth.geometry import closest_point_triangle
-from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState, closest_in_fan,
+from cloth.geometry import closest_in_fan, closest_point_triangle
+from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState,
                           ease_lifts, keep_within_bounds, layer_outfit, layer_pair, rest_surface, sheet_track,
                           stack_layer)
 from cloth.model import SimSettings, build_cloth_model
