@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import BodyMesh, VertexGrid, part_scratch
+from .creases import leave_creases
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -63,11 +64,15 @@ class SurfaceSettings:
     # the folds run straight across each coarse quad to its opposite edge, where two facing wrinkles
     # of parallel edges join (False: every face's to its opposite corners, as in a lone triangle)
     fold_quads: bool = True
+    # S103 as drawn: a particle left inside the body where two body parts overlap goes to the
+    # nearest point outside both (Decision, `creases.leave_creases`; its Δh is unchanged)
+    creases: bool = True
+    crease_rounds: int = 2  # measurements and moves per such particle (a curved crease)
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
         check_fields(self, integers={"level": 1, "penetration_iterations": 1, "constraint_passes": 1,
-                                     "length_iterations": 1},
+                                     "length_iterations": 1, "crease_rounds": 1},
                      non_negative=("clearance", "tip_share", "face_margin"),
                      positive=("contact_margin", "max_lift", "max_height", "length_tolerance"))
         if not 1 <= self.max_step_scale < math.inf:
@@ -198,6 +203,8 @@ class SurfaceState:
         self.f1 = np.zeros(3)
         self.fn = np.zeros(3)
         self.q = np.zeros(3)
+        self.plane_a = np.zeros(6)  # leave_creases scratch
+        self.plane_b = np.zeros(6)
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
 
@@ -207,6 +214,7 @@ class DetailedSurface:
         self.state = SurfaceState(model)
         self.stage_seconds = np.zeros(3)  # PN, collision (S103), deformation (S104-S106)
         self.tested = 0  # particles S103 tested in the last frame
+        self.creased = 0  # particles moved out of a crease in the last frame (`creases.leave_creases`)
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
              body: BodyMesh | None, face_n: np.ndarray | None, dt: float,
@@ -286,9 +294,16 @@ class DetailedSurface:
                         s.height, s.p)
         else:
             s.height[:] = s.dh
+        self.creased = 0
+        t4 = time.perf_counter()
+        if body is not None and st.creases:  # (S103's Decision, counted with its time)
+            self.creased = leave_creases(s.p, s.sd, s.body_face, s.part_face, body_x, body.triangles, body.tri_nbrs,
+                                         body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids, body.regions,
+                                         face_n, s.q, s.plane_a, s.plane_b, st.clearance, st.crease_rounds)
+        t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
-        self.stage_seconds[:] = (t1 - t0, t2 - t1, t3 - t2)
+        self.stage_seconds[:] = (t1 - t0, t2 - t1 + t5 - t4, t3 - t2 - (t5 - t4))
         return s.p, s.normals
 
 

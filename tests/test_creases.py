@@ -1,0 +1,106 @@
+"""S103's Decision out of a crease (cloth.creases): known answers on planes and on two
+overlapping boxes."""
+
+import numpy as np
+import pytest
+
+from cloth.collision import BodyMesh, face_normals
+from cloth.creases import leave_creases, out_of_two_planes
+from tests.test_cloth_dynamics import box
+
+C = 0.001  # clearance
+
+
+def plane(q, n):
+    n = np.asarray(n, float)
+    return np.r_[q, n / np.linalg.norm(n)]
+
+
+@pytest.mark.parametrize("p, a, b, expected, ok", [
+    # in front of both: no move
+    ((0.01, 0.01, 0), plane((0, 0, 0), (1, 0, 0)), plane((0, 0, 0), (0, 1, 0)), (0, 0, 0), True),
+    # behind one plane only, the other cleared by its step
+    ((-0.005, 0.002, 0), plane((0, 0, 0), (1, 0, 0)), plane((0, 0, 0), (0, 1, 0)), (0.006, 0, 0), True),
+    # behind both perpendicular planes: to the crease's corner, the clearance from each
+    ((-0.002, -0.003, 0), plane((0, 0, 0), (1, 0, 0)), plane((0, 0, 0), (0, 1, 0)), (0.003, 0.004, 0), True),
+    # one plane absent (zero normal)
+    ((0, -0.002, 0), plane((0, 0, 0), (0, 1, 0)), np.zeros(6), (0, 0.003, 0), True),
+    # facing each other across a 10 mm gap: the step out of one stays clear of the other
+    ((-0.002, 0, 0), plane((0, 0, 0), (1, 0, 0)), plane((0.01, 0, 0), (-1, 0, 0)), (0.003, 0, 0), True),
+    # facing each other, overlapping by 2 mm: no outside between them
+    ((-0.001, 0, 0), plane((0, 0, 0), (1, 0, 0)), plane((-0.002, 0, 0), (-1, 0, 0)), (0, 0, 0), False),
+])
+def test_out_of_two_planes(p, a, b, expected, ok):
+    mx, my, mz, found = out_of_two_planes(*p, a, b, C)
+    assert found == ok
+    if ok:
+        np.testing.assert_allclose((mx, my, mz), expected, atol=1e-12)
+        q = np.add(p, (mx, my, mz))
+        for pl in (a, b):
+            if pl[3:].any():
+                assert np.dot(q - pl[:3], pl[3:]) >= C - 1e-12
+
+
+def two_boxes():
+    """A torso box (x, z in ±5 cm, top at y = 0) and a thigh box (x -7..-1 cm, y -1..5 cm, z ±3
+    cm) whose bottom centimetre is buried in it: the crease runs along x = -1 cm, y = 0."""
+    tv, tt = box(half=0.05, n=8)
+    tv = tv + [0.0, -0.05, 0.0]
+    bv, bt = box(half=0.03, n=8)
+    bv = bv + [-0.04, 0.02, 0.0]
+    x = np.ascontiguousarray(np.vstack([tv, bv]))
+    tris = np.vstack([tt, bt + len(tv)]).astype(np.int32)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(bv), 2)].astype(np.uint8)
+    return x, tris, regions, BodyMesh.build(tris, len(x), regions)
+
+
+def nearest_face(x, tris, p, centre_test):
+    c = x[tris].mean(axis=1)
+    ok = np.flatnonzero(centre_test(c))
+    return int(ok[np.argmin(np.linalg.norm(c[ok] - p, axis=1))])
+
+
+def inside_boxes(p):
+    torso = np.all(np.abs(p - [0, -0.05, 0]) < 0.05 - 1e-9, axis=-1)
+    thigh = np.all(np.abs(p - [-0.04, 0.02, 0]) < 0.03 - 1e-9, axis=-1)
+    return torso | thigh
+
+
+@pytest.mark.parametrize("start, expected", [
+    # 3 mm into the torso, 2 mm into the thigh: to the crease, the clearance out of each
+    ((-0.012, -0.003, 0.0), (-0.009, 0.001, 0.0)),
+    # 3 mm into the torso, 5 mm in front of the thigh's wall (S103's nearest surface is the
+    # torso's top here, but the same rule): straight up out of the torso
+    ((-0.005, -0.003, 0.0), (-0.005, 0.001, 0.0)),
+])
+def test_a_particle_in_a_crease_goes_to_the_nearest_point_outside_both_parts(start, expected):
+    x, tris, regions, body = two_boxes()
+    fn = face_normals(x, tris)
+    p = np.array([start, (0.03, 0.02, 0.0)])  # the second: outside, 2 cm over the torso, left alone
+    top = nearest_face(x, tris, p[0], lambda c: (np.abs(c[:, 1]) < 1e-9) & (c[:, 0] > -0.01))  # the torso's top
+    wall = nearest_face(x, tris, p[0], lambda c: np.abs(c[:, 0] + 0.01) < 1e-9)  # the thigh's inner wall
+    body_face = np.array([top, top], dtype=np.int32)
+    part_face = np.array([wall, wall], dtype=np.int32)
+    sd = np.array([0.002, 0.02])  # (S103's reading, "outside": the kernel measures again)
+    p0 = p.copy()
+    moved = leave_creases(p, sd, body_face, part_face, x, tris, body.tri_nbrs, body.tri_start, body.tri_ids,
+                          body.nbr_start, body.nbr_ids, body.regions, fn, np.zeros(3), np.zeros(6), np.zeros(6), C, 2)
+    assert moved == 1
+    np.testing.assert_allclose(p[0], expected, atol=1e-9)
+    np.testing.assert_array_equal(p[1], p0[1])
+    assert not inside_boxes(p).any() and inside_boxes(p0[0])
+
+
+def test_a_particle_neither_s103_nor_its_walks_find_inside_stays():
+    """Untested by S103 (no face), or not near another part and read outside: not measured."""
+    x, tris, regions, body = two_boxes()
+    fn = face_normals(x, tris)
+    p = np.array([(-0.005, -0.003, 0.0), (-0.005, -0.003, 0.0)])
+    body_face = np.array([-1, 0], dtype=np.int32)
+    part_face = np.array([-1, -1], dtype=np.int32)
+    sd = np.array([np.inf, 0.002])
+    p0 = p.copy()
+    moved = leave_creases(p, sd, body_face, part_face, x, tris, body.tri_nbrs, body.tri_start, body.tri_ids,
+                          body.nbr_start, body.nbr_ids, body.regions, fn, np.zeros(3), np.zeros(6), np.zeros(6), C, 2)
+    assert moved == 0
+    np.testing.assert_array_equal(p, p0)
