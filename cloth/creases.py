@@ -72,18 +72,20 @@ def out_of_two_planes(px, py, pz, a, b, clearance):
 
 @kernel
 def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
-                  face_n, q, plane_a, plane_b, clearance, rounds):
+                  face_n, q, plane_a, plane_b, clearance, rounds, first, ids, moves):
     """Move each detailed particle that is inside the body near a crease out of it (module
     docstring). p: final positions, moved in place; sd, body_face, part_face: S103's (its
     signed distances, UNTESTED = inf where it did not test, and the faces its walks ended on);
     plane_a, plane_b (6,): scratch. Each particle is measured and moved up to `rounds` times
-    (a curved crease: the planes of the first closest points are an approximation). Returns
-    the number of particles moved."""
+    (a curved crease: the planes of the first closest points are an approximation). Particles
+    before `first` (the coarse vertices, placed by S101) are left alone. Returns the number of
+    particles moved, k; ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
     moved = 0
-    for i in range(p.shape[0]):
+    for i in range(first, p.shape[0]):
         if body_face[i] < 0 or not (part_face[i] >= 0 or sd[i] < 0.0):
             continue
         fa, fb = body_face[i], part_face[i]
+        p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
         for r in range(rounds):
             px, py, pz = p[i, 0], p[i, 1], p[i, 2]
             da, nx, ny, nz, qx, qy, qz, fa = face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
@@ -108,8 +110,10 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
             p[i, 0] = px + mx
             p[i, 1] = py + my
             p[i, 2] = pz + mz
-            if r == 0:
-                moved += 1
+        if p[i, 0] != p0 or p[i, 1] != p1 or p[i, 2] != p2:
+            ids[moved] = i
+            moves[moved, 0], moves[moved, 1], moves[moved, 2] = p[i, 0] - p0, p[i, 1] - p1, p[i, 2] - p2
+            moved += 1
     return moved
 
 

@@ -205,6 +205,8 @@ class SurfaceState:
         self.q = np.zeros(3)
         self.plane_a = np.zeros(6)  # leave_creases scratch
         self.plane_b = np.zeros(6)
+        self.creased_ids = np.zeros(N, dtype=np.int32)  # leave_creases: the particles it moved (first
+        self.crease_moves = np.zeros((N, 3))  # DetailedSurface.creased of them) and their moves, m
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
 
@@ -299,7 +301,8 @@ class DetailedSurface:
         if body is not None and st.creases:  # (S103's Decision, counted with its time)
             self.creased = leave_creases(s.p, s.sd, s.body_face, s.part_face, body_x, body.triangles, body.tri_nbrs,
                                          body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids, body.regions,
-                                         face_n, s.q, s.plane_a, s.plane_b, st.clearance, st.crease_rounds)
+                                         face_n, s.q, s.plane_a, s.plane_b, st.clearance, st.crease_rounds,
+                                         t.n_coarse, s.creased_ids, s.crease_moves)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -60,6 +60,15 @@ def nearest_face(x, tris, p, centre_test):
     return int(ok[np.argmin(np.linalg.norm(c[ok] - p, axis=1))])
 
 
+def leave(x, tris, body, p, sd, body_face, part_face, first=0):
+    """leave_creases on the two boxes; returns (count, ids, moves)."""
+    ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
+    count = leave_creases(p, sd, body_face, part_face, x, tris, body.tri_nbrs, body.tri_start, body.tri_ids,
+                          body.nbr_start, body.nbr_ids, body.regions, face_normals(x, tris), np.zeros(3), np.zeros(6),
+                          np.zeros(6), C, 2, first, ids, moves)
+    return count, ids, moves
+
+
 def inside_boxes(p):
     torso = np.all(np.abs(p - [0, -0.05, 0]) < 0.05 - 1e-9, axis=-1)
     thigh = np.all(np.abs(p - [-0.04, 0.02, 0]) < 0.03 - 1e-9, axis=-1)
@@ -75,7 +84,6 @@ def inside_boxes(p):
 ])
 def test_a_particle_in_a_crease_goes_to_the_nearest_point_outside_both_parts(start, expected):
     x, tris, regions, body = two_boxes()
-    fn = face_normals(x, tris)
     p = np.array([start, (0.03, 0.02, 0.0)])  # the second: outside, 2 cm over the torso, left alone
     top = nearest_face(x, tris, p[0], lambda c: (np.abs(c[:, 1]) < 1e-9) & (c[:, 0] > -0.01))  # the torso's top
     wall = nearest_face(x, tris, p[0], lambda c: np.abs(c[:, 0] + 0.01) < 1e-9)  # the thigh's inner wall
@@ -83,24 +91,24 @@ def test_a_particle_in_a_crease_goes_to_the_nearest_point_outside_both_parts(sta
     part_face = np.array([wall, wall], dtype=np.int32)
     sd = np.array([0.002, 0.02])  # (S103's reading, "outside": the kernel measures again)
     p0 = p.copy()
-    moved = leave_creases(p, sd, body_face, part_face, x, tris, body.tri_nbrs, body.tri_start, body.tri_ids,
-                          body.nbr_start, body.nbr_ids, body.regions, fn, np.zeros(3), np.zeros(6), np.zeros(6), C, 2)
-    assert moved == 1
+    moved, ids, moves = leave(x, tris, body, p, sd, body_face, part_face)
+    assert moved == 1 and ids[0] == 0
     np.testing.assert_allclose(p[0], expected, atol=1e-9)
+    np.testing.assert_allclose(moves[0], p[0] - p0[0], atol=1e-15)
     np.testing.assert_array_equal(p[1], p0[1])
     assert not inside_boxes(p).any() and inside_boxes(p0[0])
 
 
 def test_a_particle_neither_s103_nor_its_walks_find_inside_stays():
-    """Untested by S103 (no face), or not near another part and read outside: not measured."""
+    """Untested by S103 (no face), or not near another part and read outside: not measured;
+    nor is a coarse vertex (before `first`), inside or not."""
     x, tris, regions, body = two_boxes()
-    fn = face_normals(x, tris)
-    p = np.array([(-0.005, -0.003, 0.0), (-0.005, -0.003, 0.0)])
-    body_face = np.array([-1, 0], dtype=np.int32)
-    part_face = np.array([-1, -1], dtype=np.int32)
-    sd = np.array([np.inf, 0.002])
+    p = np.array([(-0.005, -0.003, 0.0), (-0.005, -0.003, 0.0), (-0.005, -0.003, 0.0)])
+    top = nearest_face(x, tris, p[0], lambda c: (np.abs(c[:, 1]) < 1e-9) & (c[:, 0] > -0.01))
+    body_face = np.array([top, -1, top], dtype=np.int32)  # (the first: a coarse vertex, inside, S103 read so)
+    part_face = np.array([-1, -1, -1], dtype=np.int32)
+    sd = np.array([-0.003, np.inf, 0.002])
     p0 = p.copy()
-    moved = leave_creases(p, sd, body_face, part_face, x, tris, body.tri_nbrs, body.tri_start, body.tri_ids,
-                          body.nbr_start, body.nbr_ids, body.regions, fn, np.zeros(3), np.zeros(6), np.zeros(6), C, 2)
+    moved = leave(x, tris, body, p, sd, body_face, part_face, first=1)[0]
     assert moved == 0
     np.testing.assert_array_equal(p, p0)

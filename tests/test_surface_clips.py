@@ -7,13 +7,14 @@ the top along its reference normals, no lower than the body allows)."""
 import numpy as np
 import pytest
 
+from cloth.creases import CREASE_MOVE
 from cloth.surface import SurfaceSettings
 from services.cloth_job import OUTFITS, run_cloth_clip
 
 
 @pytest.mark.parametrize("outfit", OUTFITS)
 def test_surface_through_the_run_clip(body, data, outfit):
-    checked, lifted, pressed = [], [], []
+    checked, lifted, pressed, creased = [], [], [], []
 
     def on_frame(index, session, body_frame, positions):
         layered = [p.copy() for p, _ in session.detailed]
@@ -33,6 +34,12 @@ def test_surface_through_the_run_clip(body, data, outfit):
             layered[lm.inner][c] += press[:, None] * inner.n_pn[c]
         for surf, (_, n), p, x in zip(session.surfaces, session.detailed, layered, positions):
             s, st, m = surf.state, surf.model.settings, surf.model
+            # and the moves out of creases (cloth.creases: off the normal, never a coarse vertex, bounded)
+            k = surf.creased
+            assert np.all(s.creased_ids[:k] >= len(x)) and len(np.unique(s.creased_ids[:k])) == k
+            assert np.all(np.linalg.norm(s.crease_moves[:k], axis=1) <= 2 * CREASE_MOVE)
+            creased.append(k)
+            p[s.creased_ids[:k]] -= s.crease_moves[:k]
             if not checked:  # every coarse triangle drawn once, most of them as halves of quads
                 faces = m.fold_groups[m.fold_groups >= 0]
                 np.testing.assert_array_equal(np.sort(faces), np.arange(len(m.tess.coarse_triangles)))
@@ -57,4 +64,5 @@ def test_surface_through_the_run_clip(body, data, outfit):
     layers = outfit != "female_sportsuit01"  # the sport suit's top and bottom do not meet
     assert (len(report.layer_ms) == report.frames) == layers and (sum(lifted) > 0) == layers
     assert (sum(pressed) > 0) == layers
+    assert sum(creased) > 0
     assert all(len(v) == report.frames for v in report.surface_ms.values())
