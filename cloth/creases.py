@@ -24,8 +24,6 @@ the reference surface again); only the drawn position leaves the normal.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from .collision import face_walk_distance
