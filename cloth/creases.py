@@ -18,7 +18,11 @@ frame of 150: the surface in front of it is the other part's, buried in the firs
 inside particle goes to the nearest point `clearance` in front of both surfaces' tangent
 planes: near a crease the body's outside is the intersection of the two parts' outsides.
 Where the parts overlap (the planes face each other across less than nothing) there is no
-such point, and the particle stays. Its height Δh is unchanged (the next frame starts from
+such point, and the particle stays. Where two surfaces face each other across a gap narrower
+than two clearances (an arm by the torso), the particle goes to the gap's middle: the nearest
+point two clearances wide lies along the gap, centimetres away for a fraction of a millimetre
+(forty-seventh session: those moves left about half the long edges around moved particles on
+the walk's casual outfit). Its height Δh is unchanged (the next frame starts from
 the reference surface again); only the drawn position leaves the normal.
 """
 
@@ -30,6 +34,7 @@ from .collision import face_walk_distance
 from .jit import helper, kernel
 
 CREASE_DEPTH = 0.03  # m: deeper behind a surface than this, the walk's face is as likely a limb's far side: left
+FACING = -0.5  # n_a . n_b below this: the two surfaces face each other (more than 120° apart)
 CREASE_MOVE = 0.03  # m: a way out farther than this is not taken (the particle stays where S106 put it)
 
 
@@ -44,15 +49,31 @@ def out_of_two_planes(px, py, pz, a, b, clearance):
     """The smallest move (dx, dy, dz) that puts p `clearance` in front of both planes a and b
     (each (qx, qy, qz, nx, ny, nz), unit normals): the projection onto the intersection of
     their two half-spaces, and True; False where there is none (the planes face each other).
+    Decision: where the planes face each other (n_a . n_b < FACING) across a gap at p narrower
+    than two clearances, the clearance is what the gap leaves: p goes to the gap's middle.
     A plane with a zero normal is absent."""
     ga = gb = -1.0
-    if a[3] * a[3] + a[4] * a[4] + a[5] * a[5] > 0.0:
+    has_a = a[3] * a[3] + a[4] * a[4] + a[5] * a[5] > 0.0
+    has_b = b[3] * b[3] + b[4] * b[4] + b[5] * b[5] > 0.0
+    if has_a:
         ga = _plane_gap(px, py, pz, a[0], a[1], a[2], a[3], a[4], a[5], clearance)
-    if b[3] * b[3] + b[4] * b[4] + b[5] * b[5] > 0.0:
+    if has_b:
         gb = _plane_gap(px, py, pz, b[0], b[1], b[2], b[3], b[4], b[5], clearance)
     if ga <= 0.0 and gb <= 0.0:
         return 0.0, 0.0, 0.0, True
     k = a[3] * b[3] + a[4] * b[4] + a[5] * b[5]
+    if has_a and has_b and k < FACING and ga + gb > 0.0:
+        # the surfaces face each other across a gap narrower than two clearances at p (an arm by the
+        # torso): to its middle, not to the far place where the gap widens to two clearances (that
+        # move runs along the gap, centimetres for a fraction of a millimetre, and left the moved
+        # particle's edges long). Where they overlap at p (no gap), the way out is where the overlap
+        # ends, as below.
+        c = clearance - 0.5 * (ga + gb)
+        if c > 0.0:
+            ga -= clearance - c
+            gb -= clearance - c
+            if ga <= 0.0 and gb <= 0.0:
+                return 0.0, 0.0, 0.0, True
     # one plane's step alone, if it also clears the other (along n_a, b's gap falls by k ga)
     if ga > 0.0 and gb - k * ga <= 0.0:
         return ga * a[3], ga * a[4], ga * a[5], True

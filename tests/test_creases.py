@@ -27,6 +27,8 @@ def plane(q, n):
     ((0, -0.002, 0), plane((0, 0, 0), (0, 1, 0)), np.zeros(6), (0, 0.003, 0), True),
     # facing each other across a 10 mm gap: the step out of one stays clear of the other
     ((-0.002, 0, 0), plane((0, 0, 0), (1, 0, 0)), plane((0.01, 0, 0), (-1, 0, 0)), (0.003, 0, 0), True),
+    # facing each other across a 1 mm gap (less than two clearances), 0.2 mm from one side: to its middle
+    ((0.0002, 0, 0), plane((0, 0, 0), (1, 0, 0)), plane((0.001, 0, 0), (-1, 0, 0)), (0.0003, 0, 0), True),
     # facing each other, overlapping by 2 mm: no outside between them
     ((-0.001, 0, 0), plane((0, 0, 0), (1, 0, 0)), plane((-0.002, 0, 0), (-1, 0, 0)), (0, 0, 0), False),
 ])
@@ -36,9 +38,30 @@ def test_out_of_two_planes(p, a, b, expected, ok):
     if ok:
         np.testing.assert_allclose((mx, my, mz), expected, atol=1e-12)
         q = np.add(p, (mx, my, mz))
-        for pl in (a, b):
-            if pl[3:].any():
-                assert np.dot(q - pl[:3], pl[3:]) >= C - 1e-12
+        gaps = [np.dot(q - pl[:3], pl[3:]) for pl in (a, b) if pl[3:].any()]
+        # the clearance, or where the planes face each other across less than two, half the gap
+        clear = min(C, 0.5 * sum(gaps)) if len(gaps) == 2 and np.dot(a[3:], b[3:]) < -0.5 else C
+        assert min(gaps) >= clear - 1e-12
+
+
+def test_narrow_tilted_gap_goes_to_its_middle():
+    """Facing planes 5° off parallel, 1 mm apart at p: the exact two-clearance answer lies about
+    1 cm along the gap (where it has widened to 2 mm); the Decision takes p across to the gap's
+    middle instead, a fraction of a millimetre."""
+    t = np.radians(5.0)
+    a = plane((0, 0, 0), (1, 0, 0))
+    b = plane((0.001, 0, 0), (-np.cos(t), np.sin(t), 0))  # the gap widens along +y
+    p = np.array([0.0002, 0.0, 0.0])
+    move = np.array(out_of_two_planes(*p, a, b, C)[:3])
+    assert out_of_two_planes(*p, a, b, C)[3]
+    q = p + move
+    da, db = np.dot(q - a[:3], a[3:]), np.dot(q - b[:3], b[3:])
+    assert da == pytest.approx(db, rel=0.01) and 0 < da < C  # (a step along n_a: off the middle by cos 5°)
+    assert np.linalg.norm(move) < 0.0005
+    # without the Decision (planes less than 120° apart are not taken as facing) the same gap is
+    # left along its length: check that answer is indeed far, so the case tests what it claims
+    exact_y = (2 * C - 0.001) / np.tan(t)  # where the gap is two clearances wide
+    assert exact_y > 0.01
 
 
 def two_boxes():
