@@ -68,6 +68,8 @@ class SurfaceSettings:
     # nearest point outside both (Decision, `creases.leave_creases`; its Δh is unchanged)
     creases: bool = True
     crease_rounds: int = 2  # measurements and moves per such particle (a curved crease)
+    # and a moved particle's neighbours are measured from its faces, and moved if inside, and so on
+    crease_spread: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -207,6 +209,8 @@ class SurfaceState:
         self.plane_b = np.zeros(6)
         self.creased_ids = np.zeros(N, dtype=np.int32)  # leave_creases: the particles it moved (first
         self.crease_moves = np.zeros((N, 3))  # DetailedSurface.creased of them) and their moves, m
+        self.crease_faces = np.zeros((N, 2), dtype=np.int32)  # leave_creases: the faces their walks ended on
+        self.crease_seen = np.zeros(N, dtype=np.uint8)
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
 
@@ -302,7 +306,8 @@ class DetailedSurface:
             self.creased = leave_creases(s.p, s.sd, s.body_face, s.part_face, body_x, body.triangles, body.tri_nbrs,
                                          body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids, body.regions,
                                          face_n, s.q, s.plane_a, s.plane_b, st.clearance, st.crease_rounds,
-                                         t.n_coarse, s.creased_ids, s.crease_moves)
+                                         t.n_coarse, st.crease_spread, m.d_edges, m.d_edge_start, m.d_edge_ids,
+                                         s.crease_seen, s.creased_ids, s.crease_moves, s.crease_faces)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -6,6 +6,7 @@ import pytest
 
 from cloth.collision import BodyMesh, face_normals
 from cloth.creases import leave_creases, out_of_two_planes
+from cloth.topology import vertex_cells
 from tests.test_cloth_dynamics import box
 
 C = 0.001  # clearance
@@ -83,12 +84,16 @@ def nearest_face(x, tris, p, centre_test):
     return int(ok[np.argmin(np.linalg.norm(c[ok] - p, axis=1))])
 
 
-def leave(x, tris, body, p, sd, body_face, part_face, first=0):
-    """leave_creases on the two boxes; returns (count, ids, moves)."""
+def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None):
+    """leave_creases on the two boxes (d_edges: the particles' edges, spread along; None: no
+    spread); returns (count, ids, moves)."""
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
+    edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
+    start, edge_ids = vertex_cells(len(p), edges)
     count = leave_creases(p, sd, body_face, part_face, x, tris, body.tri_nbrs, body.tri_start, body.tri_ids,
                           body.nbr_start, body.nbr_ids, body.regions, face_normals(x, tris), np.zeros(3), np.zeros(6),
-                          np.zeros(6), C, 2, first, ids, moves)
+                          np.zeros(6), C, 2, first, d_edges is not None, edges, start, edge_ids,
+                          np.zeros(len(p), dtype=np.uint8), ids, moves, np.zeros((len(p), 2), dtype=np.int32))
     return count, ids, moves
 
 
@@ -135,3 +140,30 @@ def test_a_particle_neither_s103_nor_its_walks_find_inside_stays():
     moved = leave(x, tris, body, p, sd, body_face, part_face, first=1)[0]
     assert moved == 0
     np.testing.assert_array_equal(p, p0)
+
+
+@pytest.mark.parametrize("spread", [False, True])
+def test_the_neighbours_of_a_moved_particle_are_measured_from_its_faces(spread):
+    """A row of three: one in the crease (as above, S103 saw it), an untested neighbour 2 mm
+    into the torso and 3 mm in front of the thigh's wall, and an outside one beyond it. With
+    the spread, the neighbour is measured from the first one's faces and goes straight up out
+    of the torso; the outside one is measured and stays. Without, only the first moves."""
+    x, tris, regions, body = two_boxes()
+    p = np.array([(-0.012, -0.003, 0.0), (-0.007, -0.002, 0.0), (0.0, 0.005, 0.0)])
+    top = nearest_face(x, tris, p[0], lambda c: (np.abs(c[:, 1]) < 1e-9) & (c[:, 0] > -0.01))
+    wall = nearest_face(x, tris, p[0], lambda c: np.abs(c[:, 0] + 0.01) < 1e-9)
+    body_face = np.array([top, -1, -1], dtype=np.int32)
+    part_face = np.array([wall, -1, -1], dtype=np.int32)
+    sd = np.array([0.002, np.inf, np.inf])
+    p0 = p.copy()
+    moved, ids, moves = leave(x, tris, body, p, sd, body_face, part_face, d_edges=[(0, 1), (1, 2)] if spread else None)
+    np.testing.assert_allclose(p[0], (-0.009, 0.001, 0.0), atol=1e-9)
+    if spread:
+        assert moved == 2 and list(ids[:2]) == [0, 1]
+        np.testing.assert_allclose(p[1], (-0.007, 0.001, 0.0), atol=1e-9)
+        np.testing.assert_allclose(moves[1], p[1] - p0[1], atol=1e-15)
+        assert not inside_boxes(p).any()
+    else:
+        assert moved == 1
+        np.testing.assert_array_equal(p[1], p0[1])
+    np.testing.assert_array_equal(p[2], p0[2])
