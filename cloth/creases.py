@@ -24,9 +24,10 @@ point two clearances wide lies along the gap, centimetres away for a fraction of
 (forty-seventh session: those moves left about half the long edges around moved particles on
 the walk's casual outfit). Then each moved particle's neighbours are measured the same way from
 the faces its walks ended on, and moved if inside, and theirs in turn: S103 tested few of them
-(the walk's casual outfit, first 250 frames, moves up to 3 cm: vertex-frames deeper than 1 mm
-1,835 → 1,125 on the T-shirt, 6,790 → 4,510 on the jeans; with moves up to 1 cm, 1,644 and
-6,667, and edge-frames too long 9,015 → 6,924 and 41,010 → 33,106). Its height Δh is unchanged (the next frame starts from
+(the walk, first 250 frames: vertex-frames deeper than 1 mm T-shirt 1,835 → 1,125, jeans
+6,790 → 4,510, blouse 4,850 → 3,250, skirt 2,825 → 1,360, for edge-frames too long 9,015 →
+10,161, 41,010 → 45,691, 63,017 → 77,474, 19,459 → 19,937: a moved particle's edges to
+neighbours left behind). Its height Δh is unchanged (the next frame starts from
 the reference surface again); only the drawn position leaves the normal.
 """
 
@@ -39,10 +40,11 @@ from .jit import helper, kernel
 
 CREASE_DEPTH = 0.03  # m: deeper behind a surface than this, the walk's face is as likely a limb's far side: left
 FACING = -0.5  # n_a . n_b below this: the two surfaces face each other (more than 120° apart)
-# m: a way out farther than this is not taken (the particle stays where S106 put it). 1 cm, not
-# 3: a longer move leaves its edges long, and past 1 cm each vertex-frame it takes out of the body
-# cost over four edge-frames too long (forty-seventh session, walk, casual outfit)
-CREASE_MOVE = 0.01
+# m: a way out farther than this is not taken (the particle stays where S106 put it). A lower cap
+# trades depth for fewer long edges, differently per garment (forty-seventh session, walk, first
+# 250 frames: at 1 cm the casual outfit's edges too long fall by a third, the blouse's vertex-frames
+# deeper than 1 mm double; docs/history.md)
+CREASE_MOVE = 0.03
 
 
 @helper
