@@ -167,3 +167,20 @@ def test_the_neighbours_of_a_moved_particle_are_measured_from_its_faces(spread):
         assert moved == 1
         np.testing.assert_array_equal(p[1], p0[1])
     np.testing.assert_array_equal(p[2], p0[2])
+
+
+def test_no_spread_from_a_particle_with_one_surface():
+    """A particle moved out of the torso alone (S103 walked in no other part) is no crease: its
+    neighbours are not measured from its face (on the walk's blouse such walks took most of the
+    outside for inside)."""
+    x, tris, regions, body = two_boxes()
+    p = np.array([(0.02, -0.003, 0.0), (0.025, -0.002, 0.0)])
+    top = nearest_face(x, tris, p[0], lambda c: (np.abs(c[:, 1]) < 1e-9) & (c[:, 0] > 0.0))
+    body_face = np.array([top, -1], dtype=np.int32)
+    part_face = np.array([-1, -1], dtype=np.int32)
+    sd = np.array([-0.003, np.inf])
+    p0 = p.copy()
+    moved, ids, moves = leave(x, tris, body, p, sd, body_face, part_face, d_edges=[(0, 1)])
+    assert moved == 1 and ids[0] == 0
+    np.testing.assert_allclose(p[0], (0.02, 0.001, 0.0), atol=1e-9)
+    np.testing.assert_array_equal(p[1], p0[1])
