@@ -22,14 +22,15 @@ such point, and the particle stays. Where two surfaces face each other across a 
 than two clearances (an arm by the torso), the particle goes to the gap's middle: the nearest
 point two clearances wide lies along the gap, centimetres away for a fraction of a millimetre
 (forty-seventh session: those moves left about half the long edges around moved particles on
-the walk's casual outfit). Then the neighbours of each particle moved out of a crease (its walks ended
-in two body parts) are measured the same way from those two faces, and moved if inside, and
-theirs in turn: S103 tested few of them (the walk, first 250 frames: vertex-frames deeper than
-1 mm T-shirt 1,835 → 1,101, jeans 6,790 → 4,618, blouse 4,850 → 4,082, skirt 2,825 → 1,473, for
-edge-frames too long 9,015 → 9,686, 41,010 → 45,202, 63,017 → 63,850, 19,459 → 19,833: a moved
-particle's edges to neighbours left behind). Spreading from a particle with one surface as well
-moved the blouse's outside particles: 2,507 of the 3,216 it moved were outside. Its height Δh is unchanged (the next frame starts from
-the reference surface again); only the drawn position leaves the normal.
+the walk's casual outfit). Then the neighbours of each particle moved out of a crease (its
+walks ended in two body parts) are measured the same way from those two faces, and moved if
+inside, and theirs in turn: S103 tested few of them (the walk, first 250 frames: vertex-frames
+deeper than 1 mm T-shirt 1,835 → 1,101, jeans 6,790 → 4,618, blouse 4,850 → 4,082, skirt 2,825
+→ 1,473, for edge-frames too long 9,015 → 9,686, 41,010 → 45,202, 63,017 → 63,850, 19,459 →
+19,833: a moved particle's edges to neighbours left behind). Spreading from a particle with one
+surface as well moved the blouse's outside particles: 2,507 of the 3,216 it moved were outside.
+Its height Δh is unchanged (the next frame starts from the reference surface again); only the
+drawn position leaves the normal.
 """
 
 from __future__ import annotations
