@@ -44,7 +44,7 @@ CREASE_DEPTH = 0.03  # m: deeper behind a surface than this, the walk's face is 
 FACING = -0.5  # n_a . n_b below this: the two surfaces face each other (more than 120° apart)
 # m: a way out farther than this is not taken (the particle stays where S106 put it). A lower cap
 # trades depth for fewer long edges, differently per garment (forty-seventh session, walk, first
-# 250 frames: at 1 cm the casual outfit's edges too long fall by a third, the blouse's vertex-frames
+# 250 frames: at 1 cm the casual outfit's edges too long fall by a fifth, the blouse's vertex-frames
 # deeper than 1 mm double; docs/history.md)
 CREASE_MOVE = 0.03
 

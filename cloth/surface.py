@@ -68,7 +68,8 @@ class SurfaceSettings:
     # nearest point outside both (Decision, `creases.leave_creases`; its Δh is unchanged)
     creases: bool = True
     crease_rounds: int = 2  # measurements and moves per such particle (a curved crease)
-    # and a moved particle's neighbours are measured from its faces, and moved if inside, and so on
+    # and the neighbours of a particle moved out of a crease are measured from its two faces, moved if
+    # inside, and so on
     crease_spread: bool = True
 
     def __post_init__(self):
