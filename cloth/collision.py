@@ -21,6 +21,9 @@ from .jit import helper, kernel
 from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
 from .winding import WindingGrid, closed_faces, ray_crossing, winding_number
 
+# Body regions are bits of a 16-bit mask (BodyMesh.regions, a particle's region mask): at most 16 parts
+REGION_DTYPE = np.uint16
+ALL_REGIONS = 0xFFFF  # a mask that takes in every part
 BODY_ORDER_CELL = 0.01  # m: the grid of the body's Morton order (BodyMesh.build), a few body edges
 
 
@@ -34,19 +37,36 @@ class BodyMesh:
     nbr_ids: np.ndarray  # int32
     tri_start: np.ndarray  # (n + 1,) int64
     tri_ids: np.ndarray  # int32
-    regions: np.ndarray  # (n,) uint8: one bit per body region (torso, each arm, each thigh, each lower leg)
+    # (n,) REGION_DTYPE: one bit per body region (torso, each arm, each thigh, each lower leg), as S101
+    # tells them apart: each of `build`'s limbs is one region here
+    regions: np.ndarray
     tri_nbrs: np.ndarray  # (m, 3) int32: the triangle across each edge (see topology.triangle_neighbours)
     clothed_faces: np.ndarray  # (m,) bool: the faces clothes can touch (see build)
     winding_faces: np.ndarray  # (k, 3) int32: the clothed faces, their holes capped (`winding.closed_faces`)
     # (n,) int64 or None: internal vertex k is the caller's vertex vertex_order[k] (see build)
     vertex_order: np.ndarray | None = None
+    # (n,) REGION_DTYPE: the body parts S103 tells apart (upper arms and forearms too); regions if no limbs
+    parts: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.parts is None:
+            object.__setattr__(self, "parts", self.regions)
 
     @classmethod
     def build(cls, triangles: np.ndarray, n_vertices: int, regions: np.ndarray | None = None,
-              clothed_faces: np.ndarray | None = None, rest_vertices: np.ndarray | None = None) -> "BodyMesh":
+              clothed_faces: np.ndarray | None = None, rest_vertices: np.ndarray | None = None,
+              limbs: tuple[int, ...] = ()) -> "BodyMesh":
         """regions: a bit per vertex naming its body part. A particle's nearest-vertex walk stays in
         the parts it lay near at rest, so an arm swinging past the torso cannot carry a shirt's
         side away, nor one leg the other trouser leg. None: one region.
+        limbs: masks of regions that the coarse cloth (S101) takes as one region, the lowest bit of
+        each (`regions`), while the detailed surface (S103 and the moves out of creases) keeps
+        them apart (`parts`): an upper arm and its forearm. Where a bent elbow folds the forearm
+        onto the upper arm, S103's walk in another part finds a sleeve's detailed particle inside
+        the forearm where the walk on the upper arm stops outside (walk clip, the blouse: vertex-
+        frames deeper than 1 mm 5,440 -> ...). S101 keeps the arm whole: split, a sleeve particle
+        met the folded forearm as another part, which pushes only from near its surface, and in
+        the walk clip's crouch the forearm went through the sleeve and the sleeve came off it.
         clothed_faces: (m,) bool, the faces a garment can touch; only those go into the contact
         pass's face tree (`FaceTree`). The head, hands and toes are two thirds of a MakeHuman
         body's triangles, and boxes full of them would be searched for nothing. None: every face.
@@ -57,10 +77,13 @@ class BodyMesh:
         convert them with `internal`); the mesh's own arrays and `BodyPose.x` are in the inner one."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         if regions is None:
-            regions = np.ones(n_vertices, dtype=np.uint8)
-        regions = np.ascontiguousarray(regions, dtype=np.uint8)
-        if regions.shape != (n_vertices,) or np.any(regions == 0):
-            raise ValueError(f"regions must be ({n_vertices},) uint8 with a bit set for every vertex")
+            regions = np.ones(n_vertices, dtype=REGION_DTYPE)
+        regions = np.asarray(regions)
+        if (regions.shape != (n_vertices,) or regions.dtype.kind not in "ui" or np.any(regions <= 0)
+                or np.any(regions > ALL_REGIONS)):
+            raise ValueError(f"regions must be ({n_vertices},) unsigned integers of at most 16 bits, with a bit set "
+                             f"for every vertex")
+        regions = np.ascontiguousarray(regions, dtype=REGION_DTYPE)
         if clothed_faces is None:
             clothed_faces = np.ones(len(triangles), dtype=bool)
         clothed_faces = np.asarray(clothed_faces, dtype=bool)
@@ -82,8 +105,16 @@ class BodyMesh:
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
         ts, ti = vertex_cells(n_vertices, triangles)
+        limbs = np.asarray(limbs, dtype=np.int64)
+        if limbs.ndim != 1 or np.any(limbs <= 0) or np.any(limbs > ALL_REGIONS):
+            raise ValueError("limbs must be region masks of at most 16 bits")
+        parts = regions
+        if len(limbs):
+            regions = regions.copy()
+            for limb in limbs:
+                regions[(regions & limb) != 0] = limb & -limb  # the limb's lowest bit
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles), clothed_faces,
-                   closed_faces(triangles, clothed_faces), vertex_order)
+                   closed_faces(triangles, clothed_faces), vertex_order, parts)
 
     def internal(self, vertices: np.ndarray) -> np.ndarray:
         """(n, 3) float64: the caller's body vertices (>= n_vertices rows, the first n the body) in
@@ -323,7 +354,7 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
         v[i, 2] = body_vel[i, 2] + rz
 
 
-PART_SLOTS = 8  # part_nearest's columns: one per region bit (regions are uint8 bit masks)
+PART_SLOTS = 16  # part_nearest's columns: one per region bit (REGION_DTYPE)
 
 
 def part_seeds(points: np.ndarray, body_x: np.ndarray, regions: np.ndarray, masks: np.ndarray,
@@ -335,7 +366,8 @@ def part_seeds(points: np.ndarray, body_x: np.ndarray, regions: np.ndarray, mask
     if out is None:
         out = np.full((len(points), PART_SLOTS), -1, dtype=np.int32)
     out[rows] = -1
-    present = np.bitwise_or.reduce(regions) if len(regions) else 0
+    present = int(np.bitwise_or.reduce(regions)) if len(regions) else 0
+    masks = np.asarray(masks, dtype=np.int64)  # (any unsigned width: the bits below go up to 1 << 15)
     parts = masks[rows] & present
     several = rows[(parts & (parts - 1)) != 0]  # more than one bit
     pts = np.ascontiguousarray(points[several], dtype=np.float64)
@@ -345,7 +377,7 @@ def part_seeds(points: np.ndarray, body_x: np.ndarray, regions: np.ndarray, mask
         if not (present & bit) or not has.any():
             continue
         seed = np.zeros(int(has.sum()), dtype=np.int32)
-        nearest_vertices(pts[has], body_x, seed, regions, np.full(len(seed), bit, dtype=np.uint8))
+        nearest_vertices(pts[has], body_x, seed, regions, np.full(len(seed), bit, dtype=REGION_DTYPE))
         out[several[has], k] = seed
     return out
 
@@ -688,7 +720,7 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
             if nx != 0.0 or ny != 0.0 or nz != 0.0:
                 return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
     elif not settled:
-        vertex = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, 255)
+        vertex = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, tris[best_t, 0], regions, ALL_REGIONS)
     if not settled or feature >= 3:
         d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
                                                              vertex, face_n, q)
@@ -759,7 +791,7 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
     `VertexGrid` built for this pose (`VertexGrid.arrays()`); fbox, fchild, ffirst, fcount, forder,
     fparent, fleaf: a `FaceTree` refitted to this pose (`FaceTree.arrays()`); stack: its traversal scratch
     (int32, at least `FaceTree.stack_depth`);
-    part (8,) uint8, part_vertex (8,) int32, part_d2 (8,) float64: scratch for the parts.
+    part (PART_SLOTS,) REGION_DTYPE, part_vertex (PART_SLOTS,) int32, part_d2 (PART_SLOTS,): scratch for the parts.
     placed_inv_mass (n,): written, inv_mass with 0 for every particle this pass placed, so a
     strain-limiting pass after it pulls the cloth towards them and never them back inside.
     active (n,) uint8: the particles to test; the others (and their placed_inv_mass) are left
@@ -775,11 +807,11 @@ def resolve_contacts(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_start
         pnx = pny = pnz = pd = 0.0  # the plane of the last push: pn·x >= pd
         for it in range(CONTACT_ITERATIONS):
             # walk first: its distance bounds the grid search to the few cells that could hold a nearer vertex
-            vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest_any[i], regions, 255)
+            vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, nearest_any[i], regions, ALL_REGIONS)
             d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
             found, d2 = grid_nearest(px, py, pz, grid_x, cell, grid_start, grid_ids, vtx, d2)
             if found != vtx:
-                vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, found, regions, 255)
+                vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, found, regions, ALL_REGIONS)
             nearest_any[i] = vtx
             side, nx, ny, nz, qx, qy, qz, ring_face = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs,
                                                                            tri_start, tri_ids, vtx, face_n, q)
@@ -1124,7 +1156,7 @@ class BodyPose:
         `update_surface()` set."""
         self._queries_failed = True
         try:
-            self.grid.update(self.x, self.body.regions)
+            self.grid.update(self.x, self.body.regions, self.body.parts)
             if self.winding is not None:
                 self.winding.update(self.x)
             if self.faces is not None:
@@ -1166,26 +1198,35 @@ class VertexGrid:
     Bucket c holds ids[start[c]:start[c + 1]]; x and regions are the vertices' positions and
     region bits in that same order (a bucket's scan reads contiguous memory), and parts[c] is
     the OR of its vertices' region bits (a block of buckets with one body part in it needs no
-    scan for the others)."""
+    scan for the others). detail_regions and detail_parts are the same for the body parts the
+    detailed surface tells apart (`BodyMesh.parts`)."""
 
     def __init__(self, n_vertices: int, cell: float = 0.03, table_bits: int = 15):
         self.cell = cell
         self.start = np.zeros((1 << table_bits) + 1, dtype=np.int64)
         self.ids = np.zeros(n_vertices, dtype=np.int32)
         self.x = np.zeros((n_vertices, 3))
-        self.regions = np.zeros(n_vertices, dtype=np.uint8)
-        self.parts = np.zeros(1 << table_bits, dtype=np.uint8)
+        self.regions = np.zeros(n_vertices, dtype=REGION_DTYPE)
+        self.parts = np.zeros(1 << table_bits, dtype=REGION_DTYPE)
+        self.detail_regions = np.zeros(n_vertices, dtype=REGION_DTYPE)
+        self.detail_parts = np.zeros(1 << table_bits, dtype=REGION_DTYPE)
         self.counts = np.zeros(1 << table_bits, dtype=np.int64)
         self.slot = np.zeros(n_vertices, dtype=np.int64)  # each vertex's bucket (build scratch)
 
-    def update(self, body_x: np.ndarray, regions: np.ndarray) -> None:
-        """regions: (n,) uint8 region bits of the vertices (`BodyMesh.regions`)."""
-        build_vertex_grid(body_x, regions, self.cell, self.start, self.ids, self.counts, self.x, self.regions,
-                          self.parts, self.slot)
+    def update(self, body_x: np.ndarray, regions: np.ndarray, parts: np.ndarray | None = None) -> None:
+        """regions: (n,) REGION_DTYPE region bits of the vertices (`BodyMesh.regions`); parts: the
+        detailed surface's (`BodyMesh.parts`; None: regions)."""
+        build_vertex_grid(body_x, regions, regions if parts is None else parts, self.cell, self.start, self.ids,
+                          self.counts, self.x, self.regions, self.parts, self.detail_regions, self.detail_parts,
+                          self.slot)
 
     def arrays(self) -> tuple:
         """What `resolve_contacts` takes of the grid: (cell, start, ids, x, regions, parts)."""
         return self.cell, self.start, self.ids, self.x, self.regions, self.parts
+
+    def detail_arrays(self) -> tuple:
+        """The same for the detailed surface's body parts (S103: `other_part_seeds`)."""
+        return self.cell, self.start, self.ids, self.x, self.detail_regions, self.detail_parts
 
 
 @helper
@@ -1194,13 +1235,15 @@ def _cell_hash(i, j, k, mask):
 
 
 @kernel
-def build_vertex_grid(body_x, regions, cell, start, ids, counts, grid_x, grid_regions, parts, slot):
+def build_vertex_grid(body_x, regions, detail, cell, start, ids, counts, grid_x, grid_regions, parts, detail_regions,
+                      detail_parts, slot):
     """Counting sort of the body vertices by hashed cell (CSR: start, ids), with their
-    positions and regions copied in that order and each cell's OR of region bits.
-    slot (n,): scratch, each vertex's bucket (hashed once)."""
+    positions and regions (and detail: the detailed surface's parts) copied in that order and
+    each cell's OR of region bits. slot (n,): scratch, each vertex's bucket (hashed once)."""
     mask = counts.shape[0] - 1
     counts[:] = 0
     parts[:] = 0
+    detail_parts[:] = 0
     n = ids.shape[0]
     for u in range(n):
         c = _cell_hash(int(math.floor(body_x[u, 0] / cell)), int(math.floor(body_x[u, 1] / cell)),
@@ -1208,6 +1251,7 @@ def build_vertex_grid(body_x, regions, cell, start, ids, counts, grid_x, grid_re
         slot[u] = c
         counts[c] += 1
         parts[c] |= regions[u]
+        detail_parts[c] |= detail[u]
     total = 0
     for c in range(counts.shape[0]):
         start[c] = total
@@ -1220,6 +1264,7 @@ def build_vertex_grid(body_x, regions, cell, start, ids, counts, grid_x, grid_re
         ids[e] = u
         grid_x[e, 0], grid_x[e, 1], grid_x[e, 2] = body_x[u, 0], body_x[u, 1], body_x[u, 2]
         grid_regions[e] = regions[u]
+        detail_regions[e] = detail[u]
         counts[c] += 1
 
 
@@ -1232,9 +1277,9 @@ def _cell_block(px, py, pz, r, cell):
 
 
 def part_scratch() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Scratch for `grid_nearest_per_part` (part, best, best_d2): one slot per region bit, as
-    the regions are uint8 bit masks."""
-    return np.zeros(8, dtype=np.uint8), np.zeros(8, dtype=np.int32), np.zeros(8)
+    """Scratch for `grid_nearest_per_part` (part, best, best_d2): one slot per region bit."""
+    return (np.zeros(PART_SLOTS, dtype=REGION_DTYPE), np.zeros(PART_SLOTS, dtype=np.int32),
+            np.zeros(PART_SLOTS))
 
 
 @helper

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .coarsen import CoarseMesh, coarsen
+from .collision import ALL_REGIONS, REGION_DTYPE
 from .dynamics import spring_table, stable_time_step
 from .fabric import Fabric
 from .garment import Garment
@@ -132,7 +133,7 @@ class ClothModel:
     stable_dt: float
     n_structural: int  # the structural springs come first in the spring arrays (strain limiting)
     grip: np.ndarray  # (n,) uint8: 1 for particles that grip the body (a waistband), kinematic
-    region_mask: np.ndarray  # (n,) uint8: body regions each particle may touch (BodyMesh.regions bits)
+    region_mask: np.ndarray  # (n,) REGION_DTYPE: body regions each particle may touch (BodyMesh.regions bits)
     boundary_loops: list[np.ndarray] = field(default_factory=list)
     coarse: CoarseMesh | None = None  # authored-garment map (fine_triangle, fine_bary)
 
@@ -244,5 +245,5 @@ def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | 
         spring_kind=kind, rest_length=rest, k_stretch=ks, k_compress=kc, c_stretch=cs, c_compress=cc,
         spring_pairs=pairs_packed, spring_params=params_packed,
         substeps=substeps, stable_dt=dt, n_structural=int(np.sum(kind == STRUCTURAL)), grip=np.zeros(len(verts), dtype=np.uint8),
-        region_mask=np.full(len(verts), 255, dtype=np.uint8), boundary_loops=boundary_loops(faces), coarse=coarse,
+        region_mask=np.full(len(verts), ALL_REGIONS, dtype=REGION_DTYPE), boundary_loops=boundary_loops(faces), coarse=coarse,
     )

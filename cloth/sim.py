@@ -27,9 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .coarsen import coarsen
-from .collision import (FACE_TREE_STACK, PART_SLOTS, UNION_HITS, BodyMesh, BodyPose, attach_to_body,
-                        collide_particles, face_normals, follow_body, leave_body_union, part_scratch, part_seeds,
-                        resolve_contacts, track_parts)
+from .collision import (ALL_REGIONS, FACE_TREE_STACK, PART_SLOTS, REGION_DTYPE, UNION_HITS, BodyMesh, BodyPose,
+                        attach_to_body, collide_particles, face_normals, follow_body, leave_body_union, part_scratch,
+                        part_seeds, resolve_contacts, track_parts)
 from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment, face_outward
@@ -259,7 +259,7 @@ def finish_frame(model, body, state, body_x, face_n, grid, tree, winding, settin
 
 
 def particle_regions(points: np.ndarray, body_x: np.ndarray, body: BodyMesh) -> np.ndarray:
-    masks = np.zeros(len(points), dtype=np.uint8)
+    masks = np.zeros(len(points), dtype=REGION_DTYPE)
     region_masks(np.ascontiguousarray(points, dtype=np.float64), body_x, body.regions, REGION_RADIUS, masks)
     return masks
 
@@ -417,7 +417,7 @@ class ClothSim:
         s.follow_w[:] = -1.0
         nearest_vertices(s.x, body_x, s.nearest, b.regions, m.region_mask)
         part_seeds(s.x, body_x, b.regions, m.region_mask, s.part_nearest)
-        nearest_vertices(s.x, body_x, s.nearest_any, b.regions, np.full(m.n_particles, 255, dtype=np.uint8))
+        nearest_vertices(s.x, body_x, s.nearest_any, b.regions, np.full(m.n_particles, ALL_REGIONS, dtype=REGION_DTYPE))
         free = np.zeros_like(m.grip)
         attach_to_body(s.x, body_x, b.triangles, b.tri_start, b.tri_ids, s.nearest, free, s.face, s.bary,
                        s.height, s.anchor, face_n)

@@ -253,7 +253,7 @@ class DetailedSurface:
             if not find_parts:
                 s.seed_count[:] = 0
             else:
-                other_part_seeds(x, coarse_nearest, body_x, body.regions, *grid.arrays(), s.part, s.part_vertex,
+                other_part_seeds(x, coarse_nearest, body_x, body.parts, *grid.detail_arrays(), s.part, s.part_vertex,
                                  s.part_d2, s.part_seeds, s.seed_reach, s.seed_count)
             if face_tip is None:
                 if len(s.no_tips) != len(body.triangles):
@@ -262,7 +262,7 @@ class DetailedSurface:
             self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, s.facing, s.other, t.face_ids, t.order,
                                             t.parents, x, coarse_nearest, find_parts, s.part_seeds, s.seed_reach,
                                             s.seed_count, s.parts, s.reach, body_x, body.nbr_start, body.nbr_ids,
-                                            body.regions, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
+                                            body.parts, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
                                             s.body_face, s.part_face, face_n, s.q, face_tip, st.tip_share,
                                             st.clearance, st.contact_margin,
                                             st.face_margin, st.penetration_iterations, st.max_lift, st.max_height)
@@ -305,7 +305,7 @@ class DetailedSurface:
         t4 = time.perf_counter()
         if body is not None and st.creases:  # (S103's Decision, counted with its time)
             self.creased = leave_creases(s.p, s.sd, s.body_face, s.part_face, body_x, body.triangles, body.tri_nbrs,
-                                         body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids, body.regions,
+                                         body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids, body.parts,
                                          face_n, s.q, s.plane_a, s.plane_b, st.clearance, st.crease_rounds,
                                          t.n_coarse, st.crease_spread, m.d_edges, m.d_edge_start, m.d_edge_ids,
                                          s.crease_seen, s.creased_ids, s.crease_moves, s.crease_faces)

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from .collision import deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
+from .collision import ALL_REGIONS, deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
 from .geometry import add_face_normal
 from .jit import FAST_ARITHMETIC, helper, kernel
 
@@ -123,7 +123,7 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
     fresh = f < 0
     while True:
         if fresh:
-            vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, seed, regions, 255)
+            vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, seed, regions, ALL_REGIONS)
             f = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
             if f < 0:  # no usable face around the vertex
                 body_face[i] = -1

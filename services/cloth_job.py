@@ -25,7 +25,7 @@ from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
-from skinning.body import Body, body_clothed_faces, body_regions
+from skinning.body import ARM_LIMBS, Body, body_clothed_faces, body_regions
 from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings
 from skinning.source import BVHSource
@@ -55,6 +55,13 @@ def find_outfit(data: Path, name: str | Path) -> Path:
         there = sorted(p.name for p in (Path(data) / "garments").glob("*") if p.is_dir())
         raise FileNotFoundError(f"outfit {str(name)!r} not found (looked for {folder}); available: {there}")
     return folder
+
+
+def collision_body(body: Body) -> BodyMesh:
+    """The body as the cloth collides with it: its parts (upper arms and forearms apart, one
+    sleeve over both), the faces clothes can touch, numbered along a Morton curve."""
+    return BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body), body.vertices,
+                          limbs=ARM_LIMBS)
 
 
 def smoothstep(t: float) -> float:
@@ -279,8 +286,7 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
     wanted = set(snapshot_frames or [])
     with BVHSource(clip, every=every, max_frames=max_frames) as source:
         animator = BodyAnimator(body, source.skeleton, ik=ik, contact=contact)
-        body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body),
-                                   body.vertices)
+        body_mesh = collision_body(body)
         outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)
         # garments one after the other: the per-garment stage timings stay those of one core
         session = OutfitSession(body, animator, body_mesh, outfit, surface, threads=1)

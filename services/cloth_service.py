@@ -29,15 +29,15 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from cloth.collision import BodyMesh
 from cloth.fabric import fabric as fabric_preset
 from cloth.geometry import vertex_normals
 from cloth.surface import SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
-from skinning.body import Body, body_clothed_faces, body_regions
+from skinning.body import Body
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
-from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, find_outfit, load_outfit_models, outfit_layers
+from .cloth_job import (GARMENT_COLORS, Outfit, OutfitSession, collision_body, find_outfit, load_outfit_models,
+                        outfit_layers)
 from .heap import freeze_heap, reclaim_heap
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
@@ -232,8 +232,7 @@ class ClothService:
         self._last_work = 0.0  # monotonic time the serving thread last handled a message
         self.idle_seconds = idle_seconds
         self.animator = BodyAnimator(body)
-        self.body_mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body),
-                                        body.vertices)
+        self.body_mesh = collision_body(body)
         self.sessions: dict[str, GarmentSession] = {}
         self.failed: dict[str, str] = {}  # session -> why it cannot be served
         self.ended: dict[str, int] = {}  # session -> stamp_ns of its end message

@@ -130,19 +130,31 @@ def load_body(data: str | Path | None = None) -> Body:
 # each. The legs are split at the knee: behind a bent knee the thigh's and the calf's skins
 # form a crease, and a walk over one leg stops on the thigh while a detailed cloth vertex
 # is inside the calf (walk, jeans: detailed vertex-frames deeper than 1 mm 29,563 -> 22,940).
-# (One bit each, uint8: one bit is left; the elbows would need two.)
+# The arms are split at the elbow for the same reason: in the walk's crouch, a hand at the face,
+# the forearm folds onto the upper arm inside the sleeve (see the README, "Detailed surface").
+# One bit each, in 16-bit masks (REGION_DTYPE).
 BODY_REGIONS = {
     "torso": 1,
-    "left_arm": 2,
-    "right_arm": 4,
+    "left_upper_arm": 2,
+    "right_upper_arm": 4,
     "left_thigh": 8,
     "right_thigh": 16,
     "left_lower_leg": 32,
     "right_lower_leg": 64,
+    "left_forearm": 128,  # with the hand
+    "right_forearm": 256,
 }
+REGION_DTYPE = np.uint16
+# each arm's regions, upper arm and forearm (with the hand): one sleeve covers both
+# (`cloth.collision.BodyMesh.build`'s limbs)
+ARM_LIMBS = (BODY_REGIONS["left_upper_arm"] | BODY_REGIONS["left_forearm"],
+             BODY_REGIONS["right_upper_arm"] | BODY_REGIONS["right_forearm"])
+ARM_REGIONS = ARM_LIMBS[0] | ARM_LIMBS[1]
 _REGION_BONES = {
-    "left_arm": ("LeftArm", "LeftForeArm", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb"),
-    "right_arm": ("RightArm", "RightForeArm", "RightHand", "RightFingerBase", "RightHandFinger1", "RThumb"),
+    "left_upper_arm": ("LeftArm",),
+    "right_upper_arm": ("RightArm",),
+    "left_forearm": ("LeftForeArm", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb"),
+    "right_forearm": ("RightForeArm", "RightHand", "RightFingerBase", "RightHandFinger1", "RThumb"),
     "left_thigh": ("LeftUpLeg",),
     "right_thigh": ("RightUpLeg",),
     "left_lower_leg": ("LeftLeg", "LeftFoot", "LeftToeBase"),
@@ -168,9 +180,9 @@ def body_clothed_faces(body: Body) -> np.ndarray:
 
 
 def body_regions(body: Body) -> np.ndarray:
-    """(n_visible,) uint8 region bit per visible vertex (BODY_REGIONS), from its dominant bone."""
+    """(n_visible,) REGION_DTYPE region bit per visible vertex (BODY_REGIONS), from its dominant bone."""
     names = body.skeleton.names
-    bone_region = np.full(len(names), BODY_REGIONS["torso"], dtype=np.uint8)
+    bone_region = np.full(len(names), BODY_REGIONS["torso"], dtype=REGION_DTYPE)
     for region, bones in _REGION_BONES.items():
         for b in bones:
             if b in names:

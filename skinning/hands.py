@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from .body import BODY_REGIONS, UNCLOTHED_BONES, Body, body_regions
+from .body import ARM_REGIONS, UNCLOTHED_BONES, Body, body_regions
 from .ik_kernels import smooth_fade
 from .skeleton import Skeleton
 from .skin import MeshNormals
@@ -233,7 +233,7 @@ class HandClearance:
         """Both hands of a MakeHuman body, kept out of its torso and legs."""
         rest = np.ascontiguousarray(body.vertices[: body.n_visible], dtype=np.float64)
         normals = MeshNormals(body.triangles, body.n_visible)(rest, np.zeros_like(rest))
-        arms = BODY_REGIONS["left_arm"] | BODY_REGIONS["right_arm"]
+        arms = ARM_REGIONS
         return cls(rest, normals, body.weight_bones, body.weight_values, body.n_visible, body_regions(body), arms,
                    body.skeleton, settings)
 

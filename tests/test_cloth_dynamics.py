@@ -13,7 +13,7 @@ from cloth import dynamics
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_scratch, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
 from cloth.model import SimSettings
-from cloth.sim import mark_moved
+from cloth.sim import REGION_RADIUS, mark_moved, particle_regions
 
 REFINE_RADIUS = 0.08  # the contact pass's nearest-face query where it is on (SimSettings.nearest_face_radius)
 
@@ -428,6 +428,47 @@ def test_body_face_normals_are_unit_normals_and_twice_the_areas():
     verts = np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0], [0.0, 4.0, 0.0], [6.0, 0.0, 0.0]])
     tris = np.array([[0, 1, 2], [0, 2, 1], [0, 1, 3]], np.int32)
     np.testing.assert_allclose(face_normals(verts, tris), [[0, 0, 1, 12], [0, 0, -1, 12], [0, 0, 0, 0]], atol=1e-15)
+
+
+def test_body_regions_are_sixteen_bit_masks():
+    """Region bits past the first eight (a MakeHuman forearm's is 256) are kept as they are, and
+    a vertex without a region, or with a bit past the sixteenth, is refused with what is wrong."""
+    verts, tris = box(0.1, 2)
+    regions = np.where(verts[:, 0] < 0, 1, 256)
+    mesh = BodyMesh.build(tris, len(verts), regions)
+    assert mesh.regions.dtype == np.uint16
+    np.testing.assert_array_equal(mesh.regions, regions)
+    for bad in (0, 1 << 16):
+        with pytest.raises(ValueError, match="at most 16 bits, with a bit set for every vertex"):
+            BodyMesh.build(tris, len(verts), np.where(verts[:, 0] < 0, 1, bad))
+
+
+def test_a_limb_is_one_region_for_the_coarse_cloth_and_two_parts_for_the_detailed_surface():
+    """Three boxes in a row along x, 0.3 m apart: a torso (region 1), an upper arm (2) and a
+    forearm (256), the arm's two regions one limb. The coarse cloth sees the arm as one region,
+    its lowest bit (a particle over the forearm has region mask 2), the detailed surface as two
+    parts; so does the vertex grid, built for both. Without the limb both see three. Limbs that
+    are not region masks are refused."""
+    parts = [box(0.05, 2)[0] + [0.3 * k, 0.0, 0.0] for k in range(3)]
+    tris = np.vstack([box(0.05, 2)[1] + k * len(parts[0]) for k in range(3)]).astype(np.int32)
+    verts = np.vstack(parts)
+    regions = np.repeat([1, 2, 256], len(parts[0]))
+    points = np.array([[0.6, 0.06, 0.0], [0.3, 0.06, 0.0], [0.0, 0.06, 0.0]])
+    assert REGION_RADIUS < 0.3 - 0.05 - 0.06  # each point is near its own box alone
+    limb = BodyMesh.build(tris, len(verts), regions, limbs=(2 | 256,))
+    np.testing.assert_array_equal(limb.parts, regions)
+    np.testing.assert_array_equal(limb.regions, np.repeat([1, 2, 2], len(parts[0])))
+    np.testing.assert_array_equal(particle_regions(points, verts, limb), [2, 2, 1])
+    grid = VertexGrid(len(verts))
+    grid.update(verts, limb.regions, limb.parts)
+    np.testing.assert_array_equal(grid.regions, limb.regions[grid.ids])
+    np.testing.assert_array_equal(grid.detail_regions, regions[grid.ids])
+    assert np.bitwise_or.reduce(grid.parts) == 3 and np.bitwise_or.reduce(grid.detail_parts) == 259
+    apart = BodyMesh.build(tris, len(verts), regions)
+    assert apart.parts is apart.regions
+    np.testing.assert_array_equal(particle_regions(points, verts, apart), [256, 2, 1])
+    with pytest.raises(ValueError, match="limbs must be region masks"):
+        BodyMesh.build(tris, len(verts), regions, limbs=(0,))
 
 
 def test_vertex_grid_buckets_copy_positions_and_or_the_parts_of_each_cell():

@@ -77,3 +77,7 @@ def test_body_regions_and_clothed_faces_follow_the_dominant_bones(body):
     assert (regions[dominant == "LeftUpLeg"] == BODY_REGIONS["left_thigh"]).all()
     assert (regions[dominant == "RightLeg"] == BODY_REGIONS["right_lower_leg"]).all()
     assert (regions[dominant == "Spine"] == BODY_REGIONS["torso"]).all()
+    # the arms split at the elbow, the hand with the forearm; region bits past uint8
+    assert (regions[dominant == "LeftArm"] == BODY_REGIONS["left_upper_arm"]).all()
+    assert (regions[np.isin(dominant, ["RightForeArm", "RightHand"])] == BODY_REGIONS["right_forearm"]).all()
+    assert regions.dtype == np.uint16 and BODY_REGIONS["right_forearm"] > 255

@@ -577,22 +577,23 @@ def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(f
         assert inside[over].all() and np.isinf(surf.state.sd[over]).all()  # never tested
 
 
-@pytest.mark.parametrize("find_parts", [True, False])
-def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(find_parts):
+@pytest.mark.parametrize("find_parts,arm_bit", [(True, 2), (False, 2), (True, 256)])
+def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(find_parts, arm_bit):
     """Two body parts: a torso box 4 mm under the sheet, whose faces every walk from the coarse
     particles' nearest vertices (on the torso) ends on, and an arm box in the sheet's middle
     whose bottom is 1 mm under it. The nearest surface to the particles over the arm's bottom
     is the arm's: they are 1 mm inside it, though the walk on the torso says 4 mm outside. The
     walk that starts in the arm (through the vertex grid) finds it; they go down, out of the
     arm, to y = -2 mm (1 mm under its bottom, 2 mm over the torso), and no particle is left
-    inside the arm. Without the grid they stay where they are, inside the arm."""
+    inside the arm. Without the grid they stay where they are, inside the arm. The same with the
+    arm's region bit past the first eight (as a MakeHuman forearm's is)."""
     tv, tt = box(half=0.05, n=8)
     tv = tv + [0.08, -0.054, 0.04]  # torso: top face at y = -4 mm
     av, at = box(half=0.02, n=8)
     av = av + [0.08, 0.019, 0.04]  # arm: bottom face at y = -1 mm, x 0.06-0.10, z 0.02-0.06
     bv = np.ascontiguousarray(np.vstack([tv, av]))
     bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
-    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint8)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(av), arm_bit)].astype(np.uint16)
     body = BodyMesh.build(bt, len(bv), regions)
     grid = VertexGrid(len(bv))
     grid.update(bv, regions)
