@@ -64,7 +64,7 @@ class BodyMesh:
         them apart (`parts`): an upper arm and its forearm. Where a bent elbow folds the forearm
         onto the upper arm, S103's walk in another part finds a sleeve's detailed particle inside
         the forearm where the walk on the upper arm stops outside (walk clip, the blouse: vertex-
-        frames deeper than 1 mm 5,440 -> ...). S101 keeps the arm whole: split, a sleeve particle
+        frames deeper than 1 mm 5,803 -> 3,023). S101 keeps the arm whole: split, a sleeve particle
         met the folded forearm as another part, which pushes only from near its surface, and in
         the walk clip's crouch the forearm went through the sleeve and the sleeve came off it.
         clothed_faces: (m,) bool, the faces a garment can touch; only those go into the contact
