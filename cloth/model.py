@@ -245,5 +245,6 @@ def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | 
         spring_kind=kind, rest_length=rest, k_stretch=ks, k_compress=kc, c_stretch=cs, c_compress=cc,
         spring_pairs=pairs_packed, spring_params=params_packed,
         substeps=substeps, stable_dt=dt, n_structural=int(np.sum(kind == STRUCTURAL)), grip=np.zeros(len(verts), dtype=np.uint8),
-        region_mask=np.full(len(verts), ALL_REGIONS, dtype=REGION_DTYPE), boundary_loops=boundary_loops(faces), coarse=coarse,
+        region_mask=np.full(len(verts), ALL_REGIONS, dtype=REGION_DTYPE), boundary_loops=boundary_loops(faces),
+        coarse=coarse,
     )

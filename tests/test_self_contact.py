@@ -42,7 +42,8 @@ def test_an_arm_lowered_through_the_torso_is_counted_there_and_grows_with_the_ov
     counts = [contact(*(lambda f: (f.vertices, f.normals))(_arm_lowered(animator, d))) for d in (-30, -40, -50)]
     torso = REGIONS.index("torso")
     arm = [c[LEFT_ARM].sum() for c in counts]
-    for c, a in zip(counts, arm):  # the A-pose arm (about 40 degrees out) turned 30-50 degrees in: it enters the chest's side
+    # the A-pose arm (about 40 degrees out) turned 30-50 degrees in: it enters the chest's side
+    for c, a in zip(counts, arm):
         assert a > 0
         assert c.sum() == a + c[torso]  # nothing else moved
     assert arm[0] < arm[1] < arm[2]
