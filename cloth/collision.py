@@ -354,24 +354,34 @@ def collide_particles(x, v, body_x, body_vel, nbr_start, nbr_ids, tris, tri_star
         v[i, 2] = body_vel[i, 2] + rz
 
 
-PART_SLOTS = 16  # part_nearest's columns: one per region bit (REGION_DTYPE)
+PART_SLOTS = 16  # the most region bits a body has (REGION_DTYPE)
+
+
+def part_slots(regions: np.ndarray) -> int:
+    """part_nearest's columns for a body whose vertices have these region bits: one per bit up
+    to the highest used (S101's body, with each limb merged, uses 7 of the 16; the kernels scan
+    every column of every particle)."""
+    present = int(np.bitwise_or.reduce(regions)) if len(regions) else 0
+    return max(present.bit_length(), 1)
 
 
 def part_seeds(points: np.ndarray, body_x: np.ndarray, regions: np.ndarray, masks: np.ndarray,
                out: np.ndarray | None = None, rows: np.ndarray | None = None) -> np.ndarray:
-    """part_nearest for `collide_particles`: (n, PART_SLOTS) int32, column k the nearest vertex
-    of region bit 1 << k for a particle whose mask has two or more parts of the body, else -1
-    (brute force: setup and recovery only). rows: fill only these rows of out."""
+    """part_nearest for `collide_particles`: (n, part_slots(regions)) int32, column k the nearest
+    vertex of region bit 1 << k for a particle whose mask has two or more parts of the body, else
+    -1 (brute force: setup and recovery only). rows: fill only these rows of out."""
     rows = np.arange(len(points)) if rows is None else np.asarray(rows)
     if out is None:
-        out = np.full((len(points), PART_SLOTS), -1, dtype=np.int32)
+        out = np.full((len(points), part_slots(regions)), -1, dtype=np.int32)
+    elif out.shape[1] < part_slots(regions):
+        raise ValueError(f"part_seeds: out has {out.shape[1]} columns, the body's regions need {part_slots(regions)}")
     out[rows] = -1
     present = int(np.bitwise_or.reduce(regions)) if len(regions) else 0
     masks = np.asarray(masks, dtype=np.int64)  # (any unsigned width: the bits below go up to 1 << 15)
     parts = masks[rows] & present
     several = rows[(parts & (parts - 1)) != 0]  # more than one bit
     pts = np.ascontiguousarray(points[several], dtype=np.float64)
-    for k in range(PART_SLOTS):
+    for k in range(out.shape[1]):
         bit = 1 << k
         has = (masks[several] & bit) != 0
         if not (present & bit) or not has.any():

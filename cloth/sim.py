@@ -29,7 +29,7 @@ import numpy as np
 from .coarsen import coarsen
 from .collision import (ALL_REGIONS, FACE_TREE_STACK, PART_SLOTS, REGION_DTYPE, UNION_HITS, BodyMesh, BodyPose,
                         attach_to_body, collide_particles, face_normals, follow_body, leave_body_union, part_scratch,
-                        part_seeds, resolve_contacts, track_parts)
+                        part_seeds, part_slots, resolve_contacts, track_parts)
 from .dynamics import limit_stretch, rk4_substep, spring_scratch
 from .fabric import Fabric
 from .garment import Garment, face_outward
@@ -318,11 +318,11 @@ class ClothStats:
 class ClothState:
     """Everything that changes per frame, preallocated."""
 
-    def __init__(self, n: int, n_springs: int):
+    def __init__(self, n: int, n_springs: int, n_slots: int = PART_SLOTS):
         self.x = np.zeros((n, 3))  # positions, m
         self.v = np.zeros((n, 3))  # velocities, m/s
         self.nearest = np.zeros(n, dtype=np.int32)  # nearest body vertex in the particle's body regions
-        self.part_nearest = np.full((n, PART_SLOTS), -1, dtype=np.int32)  # and in each of them (see part_seeds)
+        self.part_nearest = np.full((n, n_slots), -1, dtype=np.int32)  # and in each of them (see part_seeds)
         self.nearest_any = np.zeros(n, dtype=np.int32)  # nearest body vertex over the whole body
         self.q = np.zeros(3)  # contact pass scratch, and for the body parts near a particle:
         self.stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # the face tree's traversal
@@ -357,7 +357,7 @@ class ClothSim:
     def __init__(self, model: ClothModel, body: BodyMesh, body_vertices: np.ndarray):
         self.model = model
         self.body = body
-        self.state = ClothState(model.n_particles, len(model.spring_i))
+        self.state = ClothState(model.n_particles, len(model.spring_i), part_slots(body.regions))
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
         self.union_tested = np.zeros(2, dtype=np.int64)  # particles the last frame's union passes tested

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from cloth.collision import (FACE_TREE_STACK, PART_SLOTS, BodyMesh, BodyPose, FaceTree, VertexGrid, attach_to_body,
-                             collide_particles, face_normals, follow_body, resolve_contacts, tree_nearest_face)
+                             collide_particles, face_normals, follow_body, part_seeds, part_slots, resolve_contacts,
+                             tree_nearest_face)
 from cloth import dynamics
 from cloth.dynamics import limit_stretch, rk4_substep, spring_forces, spring_scratch, spring_table, stable_time_step
 from cloth.fabric import FabricError, fabric, fabric_from_table, load_fabrics
@@ -469,6 +470,27 @@ def test_a_limb_is_one_region_for_the_coarse_cloth_and_two_parts_for_the_detaile
     np.testing.assert_array_equal(particle_regions(points, verts, apart), [256, 2, 1])
     with pytest.raises(ValueError, match="limbs must be region masks"):
         BodyMesh.build(tris, len(verts), regions, limbs=(0,))
+
+
+def test_part_seeds_have_a_column_per_region_bit_up_to_the_highest_used():
+    """A torso (1), an upper arm (2) and a forearm (256) as three boxes. With the arm one limb
+    the coarse cloth's regions use bits 0 and 1, so part_nearest needs two columns, not 16;
+    without it, nine (bit 8). A particle between torso and upper arm gets a seed in both
+    columns, each a vertex of its part; a table too narrow for the body is refused."""
+    parts = [box(0.05, 2)[0] + [0.3 * k, 0.0, 0.0] for k in range(3)]
+    tris = np.vstack([box(0.05, 2)[1] + k * len(parts[0]) for k in range(3)]).astype(np.int32)
+    verts = np.vstack(parts)
+    regions = np.repeat([1, 2, 256], len(parts[0]))
+    limb = BodyMesh.build(tris, len(verts), regions, limbs=(2 | 256,))
+    apart = BodyMesh.build(tris, len(verts), regions)
+    assert part_slots(limb.regions) == 2 and part_slots(apart.regions) == 9
+    point = np.array([[0.15, 0.0, 0.0]])
+    seeds = part_seeds(point, verts, limb.regions, np.array([3]))
+    assert seeds.shape == (1, 2)
+    assert limb.regions[seeds[0, 0]] == 1 and limb.regions[seeds[0, 1]] == 2
+    assert part_seeds(point, verts, apart.regions, np.array([1 | 256])).shape == (1, 9)
+    with pytest.raises(ValueError, match="out has 2 columns, the body's regions need 9"):
+        part_seeds(point, verts, apart.regions, np.array([3]), out=np.zeros((1, 2), np.int32))
 
 
 def test_vertex_grid_buckets_copy_positions_and_or_the_parts_of_each_cell():
