@@ -371,10 +371,11 @@ def part_seeds(points: np.ndarray, body_x: np.ndarray, regions: np.ndarray, mask
     vertex of region bit 1 << k for a particle whose mask has two or more parts of the body, else
     -1 (brute force: setup and recovery only). rows: fill only these rows of out."""
     rows = np.arange(len(points)) if rows is None else np.asarray(rows)
+    slots = part_slots(regions)
     if out is None:
-        out = np.full((len(points), part_slots(regions)), -1, dtype=np.int32)
-    elif out.shape[1] < part_slots(regions):
-        raise ValueError(f"part_seeds: out has {out.shape[1]} columns, the body's regions need {part_slots(regions)}")
+        out = np.full((len(points), slots), -1, dtype=np.int32)
+    elif out.shape[1] < slots:
+        raise ValueError(f"part_seeds: out has {out.shape[1]} columns, the body's regions need {slots}")
     out[rows] = -1
     present = int(np.bitwise_or.reduce(regions)) if len(regions) else 0
     masks = np.asarray(masks, dtype=np.int64)  # (any unsigned width: the bits below go up to 1 << 15)
