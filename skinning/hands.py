@@ -233,9 +233,8 @@ class HandClearance:
         """Both hands of a MakeHuman body, kept out of its torso and legs."""
         rest = np.ascontiguousarray(body.vertices[: body.n_visible], dtype=np.float64)
         normals = MeshNormals(body.triangles, body.n_visible)(rest, np.zeros_like(rest))
-        arms = ARM_REGIONS
-        return cls(rest, normals, body.weight_bones, body.weight_values, body.n_visible, body_regions(body), arms,
-                   body.skeleton, settings)
+        return cls(rest, normals, body.weight_bones, body.weight_values, body.n_visible, body_regions(body),
+                   ARM_REGIONS, body.skeleton, settings)
 
     def turn(self, hand: dict, vertices: np.ndarray, rotations: np.ndarray, shoulder: np.ndarray,
              axis: np.ndarray) -> float:
