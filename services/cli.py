@@ -177,12 +177,11 @@ def _spec(args, data: Path | None = None):
 
 
 def _wait(stop_check=None) -> None:
-    """Block until Ctrl-C (or stop_check() is true)."""
-    try:
-        while stop_check is None or not stop_check():
-            time.sleep(0.2)
-    except KeyboardInterrupt:
-        pass
+    """Block until Ctrl-C or SIGTERM (`kill`, `docker stop`, systemd), or stop_check() is true;
+    the caller then closes what it holds (a recorder its file, a service its sessions)."""
+    with _stop_on_signals() as stop:
+        while not stop.wait(0.2) and (stop_check is None or not stop_check()):
+            pass
 
 
 @contextlib.contextmanager
@@ -223,12 +222,15 @@ def cmd_session(args) -> int:
     if args.serve:
         print(f"  serving: rerun viewer `rerun --connect rerun+http://<this-host>:{args.port}/proxy`; "
               f"zenoh displays connect to {cfg.listen[0]}; Ctrl-C to stop")
-    result = run_session(body, data, clip, session, Path(args.out), spec, every=args.every,
-                         max_frames=args.max_frames, bus_config=cfg,
-                         serve_port=args.port if args.serve else None,
-                         web_port=args.web_port if args.serve else None, record=not args.no_record,
-                         snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None,
-                         ik=ik, contact=_contact(args))
+    # Ctrl-C or SIGTERM ends the stream between frames; what was published is still simulated,
+    # and the .rrd, the recording and the snapshots are closed as at the clip's end
+    with _stop_on_signals() as stop:
+        result = run_session(body, data, clip, session, Path(args.out), spec, every=args.every,
+                             max_frames=args.max_frames, bus_config=cfg,
+                             serve_port=args.port if args.serve else None,
+                             web_port=args.web_port if args.serve else None, record=not args.no_record,
+                             snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None,
+                             ik=ik, contact=_contact(args), stop=stop)
     print(result.summary())
     return 0
 

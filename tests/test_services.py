@@ -185,6 +185,36 @@ def test_full_session_across_processes(data, tmp_path):
                 p.kill()
 
 
+def test_a_recorder_stopped_with_sigterm_closes_its_recording(data, tmp_path):
+    """`tryon record` stopped as a service manager stops it (SIGTERM, not Ctrl-C) writes MCAP's
+    summary and footer and renames the file: what it received is kept, none left in a .part."""
+    port = free_port()
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = tmp_path / "term.mcap"
+    with open(tmp_path / "record.log", "w") as fh:
+        rec = subprocess.Popen([sys.executable, "-m", "services.cli", "--data", str(data), "record", "--session", "term",
+                                "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}"],
+                               env=env, stdout=fh, stderr=subprocess.STDOUT, text=True)
+    log = tmp_path / "record.log"
+    try:
+        wait_until(lambda: "recording" in log.read_text() or rec.poll() is not None, 60, "the recorder to start")
+        bus = BusConfig(mode="client", listen=[], connect=[f"tcp/127.0.0.1:{port}"]).open()
+        try:
+            for i in range(3):
+                bus.put(key("term", "stats", "test"), encode(Message("stats", "term", i, meta={"n": i})))
+            wait_until(lambda: (out.parent / "term.mcap.part").exists(), 10, "the recording to start")
+            time.sleep(1.0)  # the three messages written
+        finally:
+            bus.close()
+        rec.send_signal(signal.SIGTERM)
+        assert rec.wait(timeout=30) == 0, log.read_text()
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    assert out.exists() and not (out.parent / "term.mcap.part").exists(), log.read_text()
+    assert [decode(p).frame for k, p, _ in read_recording(out)] == [0, 1, 2]
+
+
 def test_late_joining_display_gets_topology_and_frames(hub, body, data, tmp_path):
     port, cloth = hub
     bus = peer(port)

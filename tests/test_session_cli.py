@@ -112,3 +112,40 @@ def test_a_schema_1_recording_still_replays_and_an_unknown_one_is_refused(tmp_pa
     assert k == "tryon/old/body" and decode(payload, k).arrays["normals"].shape == (4, 3)
     with pytest.raises(ValueError, match="'tryon/9'"):
         list(read_recording(tmp_path / "v9.mcap"))
+
+
+def test_a_session_stopped_with_sigterm_closes_its_files(tmp_path):
+    """`tryon session` stopped half-way by SIGTERM (a service manager, `kill`) ends the stream
+    between frames and closes its files as at the clip's end: the .rrd and a complete MCAP
+    recording (no .part left) in which every published body frame has its garments."""
+    import os
+    import signal
+    import time
+
+    root = Path(__file__).resolve().parents[1]
+    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    log = tmp_path / "session.log"
+    part = tmp_path / "t3.mcap.part"
+    with open(log, "w") as fh:
+        p = subprocess.Popen([sys.executable, "-m", "services.cli", "session", "--session", "t3", "--level", "3",
+                              "--no-png", "--out", str(tmp_path)], env=env, stdout=fh, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 300
+        # frames are being recorded (the walk has about 1,200 at every other frame: far from its end)
+        while not (part.exists() and part.stat().st_size > 1_000_000) and p.poll() is None:
+            assert time.monotonic() < deadline, log.read_text()
+            time.sleep(0.1)
+        assert p.poll() is None, log.read_text()
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=120) == 0, log.read_text()
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["session.log", "t3.mcap", "t3.rrd"], log.read_text()
+    frames: dict[str, list[int]] = {}
+    for k, payload, _ in read_recording(tmp_path / "t3.mcap"):
+        frames.setdefault("/".join(parse_key(k)[1]), []).append(decode(payload, k).frame)
+    body = frames["body"]
+    assert 2 <= len(body) < 1000 and body == list(range(1, len(body) + 1))
+    assert all(frames[g] == body for g in frames if g.startswith("garment/")), "a garment frame is missing"
+    assert "cloth: received" in log.read_text()  # the summary was printed
