@@ -166,8 +166,13 @@ class OutfitSession:
         self._own_pool = pool is None and threads > 1
         self._pool = SpinPool(threads - 1, 0.0) if self._own_pool else pool
         self._threads = threads
-        # garment k goes to thread k % n (thread 0: the caller), for n = 1 (helpers busy) .. threads
-        self._shares = {n: [list(range(r, len(self.sims), n)) for r in range(n)] for n in range(1, threads + 1)}
+        # each garment's step time, a running average (s): with n threads, the garments in order of
+        # it go to threads 0, 1, .., n - 1, 0, ..: the caller (thread 0), which also updates the
+        # body's queries (0.7 ms), takes the cheapest (the elegant outfit's skirt, not its blouse:
+        # the frame 0.2 ms sooner). Which thread steps a garment never changes its result.
+        self.garment_seconds = np.zeros(len(self.sims))
+        self._order = list(range(len(self.sims)))
+        self._shares = self._share_out(self._order)
         self.detailed: list[tuple[np.ndarray, np.ndarray]] = []  # per garment: (positions, normals) of the last frame
         self.surface_seconds = np.zeros((len(self.sims), 3))
         # the frame's body: face normals, vertex grid, face tree; shared by the garments
@@ -196,6 +201,9 @@ class OutfitSession:
         self.pose.update_surface(body_vertices)
         self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt, on_garment)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
+        order = sorted(range(len(self.sims)), key=self.garment_seconds.__getitem__)
+        if order != self._order:
+            self._order, self._shares = order, self._share_out(order)
         shares = self._shares[min(self._threads, 1 + len(helpers)) if helpers else 1]
         out: list = [None] * len(self.sims)
         submitted, failed = [], []
@@ -236,6 +244,10 @@ class OutfitSession:
         """Garment k's detailed (positions, normals) of the frame last stepped."""
         return self._detailed[k]
 
+    def _share_out(self, order: list[int]) -> dict[int, list[list[int]]]:
+        """For n = 1 (helpers busy) .. threads: the garments of each thread, dealt out in `order`."""
+        return {n: [order[r::n] for r in range(n)] for n in range(1, self._threads + 1)}
+
     def _step_share(self, share: list[int]) -> list[np.ndarray]:
         return [self._step_garment(k) for k in share]
 
@@ -251,6 +263,9 @@ class OutfitSession:
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
                                           surface_dt, self.pose.grid, self.pose.face_tips())
             self.surface_seconds[k] = surf.stage_seconds
+        spent = time.perf_counter() - t0
+        avg = self.garment_seconds[k]
+        self.garment_seconds[k] = spent if avg == 0.0 else avg + 0.1 * (spent - avg)
         if on_garment is not None and not (surface and k in self.layered_garments):
             on_garment(k, x)  # a layered garment's once it is layered (step_cloth)
         return x

@@ -103,7 +103,7 @@ def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
     session = OutfitSession.__new__(OutfitSession)  # the stepping logic alone, on stand-in garments
     pool = SpinPool(1, 0.0)
     session._pool, session._threads, session.sims = pool, 2, [None, None]
-    session._shares = {1: [[0, 1]], 2: [[0], [1]]}
+    session.garment_seconds, session._order, session._shares = np.zeros(2), [0, 1], {1: [[0, 1]], 2: [[0], [1]]}
     session.surfaces = []
     session.pose = SimpleNamespace(update_surface=lambda v: None, update_queries=lambda: None)
     calls = []
@@ -126,13 +126,41 @@ def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
         pool.close()
 
 
+def test_the_callers_thread_steps_the_cheapest_garment():
+    """The caller's thread also updates the body's queries: it steps the garment whose running
+    average step time is the least, the helper the other, and the shares follow the averages
+    when they change order."""
+    session = OutfitSession.__new__(OutfitSession)  # the stepping logic alone, on stand-in garments
+    pool = SpinPool(1, 0.0)
+    session._pool, session._threads, session.sims, session.surfaces = pool, 2, [None, None], []
+    session.garment_seconds, session._order = np.array([0.004, 0.003]), [0, 1]
+    session._shares = session._share_out(session._order)
+    session.pose = SimpleNamespace(update_surface=lambda v: None, update_queries=lambda: None)
+    threads = {}
+
+    def step(k):
+        threads[k] = threading.get_ident()
+        return k
+
+    session._step_garment = step
+    try:
+        assert session.step_cloth(None, 1 / 60) == [0, 1]
+        assert threads[1] == threading.get_ident() != threads[0]
+        session.garment_seconds[:] = (0.002, 0.003)
+        assert session.step_cloth(None, 1 / 60) == [0, 1]
+        assert threads[0] == threading.get_ident() != threads[1]
+        assert session._shares[1] == [[0, 1]]  # helpers busy: the caller steps both
+    finally:
+        pool.close()
+
+
 @pytest.mark.parametrize("outfit_name", [OUTFITS[0], "female_sportsuit01"])
 def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, data, outfit_name):
     """The casual and the sport outfit (two garments each, coarse and detailed) over 12
     run-clip frames: on one thread; on a helper thread beside the caller (own pool, and a
     shared polling pool); and with the shared pool held by someone else (the frame falls back
     to one thread). Each garment is handed to on_garment once a frame, done, on the thread that
-    stepped it, but a garment worn over or under another (the casual outfit's T-shirt and
+    stepped it (the caller's: the one of least average step time so far), but a garment worn over or under another (the casual outfit's T-shirt and
     jeans, layered once both are done) on the caller's."""
     with BVHSource(data / "mocap" / "cmu_npybvh_example_75f.bvh", every=2, max_frames=14) as source:
         animator = BodyAnimator(body, source.skeleton)
@@ -149,6 +177,7 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
             try:
                 for v in frames:
                     handed = []
+                    cheapest = int(np.argmin(session.garment_seconds))  # stepped on the caller's thread
 
                     def on_garment(k, x, session=session, handed=handed):
                         p, n = session.garment_surface(k)
@@ -159,7 +188,7 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
                     helper_used = threads == 2 and not hold
                     assert bool(session.layered_garments) == (outfit_name == OUTFITS[0])
                     for k, ident, x, p in handed:
-                        on_helper = helper_used and k == 1 and k not in session.layered_garments
+                        on_helper = helper_used and k != cheapest and k not in session.layered_garments
                         assert (ident != threading.get_ident()) == on_helper
                         np.testing.assert_array_equal(x, session.sims[k].state.x)
                         np.testing.assert_array_equal(p, session.detailed[k][0])
