@@ -160,8 +160,9 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
     run-clip frames: on one thread; on a helper thread beside the caller (own pool, and a
     shared polling pool); and with the shared pool held by someone else (the frame falls back
     to one thread). Each garment is handed to on_garment once a frame, done, on the thread that
-    stepped it (the caller's: the one of least average step time so far), but a garment worn over or under another (the casual outfit's T-shirt and
-    jeans, layered once both are done) on the caller's."""
+    stepped it (the caller's: the one of least average step time so far), but a garment worn
+    over or under another (the casual outfit's T-shirt and jeans, layered once both are done)
+    on the caller's."""
     with BVHSource(data / "mocap" / "cmu_npybvh_example_75f.bvh", every=2, max_frames=14) as source:
         animator = BodyAnimator(body, source.skeleton)
         frames = [animator(f.local_rot, f.root_position).vertices.copy() for f in source][2:]
