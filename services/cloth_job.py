@@ -169,7 +169,7 @@ class OutfitSession:
         # each garment's step time, a running average (s): with n threads, the garments in order of
         # it go to threads 0, 1, .., n - 1, 0, ..: the caller (thread 0), which also updates the
         # body's queries (0.7 ms), takes the cheapest (the elegant outfit's skirt, not its blouse:
-        # the frame 0.2 ms sooner). Which thread steps a garment never changes its result.
+        # 0.5 ms off the frame, offline). Which thread steps a garment never changes its result.
         self.garment_seconds = np.zeros(len(self.sims))
         self._order = list(range(len(self.sims)))
         self._shares = self._share_out(self._order)
