@@ -1,3 +1,4 @@
+import os
 from pathlib import Path
 
 import pytest
@@ -22,3 +23,10 @@ def body(data):
 @pytest.fixture(scope="session")
 def mocap(data) -> Path:
     return data / "mocap"
+
+
+@pytest.fixture(scope="session")
+def cli_env() -> dict[str, str]:
+    """The environment for a `python -m services.cli` subprocess: this checkout first on its path."""
+    root = Path(__file__).resolve().parents[1]
+    return dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import gc
 import logging
-import os
 import signal
 import socket
 import subprocess
@@ -34,7 +33,6 @@ OUTFIT = "female_casualsuit01"
 GARMENTS = (f"{OUTFIT}.bottom", f"{OUTFIT}.top")
 SHORT = "cmu_npybvh_example_75f"
 LEVEL = 3  # a small detailed surface keeps the tests quick; the pipeline is the same
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def free_port() -> int:
@@ -117,18 +115,17 @@ def run_ingest(bus, session, body, data, clip=SHORT, max_frames=None, pace="fast
     return t, svc
 
 
-def test_full_session_across_processes(data, tmp_path):
+def test_full_session_across_processes(data, tmp_path, cli_env):
     """router, cloth service and mocap-ingest in three OS processes; this process records and watches."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     cli = [sys.executable, "-m", "services.cli", "--data", str(data)]
     procs = []
 
     def start(args, ready: str | None):
         log = tmp_path / f"{args[0]}.log"
         with open(log, "w") as fh:
-            p = subprocess.Popen(cli + args, env=env, stdout=fh, stderr=subprocess.STDOUT, text=True)
+            p = subprocess.Popen(cli + args, env=cli_env, stdout=fh, stderr=subprocess.STDOUT, text=True)
         procs.append(p)
         if ready:
             wait_until(lambda: ready in log.read_text() or p.poll() is not None, 120, f"{args[0]} to start")
@@ -185,16 +182,15 @@ def test_full_session_across_processes(data, tmp_path):
                 p.kill()
 
 
-def test_a_recorder_stopped_with_sigterm_closes_its_recording(data, tmp_path):
+def test_a_recorder_stopped_with_sigterm_closes_its_recording(data, tmp_path, cli_env):
     """`tryon record` stopped as a service manager stops it (SIGTERM, not Ctrl-C) writes MCAP's
     summary and footer and renames the file: what it received is kept, none left in a .part."""
     port = free_port()
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = tmp_path / "term.mcap"
     with open(tmp_path / "record.log", "w") as fh:
         rec = subprocess.Popen([sys.executable, "-m", "services.cli", "--data", str(data), "record", "--session", "term",
                                 "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}"],
-                               env=env, stdout=fh, stderr=subprocess.STDOUT, text=True)
+                               env=cli_env, stdout=fh, stderr=subprocess.STDOUT, text=True)
     log = tmp_path / "record.log"
     try:
         wait_until(lambda: "recording" in log.read_text() or rec.poll() is not None, 60, "the recorder to start")

@@ -114,21 +114,18 @@ def test_a_schema_1_recording_still_replays_and_an_unknown_one_is_refused(tmp_pa
         list(read_recording(tmp_path / "v9.mcap"))
 
 
-def test_a_session_stopped_with_sigterm_closes_its_files(tmp_path):
+def test_a_session_stopped_with_sigterm_closes_its_files(tmp_path, cli_env):
     """`tryon session` stopped half-way by SIGTERM (a service manager, `kill`) ends the stream
     between frames and closes its files as at the clip's end: the .rrd and a complete MCAP
     recording (no .part left) in which every published body frame has its garments."""
-    import os
     import signal
     import time
 
-    root = Path(__file__).resolve().parents[1]
-    env = dict(os.environ, PYTHONPATH=str(root) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     log = tmp_path / "session.log"
     part = tmp_path / "t3.mcap.part"
     with open(log, "w") as fh:
         p = subprocess.Popen([sys.executable, "-m", "services.cli", "session", "--session", "t3", "--level", "3",
-                              "--no-png", "--out", str(tmp_path)], env=env, stdout=fh, stderr=subprocess.STDOUT)
+                              "--no-png", "--out", str(tmp_path)], env=cli_env, stdout=fh, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 300
         # frames are being recorded (the walk has about 1,200 at every other frame: far from its end)
