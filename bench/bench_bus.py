@@ -35,6 +35,7 @@ ROOT = Path(__file__).resolve().parents[1]
 CLIP = "cmu_131_01_walk_3dsmax"
 OUTFIT = "female_casualsuit01"
 INGEST_OPTIONS: list[str] = []  # extra options of every mocap-ingest process (--no-skin-contact)
+CLOTH_OPTIONS: list[str] = []  # extra options of the cloth service (--float32-meshes)
 
 
 def free_port() -> int:
@@ -50,6 +51,7 @@ class Arrivals:
         self.lock = threading.Lock()
         self.frames: dict[tuple[str, int], dict] = {}  # (session, frame) -> {garment: (arrival, origin)}
         self.body: dict[str, list[int]] = {s: [] for s in sessions}
+        self.garment_bytes: dict[str, int] = {}  # garment -> size of its last message
         self.subs = []
         for s in sessions:
             self.subs.append(bus.declare_subscriber(key(s, "garment", "*"), self.on_garment))
@@ -58,10 +60,12 @@ class Arrivals:
     def on_garment(self, sample) -> None:
         now = time.time_ns()
         k = str(sample.key_expr)
-        m = decode(sample.payload.to_bytes(), k)
+        data = sample.payload.to_bytes()
+        m = decode(data, k)
         if "preroll_s" in m.meta:  # the first frame waits for the session's pre-roll
             return
         with self.lock:
+            self.garment_bytes[parse_key(k)[1][1]] = len(data)
             self.frames.setdefault((m.session, m.frame), {})[parse_key(k)[1][1]] = (now, m.origin_ns, m.meta)
 
     def on_body(self, sample) -> None:
@@ -123,7 +127,7 @@ def run(endpoint: str, sessions: list[str], every: int, pace: str, frames: int, 
 def start_cloth(endpoint: str, level: int, catch_up: bool, pin_cores: str | None = None) -> subprocess.Popen:
     level_args = ["--coarse-only"] if level == 0 else ["--level", str(level)]
     cloth = subprocess.Popen(cli("cloth-service", "--listen", endpoint, "--outfit", OUTFIT, *level_args,
-                                 *(["--catch-up"] if catch_up else []),
+                                 *(["--catch-up"] if catch_up else []), *CLOTH_OPTIONS,
                                  *(["--pin-cores", pin_cores] if pin_cores else [])), cwd=ROOT,
                              stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     for line in cloth.stdout:
@@ -160,15 +164,19 @@ def main() -> None:
     ap.add_argument("--pin-cores", metavar="LIST", default="auto",
                     help="passed to the cloth service: auto (its default), none, or cores (e.g. 0,1)")
     ap.add_argument("--no-skin-contact", action="store_true", help="passed to the mocap-ingest processes")
+    ap.add_argument("--float32-meshes", action="store_true", help="passed to the cloth service")
     args = ap.parse_args()
     if args.no_skin_contact:
         INGEST_OPTIONS.append("--no-skin-contact")
+    if args.float32_meshes:
+        CLOTH_OPTIONS.append("--float32-meshes")
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     print(f"machine: {cpu_name()}, {os.cpu_count()} cores, Python {platform.python_version()}")
     print(f"outfit {OUTFIT} (two garments), level {args.level or 'coarse only'}, clip {CLIP}; "
           f"cloth service, ingest and this subscriber in separate processes over TCP loopback"
-          f"; cloth service --pin-cores {args.pin_cores}; ingest {' '.join(INGEST_OPTIONS) or 'with the skin contact'}\n")
+          f"; cloth service --pin-cores {args.pin_cores} {' '.join(CLOTH_OPTIONS)}"
+          f"; ingest {' '.join(INGEST_OPTIONS) or 'with the skin contact'}\n")
     print("| cloth service | input | frames | latency p50 ms | p99 ms | max ms | frames without garments | "
           "compute ms/frame |")
     print("|---|---|---|---|---|---|---|---|")
@@ -189,6 +197,8 @@ def main() -> None:
         rate = (len(arr) - 1) / ((arr[-1] - arr[0]) / 1e9)
         print(f"\nsustained throughput (input as fast as possible): {rate:.1f} frames/s "
               f"({total} frames, {dropped} dropped, run {time.perf_counter() - t0:.0f} s)")
+        print("garment messages: " + ", ".join(f"{g} {n / 1000:.0f} kB" for g, n in sorted(a.garment_bytes.items()))
+              + f" ({'float32' if args.float32_meshes else 'compact'})")
         print("\n| concurrent 60 Hz sessions | latency p50 ms | p99 ms | dropped | holds |")
         print("|---|---|---|---|---|")
         for k in range(1, args.max_sessions + 1):

@@ -292,7 +292,7 @@ def cmd_cloth_service(args) -> int:
     body = load_body(data)
     with bus_config_from_args(args).open() as bus:
         svc = ClothService(bus, body, data, spec, idle_seconds=args.idle, catch_up=args.catch_up,
-                           spin=args.spin_ms / 1000.0, cpus=cpus).start()
+                           spin=args.spin_ms / 1000.0, cpus=cpus, float32_meshes=args.float32_meshes).start()
         print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)
         _wait()
         svc.stop()
@@ -489,6 +489,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--spin-ms", type=float, default=1000.0 * LIVE_SPIN,
                    help="after each frame, poll this long for the next before sleeping (default 20: a 60 Hz "
                         "session keeps the cores awake; an idle core can wake a millisecond late; 0: never poll)")
+    p.add_argument("--float32-meshes", action="store_true",
+                   help="publish garment positions and normals as float32 (24 bytes a vertex) rather than on a "
+                        "16-bit grid with octahedral normals (10 bytes, at most 8 um and 0.004 deg off)")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_cloth_service)
 

@@ -41,6 +41,7 @@ from .cloth_job import (GARMENT_COLORS, Outfit, OutfitSession, collision_body, f
 from .heap import freeze_heap, reclaim_heap
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
+from .wire import CompactMesh
 
 log = logging.getLogger("tryon.cloth")
 
@@ -87,8 +88,10 @@ class GarmentSession:
             n_out = [sf.model.n_vertices for sf in self.sim.surfaces]
         else:
             n_out = [m.n_particles for m in outfit.models]
-        self._p32 = [np.empty((n, 3), np.float32) for n in n_out]  # wire buffers, reused every frame
-        self._n32 = [np.empty((n, 3), np.float32) for n in n_out]
+        # wire buffers, reused every frame
+        self._p32 = [np.empty((n, 3), np.float32) for n in n_out] if service.float32_meshes else None
+        self._n32 = [np.empty((n, 3), np.float32) for n in n_out] if service.float32_meshes else None
+        self._compact = None if service.float32_meshes else [CompactMesh(n) for n in n_out]
         self.body_x = np.empty((service.body.n_visible, 3))
         self.last_frame = -1
         self.started = False
@@ -186,10 +189,13 @@ class GarmentSession:
             meta.update(pn_ms=round(pn, 4), collision_ms=round(col, 4), deformation_ms=round(deform, 4))
             if k in sim.layered_garments:  # kept over (under) the garment under (over) it once both were done
                 meta["layer_ms"] = round(sim.layer_seconds * 1000, 4)
-        self._p32[k][:] = p
-        self._n32[k][:] = n
-        out = Message("garment", self.session, msg.frame, msg.time, {"positions": self._p32[k], "normals": self._n32[k]},
-                      meta, origin_ns=msg.stamp_ns)
+        if self._compact is not None:
+            arrays = self._compact[k].encode(p, n)
+        else:
+            self._p32[k][:] = p
+            self._n32[k][:] = n
+            arrays = {"positions": self._p32[k], "normals": self._n32[k]}
+        out = Message("garment", self.session, msg.frame, msg.time, arrays, meta, origin_ns=msg.stamp_ns)
         self.publishers[k].put(encode(out))
         self.stats.add("published")
 
@@ -208,7 +214,8 @@ class ClothService:
 
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
                  queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
-                 catch_up: bool = False, spin: float = 0.0, cpus: list[int] | None = None):
+                 catch_up: bool = False, spin: float = 0.0, cpus: list[int] | None = None,
+                 float32_meshes: bool = False):
         """catch_up: when a session's body frames queue up, step the coarse cloth through every one
         of them but build and publish the detailed surface only for the newest (live displays stay
         current; the output then depends on timing). Off: every frame is published, in order, and
@@ -218,8 +225,11 @@ class ClothService:
         cores stay busy while sessions stream).
         cpus: cores to keep the threads to, one each (`services.spin.pin_to_cpu`): the serving
         thread on the first, a garment helper on each of the others; None: one helper per core
-        beyond the first, unpinned."""
+        beyond the first, unpinned.
+        float32_meshes: publish garment positions and normals as float32 (24 bytes a vertex)
+        rather than compact (`services.wire`: a 16-bit grid and octahedral normals, 10 bytes)."""
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
+        self.float32_meshes = float32_meshes
         self.catch_up = catch_up
         self.spin = spin
         # helper threads for the garments, shared by the sessions: one per core beyond this

@@ -18,7 +18,7 @@ Header fields:
     stamp_ns  wall-clock time of publication, ns since the Unix epoch (int)
     origin_ns stamp_ns of the message this one was computed from (garment: its body frame;
               body: its pose message, or its own stamp_ns) - end-to-end latency = now - origin_ns
-    arrays    [{"name": str, "dtype": "<f4" | "<f8" | "<i4" | "<u4" | "|u1", "shape": [int, ...]}, ...]
+    arrays    [{"name": str, "dtype": "<f4" | "<f8" | "<i4" | "<u4" | "<i2" | "<u2" | "|u1", "shape": [int, ...]}, ...]
     meta      free JSON object (per-kind fields, documented in README "Bus contract")
 
 A message that breaks any rule raises MessageError naming the key expression and the problem;
@@ -35,16 +35,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAGIC = b"TRYN"
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 MAX_LEVEL = 16  # the finest PN tessellation level a session description may ask for
 # versions this build reads. Version 1 differs only in the body message, which had to carry the
 # skin's vertex normals: half its bytes, read by no service (a display computes them from the
-# latched topology); a version 1 recording still replays.
-READABLE_VERSIONS = (1, 2)
+# latched topology). Version 2 garments are float32 only; version 3 adds the compact garment
+# arrays (`services.wire`). Recordings of either still replay.
+READABLE_VERSIONS = (1, 2, 3)
 PREFIX = struct.Struct("<4sHI")
 MAX_HEADER = 1 << 20
 ALIGN = 8
-DTYPES = {"<f4": np.float32, "<f8": np.float64, "<i4": np.int32, "<u4": np.uint32, "|u1": np.uint8}
+DTYPES = {"<f4": np.float32, "<f8": np.float64, "<i4": np.int32, "<u4": np.uint32, "<i2": np.int16,
+          "<u2": np.uint16, "|u1": np.uint8}
 KINDS = ("session", "skeleton", "pose", "body", "garment", "topology", "stats", "control")
 
 # Required arrays per kind: name -> (allowed dtypes, shape pattern; None = any length, an int = exact).
@@ -54,7 +56,7 @@ SCHEMAS: dict[str, dict[str, tuple[tuple[str, ...], tuple]]] = {
                  "tails": (("<f8", "<f4"), (None, 3))},
     "pose": {"local_rotations": (("<f8", "<f4"), (None, 4)), "root_position": (("<f8", "<f4"), (3,))},
     "body": {"vertices": (("<f4",), (None, 3)), "q": (("<f8",), (None,))},
-    "garment": {"positions": (("<f4",), (None, 3)), "normals": (("<f4",), (None, 3))},
+    "garment": {},  # positions and normals, as float32 or compact: GARMENT_FORMS
     "topology": {"triangles": (("<i4",), (None, 3))},
     "stats": {},
     "control": {},
@@ -62,7 +64,13 @@ SCHEMAS: dict[str, dict[str, tuple[tuple[str, ...], tuple]]] = {
 # Arrays a message may carry, validated like the required ones when present.
 OPTIONAL: dict[str, dict[str, tuple[tuple[str, ...], tuple]]] = {
     "body": {"normals": (("<f4",), (None, 3))},  # version 1 always had them
+    "garment": {"positions": (("<f4",), (None, 3)), "normals": (("<f4",), (None, 3)),
+                "positions_u16": (("<u2",), (None, 3)), "position_origin": (("<f4",), (3,)),
+                "position_step": (("<f4",), (3,)), "normals_oct16": (("<i2",), (None, 2))},
 }
+# A garment carries its positions and its normals each in exactly one of these forms.
+GARMENT_FORMS = {"positions": (("positions",), ("positions_u16", "position_origin", "position_step")),
+                 "normals": (("normals",), ("normals_oct16",))}
 
 
 class MessageError(ValueError):
@@ -194,10 +202,28 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
             raise MessageError(key, f"array {name!r} has shape {tuple(a.shape)}, expected {want}")
         if a.dtype.kind == "f" and not np.isfinite(a).all():
             raise MessageError(key, f"array {name!r} holds NaN or infinite values")
-    points = arrays.get("vertices" if k == "body" else "positions")
-    if "normals" in arrays and points is not None and arrays["normals"].shape[0] != points.shape[0]:
-        raise MessageError(key, f"{arrays['normals'].shape[0]} normals for {points.shape[0]} vertices")
+    if k == "garment":
+        _check_garment_forms(arrays, key)
+    points = arrays.get("vertices" if k == "body" else "positions", arrays.get("positions_u16"))
+    normals = arrays.get("normals", arrays.get("normals_oct16"))
+    if normals is not None and points is not None and normals.shape[0] != points.shape[0]:
+        raise MessageError(key, f"{normals.shape[0]} normals for {points.shape[0]} vertices")
     return Message(k, s, frame, float(t), arrays, meta, stamp, origin)
+
+
+def _check_garment_forms(arrays: dict[str, np.ndarray], key: str) -> None:
+    for what, forms in GARMENT_FORMS.items():
+        present = [f for f in forms if any(name in arrays for name in f)]
+        if len(present) != 1:
+            names = " or ".join("+".join(f) for f in forms)
+            raise MessageError(key, f"garment message needs its {what} as {names}"
+                                    + (", not both" if present else ""))
+        missing = [name for name in present[0] if name not in arrays]
+        if missing:
+            raise MessageError(key, f"garment message lacks array {missing[0]!r} (with {present[0][0]!r})")
+    step = arrays.get("position_step")
+    if step is not None and not (step > 0).all():
+        raise MessageError(key, f"array 'position_step' must be > 0, got {step.tolist()}")
 
 
 def peek_header(data: bytes | memoryview) -> dict | None:

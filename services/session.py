@@ -29,6 +29,7 @@ from .protocol import MessageError, decode
 from .recorder import Recorder
 from .spin import LIVE_SPIN
 from .viewer import RecordingSink, VertexNormals, ViewerBridge
+from .wire import garment_mesh
 
 # how long the ingest waits for its in-process cloth service to report the session ready (or failed)
 EMBEDDED_WAIT_READY = 1800.0
@@ -69,8 +70,10 @@ class SessionTap:
                 self.garment_frames += 1
                 self.last_garment_frame = max(self.last_garment_frame, msg.frame)
             if msg.frame in self.wanted:
-                pos = msg.arrays["vertices" if msg.kind == "body" else "positions"]
-                normals = msg.arrays.get("normals")  # the body's: none since schema 2
+                if msg.kind == "body":
+                    pos, normals = msg.arrays["vertices"], msg.arrays.get("normals")  # normals: none since schema 2
+                else:
+                    pos, normals = garment_mesh(msg.arrays)
                 self.frames.setdefault(msg.frame, {})["/".join(parts)] = (
                     pos.copy(), None if normals is None else normals.copy())
 

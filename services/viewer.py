@@ -22,6 +22,7 @@ from skinning.skin import MeshNormals
 
 from .bus import Stats, fetch_latched, key, parse_key
 from .protocol import MessageError, decode
+from .wire import garment_mesh
 
 log = logging.getLogger("tryon.viewer")
 
@@ -222,13 +223,15 @@ class ViewerBridge:
             self.fetch_topology()
             if ent not in self.topology:
                 raise MessageError(key_expr, "no topology latched for this mesh yet")
-        pos = msg.arrays["vertices" if msg.kind == "body" else "positions"]
+        if msg.kind == "body":
+            pos, normals = msg.arrays["vertices"], msg.arrays.get("normals")
+        else:
+            pos, normals = garment_mesh(msg.arrays)
         if pos.shape[0] != self.topology[ent]["n_vertices"]:
             raise MessageError(key_expr, f"{pos.shape[0]} vertices, the topology has {self.topology[ent]['n_vertices']}")
         self.stats.add("received")
         self.rec.set_time("frame", sequence=msg.frame)
         self.rec.set_time("session_time", duration=msg.time)
-        normals = msg.arrays.get("normals")
         if normals is None:  # the body (schema 2): shaded here, from the latched topology
             topo = self.topology[ent]
             if topo["shading"] is None:

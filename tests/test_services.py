@@ -26,6 +26,7 @@ from services.ingest import BusPoseSource, IngestService, publish_capture
 from services.protocol import Message, decode, encode
 from services.recorder import Recorder, read_recording, replay
 from services.viewer import RecordingSink, ViewerBridge
+from services.wire import garment_mesh
 from skinning.animate import BodyAnimator
 from skinning.source import BVHSource
 
@@ -160,8 +161,9 @@ def test_full_session_across_processes(data, tmp_path, cli_env):
             wait_until(lambda: all(garments.frames(f"garment/{g}") == frames for g in GARMENTS), 120, "every garment frame")
             for k, m in garments.messages:
                 t = topo[key("procs", "topology", "garment", parse_key(k)[1][1])]
-                assert m.arrays["positions"].shape == (int(t.meta["n_vertices"]), 3)
-                assert np.isfinite(m.arrays["positions"]).all()
+                positions, normals = garment_mesh(m.arrays)  # compact on the bus (services.wire)
+                assert "positions_u16" in m.arrays and positions.shape == (int(t.meta["n_vertices"]), 3)
+                assert np.isfinite(positions).all() and np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-5)
             wait_until(lambda: any(m.meta["service"] == "cloth" and m.meta["counts"]["received"] == len(frames)
                                    for _, m in stats.messages), 10, "the cloth service's final stats")
             path = recorder.close()
@@ -276,25 +278,37 @@ def test_replay_reproduces_garment_meshes_exactly(hub, body, data, tmp_path):
         bus.close()
     recorded = {(k.split("/", 2)[2], decode(p).frame): decode(p) for k, p, _ in read_recording(path, {"garment"})}
     assert len(recorded) == 2 * svc.frames
-    # a fresh cloth service on a bus of its own, fed only the recorded body stream (+ its description)
-    port2 = free_port()
-    bus2 = BusConfig(listen=[f"tcp/127.0.0.1:{port2}"]).open()
-    fresh = ClothService(bus2, body, data, OutfitSpec("nonexistent-default")).start()
-    player = peer(port2)
-    try:
-        out = Collector(bus2, key("again", "garment", "*"))
-        n = replay(player, path, session="again", speed=0, kinds={"session", "topology", "body", "control"},
-                   wait_subscribers=10, linger=3)  # the description is still answered while frames queue
-        assert n == svc.frames + 1  # body frames and the end
-        wait_until(lambda: len(out.messages) == len(recorded), 120, "the replayed garments")
-        for k, m in out.messages:
-            ref = recorded[(k.split("/", 2)[2], m.frame)]
-            for name in ("positions", "normals"):
-                assert m.arrays[name].tobytes() == ref.arrays[name].tobytes(), f"{k} frame {m.frame} {name}"
-    finally:
-        fresh.stop()
-        player.close()
-        bus2.close()
+    # a fresh cloth service on a bus of its own, fed only the recorded body stream (+ its description):
+    # the same compact meshes bit for bit; then one publishing float32 meshes, which the compact
+    # ones match to their grid step and 0.004 degrees (services.wire)
+    for float32_meshes in (False, True):
+        port2 = free_port()
+        bus2 = BusConfig(listen=[f"tcp/127.0.0.1:{port2}"]).open()
+        fresh = ClothService(bus2, body, data, OutfitSpec("nonexistent-default"), float32_meshes=float32_meshes).start()
+        player = peer(port2)
+        try:
+            out = Collector(bus2, key("again", "garment", "*"))
+            n = replay(player, path, session="again", speed=0, kinds={"session", "topology", "body", "control"},
+                       wait_subscribers=10, linger=3)  # the description is still answered while frames queue
+            assert n == svc.frames + 1  # body frames and the end
+            wait_until(lambda: len(out.messages) == len(recorded), 120, "the replayed garments")
+            for k, m in out.messages:
+                ref = recorded[(k.split("/", 2)[2], m.frame)]
+                if not float32_meshes:
+                    assert m.arrays.keys() == ref.arrays.keys()
+                    for name, a in m.arrays.items():
+                        assert a.tobytes() == ref.arrays[name].tobytes(), f"{k} frame {m.frame} {name}"
+                    continue
+                assert set(m.arrays) == {"positions", "normals"}
+                p, n = garment_mesh(ref.arrays)
+                ulp = np.spacing(np.abs(m.arrays["positions"]).max())
+                assert (np.abs(p - m.arrays["positions"]) <= ref.arrays["position_step"] / 2 + 2 * ulp).all()
+                a, b = n.astype(np.float64), m.arrays["normals"].astype(np.float64)
+                assert np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), (a * b).sum(1))).max() < 0.005
+        finally:
+            fresh.stop()
+            player.close()
+            bus2.close()
 
 
 def test_malformed_messages_are_rejected_counted_and_the_session_goes_on(hub, body, data, caplog):
@@ -361,8 +375,9 @@ def test_two_concurrent_sessions_do_not_see_each_other(hub, body, data, monkeypa
             assert all(m.session == s and k.startswith(f"tryon/{s}/") for k, m in seen[s].messages)
             assert not any(other in k for k, _ in seen[s].messages)
         # different motions: the two sessions' garments differ
-        a = [m for k, m in seen["alpha"].messages if k.endswith(GARMENTS[1])][3].arrays["positions"]
-        b = [m for k, m in seen["beta"].messages if k.endswith(GARMENTS[1])][3].arrays["positions"]
+        a = [m for k, m in seen["alpha"].messages if k.endswith(GARMENTS[1])][3].arrays
+        b = [m for k, m in seen["beta"].messages if k.endswith(GARMENTS[1])][3].arrays
+        a, b = garment_mesh(a)[0], garment_mesh(b)[0]
         assert np.abs(a - b).max() > 0.01
     finally:
         stop.set()
@@ -398,7 +413,7 @@ def test_a_cloth_service_started_late_joins_a_running_session(body, data, monkey
         assert served == list(range(served[0], served[0] + len(served)))
         first = next(m for k, m in garments.messages if m.frame == served[0])
         assert first.meta["preroll_s"] > 0  # settled into its first frame
-        assert np.isfinite(first.arrays["positions"]).all()
+        assert np.isfinite(garment_mesh(first.arrays)[0]).all()
         gs = cloth.sessions["joined"]
         assert not any(o is gs for o in gc.get_objects())  # frozen: no collection walks it
     finally:
