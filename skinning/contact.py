@@ -26,7 +26,7 @@ from numba import get_num_threads, get_thread_id, njit, prange
 from numba.core.options import DefaultOptions
 
 from .body import Body, body_clothed_faces
-from .skin import MeshNormals
+from .skin import MeshNormals, vertex_faces
 
 # the lens test inlined by LLVM where numba offers it (a first run compiles far faster than with
 # numba's own inlining; the same machine code), by numba otherwise
@@ -75,11 +75,41 @@ def far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across):
     return inward < across * np.sqrt(d2)
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True)
+def skin_normals(x, tris, adj_start, adj_faces, faces, verts, out):
+    """Area-weighted unit normals at verts into out (n, 3), faces (m, 3) scratch: what
+    `skin.vertex_normals` gives there, bit for bit, on the calling thread and for the clothed
+    vertices only: its parallel loops over the whole body took 240 µs a pose, mostly waking the
+    other thread; this takes 95."""
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+        e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+        faces[t, 0] = e1y * e2z - e1z * e2y
+        faces[t, 1] = e1z * e2x - e1x * e2z
+        faces[t, 2] = e1x * e2y - e1y * e2x
+    for q in range(verts.shape[0]):
+        v = verts[q]
+        nx = 0.0
+        ny = 0.0
+        nz = 0.0
+        for k in range(adj_start[v], adj_start[v + 1]):
+            f = adj_faces[k]
+            nx += faces[f, 0]
+            ny += faces[f, 1]
+            nz += faces[f, 2]
+        l2 = nx * nx + ny * ny + nz * nz
+        inv = 1.0 / np.sqrt(l2) if l2 > 0.0 else 0.0
+        out[v, 0] = nx * inv
+        out[v, 1] = ny * inv
+        out[v, 2] = nz * inv
+
+
+@njit(cache=True, nogil=True)
 def face_boxes(x, tris, inv_cell, corners, lo, hi):
     """Per face: its corners side by side (corners (m, 9), one load per face in the ray tests)
     and the cell range of its bounding box (lo/hi (m, 3))."""
-    for t in prange(tris.shape[0]):
+    for t in range(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         for d in range(3):
             corners[t, d] = x[a, d]
@@ -89,39 +119,35 @@ def face_boxes(x, tris, inv_cell, corners, lo, hi):
             hi[t, d] = int(np.floor(max(x[a, d], x[b, d], x[c, d]) * inv_cell))
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@njit(cache=True, nogil=True)
 def build_face_grid(lo, hi, mask, start, ids, counts):
     """Every face into each hashed cell its bounding box overlaps (`face_boxes`): a counting sort
-    into start/ids, the faces split into counts.shape[0] runs counted and placed in parallel
-    (each run's faces after the earlier runs' in a cell: the same order every time). Returns the
-    entries needed (> len(ids): grow ids and ask again)."""
+    into start/ids, each cell's faces in face order; counts (mask + 1,) scratch. Returns the
+    entries needed (> len(ids): grow ids and ask again). On the calling thread: split over two
+    threads it took as long (450 against 370-430 µs a pose: waking the other thread twice)."""
     m = lo.shape[0]
-    runs = counts.shape[0]
-    for r in prange(runs):
-        counts[r, :] = 0
-        for t in range(r * m // runs, (r + 1) * m // runs):
-            for i in range(lo[t, 0], hi[t, 0] + 1):
-                for j in range(lo[t, 1], hi[t, 1] + 1):
-                    for k in range(lo[t, 2], hi[t, 2] + 1):
-                        counts[r, _cell_hash(i, j, k, mask)] += 1
+    counts[:] = 0
+    for t in range(m):
+        for i in range(lo[t, 0], hi[t, 0] + 1):
+            for j in range(lo[t, 1], hi[t, 1] + 1):
+                for k in range(lo[t, 2], hi[t, 2] + 1):
+                    counts[_cell_hash(i, j, k, mask)] += 1
     n = 0
-    for h in range(mask + 1):  # counts become each run's next slot in the cell
+    for h in range(mask + 1):  # counts become the cell's next slot
         start[h] = n
-        for r in range(runs):
-            c = counts[r, h]
-            counts[r, h] = n
-            n += c
+        c = counts[h]
+        counts[h] = n
+        n += c
     start[mask + 1] = n
     if n > ids.shape[0]:
         return n
-    for r in prange(runs):
-        for t in range(r * m // runs, (r + 1) * m // runs):
-            for i in range(lo[t, 0], hi[t, 0] + 1):
-                for j in range(lo[t, 1], hi[t, 1] + 1):
-                    for k in range(lo[t, 2], hi[t, 2] + 1):
-                        h = _cell_hash(i, j, k, mask)
-                        ids[counts[r, h]] = t
-                        counts[r, h] += 1
+    for t in range(m):
+        for i in range(lo[t, 0], hi[t, 0] + 1):
+            for j in range(lo[t, 1], hi[t, 1] + 1):
+                for k in range(lo[t, 2], hi[t, 2] + 1):
+                    h = _cell_hash(i, j, k, mask)
+                    ids[counts[h]] = t
+                    counts[h] += 1
     return n
 
 
@@ -361,8 +387,9 @@ class SkinContact:
         self.verts = np.unique(self.tris)
         self.rest = np.ascontiguousarray(rest_vertices, dtype=np.float64)
         self.rest_centroid = self.rest[self.tris].mean(axis=1)
-        self._normals = MeshNormals(self.tris, len(self.rest))
-        self.rest_normals = self._normals(self.rest, np.zeros((len(self.rest), 3)))
+        self._adj_start, self._adj_faces = vertex_faces(self.tris, len(self.rest))
+        self._faces = np.empty((len(self.tris), 3))
+        self.rest_normals = MeshNormals(self.tris, len(self.rest))(self.rest, np.zeros((len(self.rest), 3)))
         self.seeds = seed_vertices(self.rest[self.verts], s.sample)
         self.ring_start, self.ring_ids = vertex_rings(self.tris, self.verts)
         self._move = np.zeros((len(self.verts), 3))
@@ -375,7 +402,7 @@ class SkinContact:
         self._next = np.empty(len(self.verts), dtype=np.int64)
         self._mask = (1 << _HASH_BITS) - 1
         self._start = np.zeros(self._mask + 2, dtype=np.int64)
-        self._count = np.zeros((max(1, get_num_threads()), self._mask + 1), dtype=np.int64)
+        self._count = np.zeros(self._mask + 1, dtype=np.int64)
         self._corners = np.empty((len(self.tris), 9))
         # per thread, the ray that last tested each face (first ray of the pose + the vertex's
         # position in verts): a face in several cells of a ray is tested once
@@ -397,7 +424,7 @@ class SkinContact:
         surface; returns how many moved."""
         s = self.settings
         x = vertices
-        self._normals(x, self.normals)
+        skin_normals(x, self.tris, self._adj_start, self._adj_faces, self._faces, self.verts, self.normals)
         inv_cell = 1.0 / s.cell
         face_boxes(x, self.tris, inv_cell, self._corners, self._lo, self._hi)
         grid = (self._lo, self._hi, self._mask, self._start)
