@@ -22,7 +22,7 @@ from skinning.skin import MeshNormals
 
 from .bus import Stats, fetch_latched, key, parse_key
 from .protocol import MessageError, decode
-from .wire import garment_mesh
+from .wire import garment_mesh, garment_vertices
 
 log = logging.getLogger("tryon.viewer")
 
@@ -223,17 +223,18 @@ class ViewerBridge:
             self.fetch_topology()
             if ent not in self.topology:
                 raise MessageError(key_expr, "no topology latched for this mesh yet")
+        topo = self.topology[ent]
+        n = len(msg.arrays["vertices"]) if msg.kind == "body" else garment_vertices(msg.arrays)
+        if n != topo["n_vertices"]:
+            raise MessageError(key_expr, f"{n} vertices, the topology has {topo['n_vertices']}")
         if msg.kind == "body":
             pos, normals = msg.arrays["vertices"], msg.arrays.get("normals")
-        else:
+        else:  # fresh arrays every frame: rerun may still hold the last frame's when it returns
             pos, normals = garment_mesh(msg.arrays)
-        if pos.shape[0] != self.topology[ent]["n_vertices"]:
-            raise MessageError(key_expr, f"{pos.shape[0]} vertices, the topology has {self.topology[ent]['n_vertices']}")
         self.stats.add("received")
         self.rec.set_time("frame", sequence=msg.frame)
         self.rec.set_time("session_time", duration=msg.time)
         if normals is None:  # the body (schema 2): shaded here, from the latched topology
-            topo = self.topology[ent]
             if topo["shading"] is None:
                 topo["shading"] = VertexNormals(topo["triangles"], topo["n_vertices"])
             normals = topo["shading"](pos)

@@ -122,8 +122,14 @@ class CompactMesh:
         return self.arrays
 
 
+def garment_vertices(arrays: dict[str, np.ndarray]) -> int:
+    """How many vertices a decoded garment message carries, in either form."""
+    return len(arrays["positions"] if "positions" in arrays else arrays["positions_u16"])
+
+
 def garment_mesh(arrays: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """float32 positions and normals (n, 3) of a decoded garment message, compact or float32."""
+    """float32 positions and normals (n, 3) of a decoded garment message, compact (decoded into
+    new arrays) or float32 (its own arrays, as they are)."""
     if "positions" in arrays:
         p = arrays["positions"]
     else:
