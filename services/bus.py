@@ -152,6 +152,16 @@ class Stats:
             self.reject(err)
             return None
 
+    def carry(self, earlier: "Stats") -> None:
+        """Count on from another Stats' counts (a session's garments replaced by another outfit's)."""
+        with earlier._lock:
+            counts, rejections = dict(earlier.counts), dict(earlier.rejections)
+        with self._lock:
+            for name, n in counts.items():
+                self.counts[name] = self.counts.get(name, 0) + n
+            for k, n in rejections.items():
+                self.rejections[k] = self.rejections.get(k, 0) + n
+
     def snapshot(self) -> dict:
         with self._lock:
             return {"service": self.service, "counts": dict(self.counts), "rejections": dict(self.rejections),

@@ -240,7 +240,7 @@ def cmd_ingest(args) -> int:
     from skinning.source import BVHSource
 
     from .bus import Stats, bus_config_from_args, check_session_name
-    from .cloth_job import START_FRAME
+    from .cloth_job import START_FRAME, outfit_checker
     from .ingest import BusPoseSource, IngestService
 
     _logging(args)
@@ -258,7 +258,8 @@ def cmd_ingest(args) -> int:
             start = START_FRAME
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
                 "clip": "live" if args.live else Path(source.path).stem}
-        svc = IngestService(bus, session, body, source, desc, ik=ik, contact=_contact(args))
+        svc = IngestService(bus, session, body, source, desc, ik=ik, contact=_contact(args),
+                            check_outfit=outfit_checker(data))
         try:
             n = svc.run(start_frame=start, stop=stop, wait_subscribers=args.wait_subscribers,
                         wait_ready=args.wait_ready)
@@ -267,6 +268,23 @@ def cmd_ingest(args) -> int:
             svc.close()
             source.close()
         print(f"ingest {session}: {n} body frames published; {svc.stats.snapshot()['counts']}")
+    return 0
+
+
+def cmd_outfit(args) -> int:
+    from .bus import bus_config_from_args, check_session_name
+    from .ingest import request_outfit
+
+    session = check_session_name(args.session)
+    with bus_config_from_args(args).open() as bus:
+        try:
+            answer = request_outfit(bus, session, args.name, args.fabric, None if args.coarse_only else args.level,
+                                    set_level=args.coarse_only or args.level is not None, timeout=args.timeout)
+        except ValueError as err:
+            raise SystemExit(f"tryon outfit: {err}") from None
+    if not answer.get("accepted"):
+        raise SystemExit(f"tryon outfit: refused: {answer.get('reason', 'no reason given')}")
+    print(f"session {session}: outfit {args.name} from the frame after {answer.get('after_frame')}")
     return 0
 
 
@@ -475,6 +493,16 @@ def main(argv: list[str] | None = None) -> int:
     _body_arguments(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_ingest)
+
+    p = sub.add_parser("outfit", help="change the outfit of a running session (its ingest announces it again)")
+    p.add_argument("name", help="outfit folder in the session's <data>/garments")
+    p.add_argument("--session", default="demo")
+    p.add_argument("--fabric", help="one fabric preset for every garment (default: the session's)")
+    p.add_argument("--level", type=_level, default=None, help="PN tessellation level (default: the session's)")
+    p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the session's ingest to answer")
+    add_bus_arguments(p)
+    p.set_defaults(func=cmd_outfit)
 
     p = sub.add_parser("cloth-service", help="cloth service: tryon/*/body -> tryon/<s>/garment/<name>, every session")
     _outfit_arguments(p)

@@ -57,6 +57,16 @@ def find_outfit(data: Path, name: str | Path) -> Path:
     return folder
 
 
+def outfit_checker(data: Path) -> Callable[[dict], None]:
+    """`IngestService.check_outfit` for a data folder: a requested outfit must be there, and a
+    fabric must be a preset (each refusal names what is wrong and what there is)."""
+    def check(change: dict) -> None:
+        find_outfit(data, change["outfit"])
+        if change.get("fabric") is not None:
+            fabric_preset(change["fabric"])
+    return check
+
+
 def collision_body(body: Body) -> BodyMesh:
     """The body as the cloth collides with it: its parts (upper arms and forearms apart, one
     sleeve over both), the faces clothes can touch, numbered along a Morton curve."""

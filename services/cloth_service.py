@@ -117,7 +117,10 @@ class GarmentSession:
             self.sim.preroll(np.array(q, dtype=np.float64), self.dt, contact=self.skin_contact)
         self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
         self.started = True
-        ready = Message("control", self.session, meta={"event": "ready", "from": "cloth", "garments": self.names})
+        # announced_ns: which announcement this answers (an ingest that changed the outfit waits
+        # for the new one's, while the old one's may still be latched)
+        ready = Message("control", self.session, meta={"event": "ready", "from": "cloth", "garments": self.names,
+                                                       "outfit": self.spec.outfit, "announced_ns": self.announced_ns})
         self.latched.publish(key(self.session, "status", "cloth"), encode(ready))
 
     def start_from_description(self, desc: dict, key_expr: str) -> None:
@@ -254,6 +257,7 @@ class ClothService:
         # sessions being fitted and settled on the setup thread: (its result, messages held for it)
         self._setup = ThreadPoolExecutor(1, thread_name_prefix="session-setup")
         self._preparing: dict[str, tuple[Future, list[tuple[str, bytes, bool]]]] = {}
+        self._carried: dict[str, Stats] = {}  # counts of a session whose outfit is being changed
         self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
         self._subs = [bus.declare_subscriber(key(sessions, k), self._queue.put) for k in ("session", "body", "control")]
         self._stop = threading.Event()
@@ -358,8 +362,11 @@ class ClothService:
                 continue
             del self._preparing[session]
             err = fut.exception()
+            carried = self._carried.pop(session, None)
             if err is None:
                 self.sessions[session] = fut.result()
+                if carried is not None:
+                    self.sessions[session].stats.carry(carried)
                 freeze_heap()  # the session's models and state: alive until it ends
             else:
                 if not isinstance(err, (MessageError, FileNotFoundError, ValueError)):
@@ -423,9 +430,17 @@ class ClothService:
             if old is not None:
                 if msg.stamp_ns <= old.announced_ns:
                     return False  # the announcement it was set up from
-                # announced anew while its last run never ended (its ingest stopped without an
-                # end message): a new run under the same name, which starts from its own pose
-                log.warning("cloth: session %s announced again; its earlier run is closed", session)
+                # announced anew: its ingest changed the outfit or its motion jumped (a looped clip
+                # starting again; services.ingest), or its last run
+                # never ended (its ingest stopped without an end message) and a new run under the
+                # same name starts. Either way the garments start again, from the announced pose.
+                if "restart_frame" in msg.meta:
+                    log.info("cloth: session %s starts its garments again (%s, outfit %s -> %s) from frame %s",
+                             session, msg.meta.get("restart_reason"), old.spec.outfit, msg.meta.get("outfit"),
+                             msg.meta["restart_frame"])
+                    self._carried[session] = old.stats  # the session's counts go on
+                else:
+                    log.warning("cloth: session %s announced again; its earlier run is closed", session)
                 self.closed_stats[session] = old.stats.snapshot()
                 self.sessions.pop(session).close()
             self.failed.pop(session, None)

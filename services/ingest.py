@@ -9,6 +9,17 @@ Live pose stream (what a capture system publishes; see README "Bus contract"):
                       (x, y, z, w), each joint relative to its parent, identity = rest pose;
                       root_position <f8|<f4 (3,) metres. frame numbers increase.
   tryon/<s>/control   {"event": "end", "from": "capture"} ends the stream.
+
+Changing clothes during a session: a `get` on tryon/<s>/outfit whose payload is a control message
+with meta {"outfit": name, "fabric": preset or null, "level": 1-16 or null} (fabric and level
+optional: the session's stay) is answered at once, {"accepted": true} or {"accepted": false,
+"reason": ...}. An accepted change takes effect at the next frame: the ingest announces the
+session again with the new outfit and that frame's pose (`first_q`; `restart_frame`,
+`restart_reason`), and waits, as at the start, until a cloth service has fitted the new outfit and
+settled it into that pose; the cloth service replaces the session's garments from that frame on.
+A looped clip starting again is announced the same way, with the same outfit: the body jumps back
+to where the clip began, and a loose garment would be left where it was. `request_outfit`
+sends one (`tryon outfit`).
 """
 
 from __future__ import annotations
@@ -194,12 +205,19 @@ class IngestService:
 
     description: the session's description, latched on tryon/<s>/session (outfit, fabrics, level...).
     ik: retargeting settings (default IKSettings()); contact: the skin contact (None: off), said
-    in the description as skin_contact so that the cloth poses its pre-roll the same way."""
+    in the description as skin_contact so that the cloth poses its pre-roll the same way.
+    check_outfit(change): raises (ValueError, FileNotFoundError) naming what a requested outfit
+    change gets wrong, e.g. an outfit this machine's data does not have (None: the types only);
+    change_wait: how long the stream waits for the changed outfit to be ready (module docstring).
+    restart_on_jump: announce the session again where the motion jumps (a looped clip starting
+    again), so the garments start again from that pose (module docstring)."""
 
     SERVICE = "ingest"
 
     def __init__(self, bus: zenoh.Session, session: str, body: Body, source, description: dict,
-                 ik: IKSettings | None = None, contact: ContactSettings | None = ContactSettings()):
+                 ik: IKSettings | None = None, contact: ContactSettings | None = ContactSettings(),
+                 check_outfit: Callable[[dict], None] | None = None, change_wait: float = 30.0,
+                 restart_on_jump: bool = True):
         self.bus, self.session, self.body, self.source = bus, session, body, source
         self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
         # displays shade it themselves
@@ -218,17 +236,78 @@ class IngestService:
         self.cloth_failed: str | None = None  # why a cloth service cannot serve the session
         self._status = bus.declare_subscriber(key(session, "status", "*"), self._on_status)
         self._verts = np.empty((body.n_visible, 3), np.float32)
+        self._ready_since = 0  # a "ready" counts when it answers an announcement stamped this late or later
+        self.check_outfit, self.change_wait, self.restart_on_jump = check_outfit, change_wait, restart_on_jump
+        self._change: dict | None = None  # an accepted outfit change, applied at the next frame
+        self._change_lock = threading.Lock()
+        self.restarts = 0  # announcements after the first (outfit changes, jumps in the motion)
+        self._changes = bus.declare_queryable(key(session, "outfit"), self._on_outfit_request)
 
     def announce(self) -> None:
         """Latch the session description and the body's topology (once)."""
         if self._announced:
             return
         self._announced = True
-        self.latched.publish(key(self.session, "session"), encode(Message("session", self.session,
-                                                                          meta=self.description)))
+        self._publish_description()
         topo = Message("topology", self.session, arrays={"triangles": self.body.triangles.astype(np.int32)},
                        meta={"what": "body", "n_vertices": self.body.n_visible, "color": [0.86, 0.69, 0.58]})
         self.latched.publish(key(self.session, "topology", "body"), encode(topo))
+
+    def _publish_description(self) -> int:
+        """Latch the session description (again, after a change); returns its stamp."""
+        stamp = time.time_ns()
+        self.latched.publish(key(self.session, "session"),
+                             encode(Message("session", self.session, meta=self.description), stamp_ns=stamp))
+        return stamp
+
+    def _on_outfit_request(self, query) -> None:
+        """A request to change the session's outfit (module docstring): checked, answered, and
+        kept for the next frame."""
+        k = key(self.session, "outfit")
+        try:
+            if query.payload is None:
+                raise MessageError(k, "an outfit request carries a control message naming the 'outfit'")
+            msg = decode(query.payload.to_bytes(), k, self.session, "control")
+            change = {f: msg.meta[f] for f in ("outfit", "fabric", "level") if f in msg.meta}
+            if "outfit" not in change:
+                raise MessageError(k, "an outfit request names the 'outfit'")
+            from .cloth_service import OutfitSpec  # the cloth service's own checks of a description
+            OutfitSpec.from_description(dict(self.description, **change), OutfitSpec(""), k)
+            if self.check_outfit is not None:
+                try:
+                    self.check_outfit(change)
+                except (ValueError, FileNotFoundError) as err:
+                    raise MessageError(k, str(err)) from None
+        except MessageError as err:
+            self.stats.reject(err)
+            log.warning("ingest: outfit change refused: %s", err)
+            reply = {"event": "outfit", "accepted": False, "reason": str(err)}
+        else:
+            with self._change_lock:
+                self._change = change
+            log.info("ingest: session %s changes outfit to %s at its next frame", self.session, change["outfit"])
+            reply = dict(change, event="outfit", accepted=True, after_frame=self.last_index)
+        query.reply(k, encode(Message("control", self.session, max(0, self.last_index), meta=reply)))
+
+    def _announce_again(self, index: int, q: np.ndarray) -> None:
+        """Announce the session again from frame `index` in pose q, with the accepted outfit
+        change if there is one (else as it was: the motion jumped there), and wait for a cloth
+        service to have the garments fitted and settled into that pose."""
+        with self._change_lock:
+            change, self._change = self._change, None
+        self.description.update(change or {}, first_q=[float(v) for v in q], restart_frame=index,
+                                restart_reason="outfit change" if change else "motion jump")
+        self._ready.clear()
+        self.cloth_failed = None
+        self._ready_since = self._publish_description()
+        self.restarts += 1
+        t0 = time.monotonic()
+        if not self.wait_ready(self.change_wait):
+            log.warning("ingest: no cloth service reported %s ready again in %.0f s%s", self.session,
+                        self.change_wait, f": {self.cloth_failed}" if self.cloth_failed else "")
+        waited = time.monotonic() - t0
+        if waited > 0.1 and hasattr(self.source, "hold"):
+            self.source.hold(waited)
 
     def publish(self, frame: PoseFrame, origin_ns: int = 0, out=None) -> None:
         """Retarget + skin one pose (unless `out`, its BodyFrame, is given) and publish the body."""
@@ -260,7 +339,7 @@ class IngestService:
         deadline = time.monotonic() + timeout
         while not self._ready.is_set():
             found = fetch_latched(self.bus, key(self.session, "status", "*"), timeout=0.5)
-            if any(m.meta.get("event") == "ready" for m in found.values()):
+            if any(self._answers(m) for m in found.values()):
                 return True
             if time.monotonic() > deadline:
                 return False
@@ -274,9 +353,14 @@ class IngestService:
         if msg.meta.get("event") == "failed":
             self.cloth_failed = str(msg.meta.get("reason", "no reason given"))
             self._ready.set()
-        elif msg.meta.get("event") == "ready":
+        elif self._answers(msg):
             self.cloth_failed = None
             self._ready.set()
+
+    def _answers(self, msg: Message) -> bool:
+        """A cloth service's "ready" for the latest announcement (after an outfit change, not the
+        one before it, which may still be latched)."""
+        return msg.meta.get("event") == "ready" and msg.meta.get("announced_ns", 0) >= self._ready_since
 
     def run(self, start_frame: int = 0, before_frame: Callable[[int], bool] | None = None,
             stop: threading.Event | None = None, wait_subscribers: float = 0.0, wait_ready: float = 0.0) -> int:
@@ -316,6 +400,10 @@ class IngestService:
                     if waited > 0.1 and hasattr(self.source, "hold"):
                         self.source.hold(waited)
                     freeze_heap()  # set up: what is alive now lives as long as the stream
+                elif self._change is not None or (self.restart_on_jump and frame.jump):
+                    # another outfit, or a jump (a looped clip starting again, where a loose garment
+                    # left behind would never catch up): the garments start again from this pose
+                    self._announce_again(frame.index, out.retarget.q)
                 self.publish(frame, getattr(self.source, "origin_ns", 0), out)
         finally:
             self.end()
@@ -329,9 +417,32 @@ class IngestService:
         self.stats.publish(self.bus, force=True)
 
     def close(self) -> None:
+        self._changes.undeclare()
         self._status.undeclare()
         self.publisher.undeclare()
         self.latched.close()
+
+
+def request_outfit(bus: zenoh.Session, session: str, outfit: str, fabric: str | None = None,
+                   level: int | None = None, set_level: bool = False, timeout: float = 5.0) -> dict:
+    """Ask the ingest of a running session to change its outfit (module docstring). fabric None:
+    the session's; level: set only with set_level (None there: coarse cloth only). Returns the
+    ingest's answer ({"accepted": bool, "reason": ...}); ValueError when no ingest answers."""
+    meta: dict = {"outfit": outfit}
+    if fabric is not None:
+        meta["fabric"] = fabric
+    if set_level:
+        meta["level"] = level
+    k = key(session, "outfit")
+    deadline = time.monotonic() + timeout
+    while True:  # a process that has just joined the bus learns of the ingest's queryable a moment later
+        for reply in bus.get(k, payload=encode(Message("control", session, meta=meta)),
+                             timeout=max(0.1, deadline - time.monotonic())):
+            if reply.ok is not None:
+                return decode(reply.ok.payload.to_bytes(), k, session, "control").meta
+        if time.monotonic() >= deadline:
+            raise ValueError(f"no ingest answered on {k} within {timeout:.0f} s (is session {session!r} running?)")
+        time.sleep(0.1)
 
 
 def publish_capture(bus: zenoh.Session, session: str, source, start_frame: int = 0,

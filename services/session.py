@@ -22,7 +22,7 @@ from skinning.retarget import IKSettings
 from skinning.source import BVHSource
 
 from .bus import BusConfig, key, parse_key
-from .cloth_job import START_FRAME
+from .cloth_job import START_FRAME, outfit_checker
 from .cloth_service import ClothService, OutfitSpec
 from .ingest import IngestService
 from .protocol import MessageError, decode
@@ -159,8 +159,8 @@ def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: P
             meshes = []
             for name, (pos, normals) in sorted(tap.frames[f].items()):
                 ent = "world/" + name
-                if ent not in topology:
-                    continue
+                if ent not in topology or len(pos) != topology[ent]["n_vertices"]:
+                    continue  # (a garment whose outfit changed since, to one of another level)
                 color = topology[ent].get("color", (0.7, 0.7, 0.7))
                 if normals is None:  # the body's: the viewer bridge's normals for it, when it built them
                     shading = topology[ent].get("shading") or VertexNormals(topology[ent]["triangles"], len(pos))
@@ -205,7 +205,8 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
             total = min(total, max_frames - START_FRAME)
         bar = Progress(total, progress)
         description = {"outfit": spec.outfit, "fabric": spec.fabric, "level": spec.level, "clip": clip.stem}
-        ingest = IngestService(bus, session, body, source, description, ik=ik, contact=contact)
+        ingest = IngestService(bus, session, body, source, description, ik=ik, contact=contact,
+                               check_outfit=outfit_checker(data))
         # one description + the body topology are latched before the first frame
 
         streaming_since = []  # when the first frame was out (the setup waits before it)
@@ -248,7 +249,9 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
             stats["recorder"] = recorder.stats.snapshot()
         snap = None
         if png:
-            snap = render_session_snapshots(body, tap, viewer.topology, out_dir / f"{session}.png")
+            # the garments worn before an outfit change too
+            snap = render_session_snapshots(body, tap, {**viewer.worn_before, **viewer.topology},
+                                            out_dir / f"{session}.png")
         lat = np.array(tap.latency_ms) if tap.latency_ms else np.zeros(1)
         timings = {k: float(np.median(v)) for k, v in tap.timings.items()}
         ingest.close()

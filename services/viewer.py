@@ -165,9 +165,14 @@ class ViewerBridge:
         self.topology: dict[str, dict] = {}  # entity -> {"triangles", "n_vertices"}
         self.frames_shown: dict[str, int] = {}
         self.ended = threading.Event()
+        self._outfit: list[str] | None = None  # garments of an outfit a cloth service just got ready
+        self._outfit_lock = threading.Lock()
+        self._gone: set[str] = set()  # garment entities of an outfit changed since: their late frames are let go
+        self.worn_before: dict[str, dict] = {}  # the topology of garments worn before the last change (snapshots)
         self._subs = [bus.declare_subscriber(key(session, "body"), self.latest),
                       bus.declare_subscriber(key(session, "garment", "*"), self.latest),
-                      bus.declare_subscriber(key(session, "control"), self._on_control)]
+                      bus.declare_subscriber(key(session, "control"), self._on_control),
+                      bus.declare_subscriber(key(session, "status", "cloth"), self._on_status)]
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.fetch_topology()
@@ -176,6 +181,29 @@ class ViewerBridge:
         msg = self.stats.decode(sample, self.session, "control")
         if msg is not None and msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
             self.ended.set()
+
+    def _on_status(self, sample) -> None:
+        msg = self.stats.decode(sample, self.session, "control")
+        if msg is not None and msg.meta.get("event") == "ready" and isinstance(msg.meta.get("garments"), list):
+            with self._outfit_lock:
+                self._outfit = [str(g) for g in msg.meta["garments"]]
+
+    def _change_outfit(self) -> None:
+        """After a cloth service got an outfit ready (at the session's start, or a change of
+        clothes): every garment's topology is read again from the bus (a new outfit, fabric or
+        level), and the garments that are no longer worn are cleared from the view."""
+        with self._outfit_lock:
+            names, self._outfit = self._outfit, None
+        if names is None:
+            return
+        worn = {self.entity(("garment", g)) for g in names}
+        for ent in [e for e in self.topology if e.startswith("world/garment/")]:
+            self.worn_before[ent] = self.topology.pop(ent)
+            if ent not in worn:
+                self.rec.log(ent, rr.Clear(recursive=False))
+                self.frames_shown.pop(ent, None)
+                self._gone.add(ent)
+        self._gone -= worn
 
     @staticmethod
     def entity(parts: tuple[str, ...]) -> str:
@@ -219,6 +247,9 @@ class ViewerBridge:
         session, parts = parse_key(key_expr)
         msg = decode(payload, key_expr, self.session, parts[0])
         ent = self.entity(parts)
+        self._change_outfit()
+        if ent in self._gone:
+            return  # a frame of a garment taken off, still on its way
         if ent not in self.topology:
             self.fetch_topology()
             if ent not in self.topology:

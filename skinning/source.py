@@ -24,6 +24,7 @@ class PoseFrame:
     time: float  # seconds since the session's first frame
     local_rot: np.ndarray  # (n, 3, 3) each joint's rotation relative to its parent (rest = identity)
     root_position: np.ndarray  # (3,) metres, root joint translation
+    jump: bool = False  # the motion does not continue the frame before (a looped clip starting again)
 
 
 class MotionSource(Protocol):
@@ -44,7 +45,8 @@ class BVHSource:
       gets the next frame at once; one further behind (a pause, a slow first retarget) shifts
       the schedule instead: a burst of late frames would only queue up downstream (a cloth
       service a few frames behind adds their whole backlog to every frame's latency).
-    loop: start again from the first frame at the end (frame index and time keep counting).
+    loop: start again from the first frame at the end (frame index and time keep counting; that
+      frame says `jump`).
     every: take one frame in `every` (e.g. 2 turns the 120 Hz CMU clips into 60 Hz).
     """
 
@@ -81,6 +83,7 @@ class BVHSource:
         n_bones = len(self.skeleton.names)
         index = 0
         self._clock = None
+        jump = False
         while True:
             for k, values in enumerate(self._reader.rows()):
                 if k % self.every:
@@ -98,9 +101,11 @@ class BVHSource:
                         time.sleep(delay)
                     elif delay < -self.max_lag:
                         self._clock -= delay  # too far behind: this frame now, the next on schedule
-                yield PoseFrame(index, t, rot, pos)
+                yield PoseFrame(index, t, rot, pos, jump)
                 index += 1
+                jump = False
             if not self.loop or index == 0:
                 return
             self._reader.close()
             self._reader = BVHReader(self.path, self.unit)
+            jump = True  # from the clip's last pose back to its first

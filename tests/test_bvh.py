@@ -304,6 +304,7 @@ def test_source_every_and_loop(mocap):
         frames = list(src)
     assert len(frames) == 200 and frames[-1].index == 199
     np.testing.assert_array_equal(frames[75].local_rot, frames[0].local_rot)  # wrapped around
+    assert [f.index for f in frames if f.jump] == [75, 150]  # where the motion jumps back to its start
 
 
 def test_realtime_pacing_waits_for_the_clip_rate(mocap):

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from services.bus import BusConfig, fetch_latched, key, parse_key
-from services.cloth_job import START_FRAME
+from services.cloth_job import START_FRAME, outfit_checker
 from services.cloth_service import ClothService, OutfitSpec
 from services.bus import Stats
-from services.ingest import BusPoseSource, IngestService, publish_capture
+from services.ingest import BusPoseSource, IngestService, publish_capture, request_outfit
 from services.protocol import Message, decode, encode
 from services.recorder import Recorder, read_recording, replay
 from services.viewer import RecordingSink, ViewerBridge
@@ -106,10 +106,14 @@ def hub(body, data):
     bus.close()
 
 
-def run_ingest(bus, session, body, data, clip=SHORT, max_frames=None, pace="fast", loop=False, stop=None, every=2):
-    """An ingest service on `bus` in a thread; returns (thread, service)."""
+def run_ingest(bus, session, body, data, clip=SHORT, max_frames=None, pace="fast", loop=False, stop=None, every=2,
+               outfit=OUTFIT, restart_on_jump=False):
+    """An ingest service on `bus` in a thread; returns (thread, service). The short clip looped
+    stands in for a long session (restart_on_jump False: its jump back every 0.6 s is not what
+    these tests are about)."""
     source = BVHSource(mocap_clip(data, clip), pace=pace, loop=loop, every=every, max_frames=max_frames)
-    svc = IngestService(bus, session, body, source, {"outfit": OUTFIT, "level": LEVEL})
+    svc = IngestService(bus, session, body, source, {"outfit": outfit, "level": LEVEL},
+                        check_outfit=outfit_checker(data), restart_on_jump=restart_on_jump)
     t = threading.Thread(target=svc.run, kwargs={"start_frame": START_FRAME, "stop": stop, "wait_subscribers": 10,
                                                  "wait_ready": 30}, daemon=True)
     t.start()
@@ -400,7 +404,8 @@ def test_a_cloth_service_started_late_joins_a_running_session(body, data, monkey
     gc.unfreeze()
     monkeypatch.setattr("services.ingest.freeze_heap", lambda: None)  # the cloth service's own freeze is checked
     source = BVHSource(mocap_clip(data), pace="realtime", loop=True, every=8)
-    svc = IngestService(ingest_bus, "joined", body, source, {"outfit": OUTFIT, "level": LEVEL})
+    svc = IngestService(ingest_bus, "joined", body, source, {"outfit": OUTFIT, "level": LEVEL},
+                        restart_on_jump=False)  # (the short clip looped: see run_ingest)
     t = threading.Thread(target=svc.run, kwargs={"start_frame": START_FRAME, "stop": stop, "wait_subscribers": 10},
                          daemon=True)
     try:
@@ -510,6 +515,121 @@ def test_a_session_announced_again_starts_a_new_run(hub, body, data):
         garments.close()
         bus.close()
         watch.close()
+
+
+def test_a_session_changes_its_outfit_mid_stream(hub, body, data, tmp_path):
+    """A display asks the running session's ingest for other clothes. An outfit this machine
+    lacks is refused at once with the reason, and the session goes on; an accepted one takes
+    effect at the next frame: the cloth service fits it and settles it into that frame's pose
+    while the stream waits, then publishes its garments in place of the old ones, so every
+    frame has the garments of exactly one outfit, none missing. The viewer bridge clears the
+    garments taken off."""
+    port, cloth = hub
+    bus, display = peer(port), peer(port)
+    new = "female_elegantsuit01"
+    garments = Collector(display, key("change", "garment", "*"))
+    sink = RecordingSink("change", rrd=tmp_path / "change.rrd")
+    bridge = ViewerBridge(display, "change", sink, lossless=True).start()
+    answers = []
+
+    def before_frame(index):
+        if index == START_FRAME + 3:
+            answers.append(request_outfit(display, "change", "no-such-outfit"))
+            answers.append(request_outfit(display, "change", new))
+        return True
+
+    try:
+        source = BVHSource(mocap_clip(data), every=2, max_frames=10)
+        svc = IngestService(bus, "change", body, source, {"outfit": OUTFIT, "level": LEVEL},
+                            check_outfit=outfit_checker(data))
+        assert svc.run(start_frame=START_FRAME, before_frame=before_frame, wait_subscribers=10,
+                       wait_ready=30) == 10 - START_FRAME
+        refused, accepted = answers
+        assert not refused["accepted"] and "no-such-outfit" in refused["reason"] and "not found" in refused["reason"]
+        assert svc.stats.counts["rejected"] == 1
+        assert accepted["accepted"] and accepted["outfit"] == new and accepted["after_frame"] == START_FRAME + 2
+        assert svc.restarts == 1 and svc.description["restart_frame"] == START_FRAME + 3
+        assert svc.description["restart_reason"] == "outfit change"
+        frames = list(range(START_FRAME, 10))
+        wait_until(lambda: len(garments.messages) == 2 * len(frames), 60, "every frame's garments")
+        worn = {}
+        for k, m in garments.messages:
+            worn.setdefault(m.frame, set()).add(parse_key(k)[1][1])
+        assert sorted(worn) == frames
+        for f in frames:
+            outfit = OUTFIT if f < START_FRAME + 3 else new
+            assert len(worn[f]) == 2 and all(g.startswith(outfit + ".") for g in worn[f]), (f, worn[f])
+        wait_until(lambda: "change" in cloth.closed_stats, 30, "the session's end at the cloth service")
+        served = cloth.closed_stats["change"]  # the session's counts go on across the change
+        assert served["counts"]["received"] == len(frames) and served["counts"]["published"] == 2 * len(frames)
+        assert served["values"]["preroll_s"] > 0  # the new outfit settled into the pose of its first frame
+        wait_until(lambda: all(g in {e.split("/")[-1] for e in bridge.frames_shown} for g in worn[frames[-1]]), 30,
+                   "the viewer bridge to show the new garments")
+        assert {e for e in bridge.topology if "garment" in e} == {f"world/garment/{g}" for g in worn[frames[-1]]}
+        assert bridge._gone == {f"world/garment/{g}" for g in GARMENTS}
+        assert bridge.stats.counts["rejected"] == 0
+        svc.close()
+    finally:
+        bridge.stop()
+        sink.close()
+        garments.close()
+        bus.close()
+        display.close()
+
+
+def test_a_looped_clip_starts_the_garments_again_where_it_jumps_back(hub, body, data):
+    """A looped clip jumps back 3.5 m to where it began: the ingest announces the session again
+    from that frame, and the cloth service settles the garments into its pose, so the loose
+    silk blouse comes along instead of staying where the body was (every frame still has its
+    garments, in order)."""
+    port, cloth = hub
+    bus, watch = peer(port), peer(port)
+    new = "female_elegantsuit01"
+    garments = Collector(watch, key("looped", "garment", "*"))
+    bodies = Collector(watch, key("looped", "body"))
+    try:
+        t, svc = run_ingest(bus, "looped", body, data, loop=True, max_frames=38 + 8, outfit=new, restart_on_jump=True)
+        t.join(120)
+        frames = list(range(START_FRAME, 38 + 8))
+        assert svc.restarts == 1 and svc.description["restart_frame"] == 38
+        assert svc.description["restart_reason"] == "motion jump" and svc.description["outfit"] == new
+        wait_until(lambda: len(garments.messages) == 2 * len(frames), 60, "every frame's garments")
+        assert sorted({m.frame for _, m in garments.messages}) == frames
+        skin = next(m for _, m in bodies.messages if m.frame == frames[-1]).arrays["vertices"]
+        for k, m in garments.messages:
+            if m.frame == frames[-1]:
+                p = garment_mesh(m.arrays)[0][::20]
+                near = np.sqrt(((p[:, None, :] - skin[None, ::4, :]) ** 2).sum(-1)).min(1)
+                assert near.max() < 0.25, (k, near.max())  # on the body, not 3.5 m behind it
+        svc.close()
+    finally:
+        garments.close()
+        bodies.close()
+        bus.close()
+        watch.close()
+
+
+def test_tryon_outfit_reports_a_refusal_and_a_session_nobody_runs(hub, body, data, cli_env):
+    """`tryon outfit` from another process: the ingest's refusal, with its reason, as the
+    command's error (exit 1); a session no ingest runs: a clear error, not a hang."""
+    port, _ = hub
+    bus = peer(port)
+    stop = threading.Event()
+    try:
+        t, svc = run_ingest(bus, "asked", body, data, pace="realtime", loop=True, stop=stop)
+        wait_until(lambda: svc.frames > 0, 60, "the session to run")
+        cmd = [sys.executable, "-m", "services.cli", "outfit", "--session", "asked", "--connect",
+               f"tcp/127.0.0.1:{port}", "--fabric", "tweed", OUTFIT]
+        done = subprocess.run(cmd, env=cli_env, capture_output=True, text=True, timeout=120)
+        assert done.returncode == 1 and "refused" in done.stderr and "no fabric 'tweed'" in done.stderr, done.stderr
+        assert svc.description["outfit"] == OUTFIT and svc.stats.counts["rejected"] == 1
+        with pytest.raises(ValueError, match="no ingest answered on tryon/nobody/outfit"):
+            request_outfit(bus, "nobody", OUTFIT, timeout=1.0)
+    finally:
+        stop.set()
+        t.join(30)
+        svc.close()
+        bus.close()
 
 
 def test_an_ingest_stops_waiting_when_the_cloth_service_cannot_serve_its_session(hub, body, data, caplog):
