@@ -208,7 +208,8 @@ class IngestService:
     in the description as skin_contact so that the cloth poses its pre-roll the same way.
     check_outfit(change): raises (ValueError, FileNotFoundError) naming what a requested outfit
     change gets wrong, e.g. an outfit this machine's data does not have (None: the types only);
-    change_wait: how long the stream waits for the changed outfit to be ready (module docstring).
+    change_wait: how long the stream waits for the changed outfit to be ready (module docstring;
+    not at all while no cloth service has reported the session ready).
     restart_on_jump: announce the session again where the motion jumps (a looped clip starting
     again), so the garments start again from that pose (module docstring)."""
 
@@ -237,6 +238,7 @@ class IngestService:
         self._status = bus.declare_subscriber(key(session, "status", "*"), self._on_status)
         self._verts = np.empty((body.n_visible, 3), np.float32)
         self._ready_since = 0  # a "ready" counts when it answers an announcement stamped this late or later
+        self._cloth_seen = False  # a cloth service has reported this session ready at least once
         self.check_outfit, self.change_wait, self.restart_on_jump = check_outfit, change_wait, restart_on_jump
         self._change: dict | None = None  # an accepted outfit change, applied at the next frame
         self._change_lock = threading.Lock()
@@ -279,8 +281,7 @@ class IngestService:
                 except (ValueError, FileNotFoundError) as err:
                     raise MessageError(k, str(err)) from None
         except MessageError as err:
-            self.stats.reject(err)
-            log.warning("ingest: outfit change refused: %s", err)
+            self.stats.reject(err)  # (logged there)
             reply = {"event": "outfit", "accepted": False, "reason": str(err)}
         else:
             with self._change_lock:
@@ -301,6 +302,8 @@ class IngestService:
         self.cloth_failed = None
         self._ready_since = self._publish_description()
         self.restarts += 1
+        if not self._cloth_seen:
+            return  # no cloth service has answered this session: nothing to wait for (a body-only display)
         t0 = time.monotonic()
         if not self.wait_ready(self.change_wait):
             log.warning("ingest: no cloth service reported %s ready again in %.0f s%s", self.session,
@@ -340,6 +343,7 @@ class IngestService:
         while not self._ready.is_set():
             found = fetch_latched(self.bus, key(self.session, "status", "*"), timeout=0.5)
             if any(self._answers(m) for m in found.values()):
+                self._cloth_seen = True
                 return True
             if time.monotonic() > deadline:
                 return False
@@ -355,6 +359,7 @@ class IngestService:
             self._ready.set()
         elif self._answers(msg):
             self.cloth_failed = None
+            self._cloth_seen = True
             self._ready.set()
 
     def _answers(self, msg: Message) -> bool:
@@ -380,7 +385,9 @@ class IngestService:
                     break
                 out = self.animator(frame.local_rot, frame.root_position)
                 if not self._announced:
-                    self.description["first_q"] = [float(v) for v in out.retarget.q]
+                    with self._change_lock:  # a change asked for before the first frame: the first announcement's
+                        change, self._change = self._change, None
+                    self.description.update(change or {}, first_q=[float(v) for v in out.retarget.q])
                     self.announce()
                     t0 = time.monotonic()
                     if wait_subscribers > 0 and not self.wait_for_subscribers(wait_subscribers):

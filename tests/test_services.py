@@ -577,6 +577,27 @@ def test_a_session_changes_its_outfit_mid_stream(hub, body, data, tmp_path):
         display.close()
 
 
+def test_an_outfit_asked_for_before_the_first_frame_is_the_one_announced(hub, body, data):
+    port, _ = hub
+    bus, display = peer(port), peer(port)
+    new = "female_elegantsuit01"
+    garments = Collector(display, key("early", "garment", "*"))
+    try:
+        source = BVHSource(mocap_clip(data), every=2, max_frames=4)
+        svc = IngestService(bus, "early", body, source, {"outfit": OUTFIT, "level": LEVEL},
+                            check_outfit=outfit_checker(data))
+        assert request_outfit(display, "early", new)["accepted"]
+        assert svc.run(start_frame=START_FRAME, wait_subscribers=10, wait_ready=30) == 4 - START_FRAME
+        assert svc.restarts == 0 and svc.description["outfit"] == new
+        wait_until(lambda: len(garments.messages) == 2 * (4 - START_FRAME), 60, "the garments")
+        assert all(parse_key(k)[1][1].startswith(new + ".") for k, _ in garments.messages)
+        svc.close()
+    finally:
+        garments.close()
+        bus.close()
+        display.close()
+
+
 def test_a_looped_clip_starts_the_garments_again_where_it_jumps_back(hub, body, data):
     """A looped clip jumps back 3.5 m to where it began: the ingest announces the session again
     from that frame, and the cloth service settles the garments into its pose, so the loose
