@@ -39,9 +39,14 @@ class SessionTap:
     """Sees every body and garment message of a session (in order, none dropped): per-stage timings,
     end-to-end latency, and copies of the frames wanted as snapshots."""
 
-    def __init__(self, bus, session: str, snapshot_frames: set[int]):
+    def __init__(self, bus, session: str, snapshot_frames: set[int], window: int = 1):
+        """window: each snapshot frame and the window - 1 after it are kept, for a live session
+        whose cloth service publishes only the newest of the frames it fell behind on (catch-up):
+        the snapshot is the first of them with the most garments."""
         self.session = session
-        self.wanted = snapshot_frames
+        self.snapshot_frames = sorted(snapshot_frames)
+        self.wanted = {f + k for f in snapshot_frames for k in range(window)}
+        self.window = window
         self.timings: dict[str, list[float]] = {}
         self.latency_ms: list[float] = []
         self.frames: dict[int, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
@@ -149,7 +154,11 @@ class Progress:
 def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: Path) -> Path | None:
     from .render import MeshDraw, Renderer, contact_sheet, orbit_camera, save_png
 
-    frames = [f for f in sorted(tap.frames) if "body" in tap.frames[f] and len(tap.frames[f]) > 1]
+    frames = []
+    for w in tap.snapshot_frames:  # in each one's window, the first frame with the most garments
+        window = [f for f in range(w, w + tap.window) if "body" in tap.frames.get(f, {}) and len(tap.frames[f]) > 1]
+        if window:
+            frames.append(max(window, key=lambda f: (len(tap.frames[f]), -f)))
     if not frames:
         return None
     renderer = Renderer(360, 480)
@@ -197,7 +206,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         sink = RecordingSink(session, rrd=out_dir / f"{session}.rrd", serve_port=serve_port, web_port=web_port)
         viewer = ViewerBridge(bus, session, sink, lossless=not serve).start()
         recorder = Recorder(bus, session, out_dir / f"{session}.mcap") if record else None
-        tap = SessionTap(bus, session, set(snapshot_frames or []) if png else set())
+        tap = SessionTap(bus, session, set(snapshot_frames or []) if png else set(), window=8 if serve else 1)
         source = BVHSource(clip, pace="realtime" if serve else "fast", loop=serve, every=every,
                            max_frames=max_frames)
         total = None if serve else -(-source.header.n_frames // every) - START_FRAME
