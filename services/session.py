@@ -151,14 +151,21 @@ class Progress:
             sys.stderr.write("\n")
 
 
-def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: Path) -> Path | None:
-    from .render import MeshDraw, Renderer, contact_sheet, orbit_camera, save_png
-
+def snapshot_choice(tap: SessionTap) -> list[int]:
+    """The frame drawn for each snapshot frame: in its window, the first with the body and the
+    most garments (none where no frame of it has a garment)."""
     frames = []
-    for w in tap.snapshot_frames:  # in each one's window, the first frame with the most garments
+    for w in tap.snapshot_frames:
         window = [f for f in range(w, w + tap.window) if "body" in tap.frames.get(f, {}) and len(tap.frames[f]) > 1]
         if window:
             frames.append(max(window, key=lambda f: (len(tap.frames[f]), -f)))
+    return frames
+
+
+def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: Path) -> Path | None:
+    from .render import MeshDraw, Renderer, contact_sheet, orbit_camera, save_png
+
+    frames = snapshot_choice(tap)
     if not frames:
         return None
     renderer = Renderer(360, 480)

@@ -146,3 +146,18 @@ def test_a_session_stopped_with_sigterm_closes_its_files(tmp_path, cli_env):
     assert 2 <= len(body) < 1000 and body == list(range(1, len(body) + 1))
     assert all(frames[g] == body for g in frames if g.startswith("garment/")), "a garment frame is missing"
     assert "cloth: received" in log.read_text()  # the summary was printed
+
+
+def test_a_live_snapshot_is_the_first_frame_of_its_window_with_the_most_garments():
+    """A live session's cloth service publishes only the newest of the frames it fell behind on:
+    each snapshot comes from the first frame after it that has the body and every garment."""
+    from services.session import SessionTap, snapshot_choice
+
+    tap = SessionTap.__new__(SessionTap)
+    parts = {"body": None, "garment/top": None, "garment/bottom": None}
+    tap.snapshot_frames, tap.window = [10, 20, 30], 4
+    tap.frames = {10: {"body": None}, 11: {"body": None, "garment/top": None}, 12: dict(parts), 13: dict(parts),
+                  20: dict(parts), 30: {"body": None}, 31: {"body": None}}
+    assert snapshot_choice(tap) == [12, 20]  # 30's window has no garment: left out
+    tap.window = 1
+    assert snapshot_choice(tap) == [20]
