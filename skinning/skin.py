@@ -127,3 +127,33 @@ class MeshNormals:
     def __call__(self, vertices: np.ndarray, out: np.ndarray) -> np.ndarray:
         vertex_normals(vertices, self.triangles, self.adj_start, self.adj_faces, self._faces, out)
         return out
+
+
+@njit(cache=True, nogil=True)
+def vertex_normals_at(x, tris, adj_start, adj_faces, faces, verts, out):
+    """Area-weighted unit normals at the vertices `verts` only, into out (n, 3); faces (m, 3)
+    scratch: what `vertex_normals` gives there, bit for bit, on the calling thread (the skin
+    contact's clothed vertices: its parallel loops over the whole body mostly waited for the
+    other thread to wake)."""
+    for t in range(tris.shape[0]):
+        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
+        e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+        e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+        faces[t, 0] = e1y * e2z - e1z * e2y
+        faces[t, 1] = e1z * e2x - e1x * e2z
+        faces[t, 2] = e1x * e2y - e1y * e2x
+    for q in range(verts.shape[0]):
+        v = verts[q]
+        nx = 0.0
+        ny = 0.0
+        nz = 0.0
+        for k in range(adj_start[v], adj_start[v + 1]):
+            f = adj_faces[k]
+            nx += faces[f, 0]
+            ny += faces[f, 1]
+            nz += faces[f, 2]
+        l2 = nx * nx + ny * ny + nz * nz
+        inv = 1.0 / np.sqrt(l2) if l2 > 0.0 else 0.0
+        out[v, 0] = nx * inv
+        out[v, 1] = ny * inv
+        out[v, 2] = nz * inv

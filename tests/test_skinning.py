@@ -1,7 +1,8 @@
 import numpy as np
 
 from skinning.animate import BodyAnimator
-from skinning.skin import MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices
+from skinning.skin import (MeshNormals, SkinWeights, linear_blend_skinning, skin_matrices, vertex_faces,
+                           vertex_normals_at)
 
 
 def test_rest_pose_reproduces_rest_mesh(body):
@@ -44,6 +45,23 @@ def test_vertex_normals_of_a_cube_point_outward():
     outward = v - 0.5
     assert (np.einsum("ij,ij->i", n, outward) > 0).all()
     np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+
+
+def test_normals_at_some_vertices_match_the_whole_mesh_normals_bit_for_bit():
+    """The skin contact's normals of its clothed vertices only: the whole mesh's there, to the bit,
+    and the other rows untouched."""
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(40, 3))
+    tris = rng.integers(0, 40, size=(60, 3)).astype(np.int64)
+    tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])]
+    whole = MeshNormals(tris, len(v))(v, np.empty_like(v))
+    start, faces = vertex_faces(tris, len(v))
+    some = np.arange(0, 40, 3)
+    out = np.full_like(v, 7.0)
+    vertex_normals_at(v, tris, start, faces, np.empty((len(tris), 3)), some, out)
+    assert out[some].tobytes() == whole[some].tobytes()
+    rest = np.setdiff1d(np.arange(40), some)
+    assert (out[rest] == 7.0).all()
 
 
 def test_normals_of_a_flat_grid_are_exact():
