@@ -75,22 +75,46 @@ def vertex_faces(triangles: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np
     return start, (order // 3).astype(np.int64)
 
 
+@njit(cache=True, nogil=True)
+def _face_normal(vertices, triangles, t, out):
+    """out[t] = triangle t's unnormalised normal (the cross product: length twice the area)."""
+    a = triangles[t, 0]
+    b = triangles[t, 1]
+    c = triangles[t, 2]
+    e1x = vertices[b, 0] - vertices[a, 0]
+    e1y = vertices[b, 1] - vertices[a, 1]
+    e1z = vertices[b, 2] - vertices[a, 2]
+    e2x = vertices[c, 0] - vertices[a, 0]
+    e2y = vertices[c, 1] - vertices[a, 1]
+    e2z = vertices[c, 2] - vertices[a, 2]
+    out[t, 0] = e1y * e2z - e1z * e2y
+    out[t, 1] = e1z * e2x - e1x * e2z
+    out[t, 2] = e1x * e2y - e1y * e2x
+
+
+@njit(cache=True, nogil=True)
+def _vertex_normal(v, adj_start, adj_faces, face_normals, out):
+    """out[v] = the unit sum of the face normals around vertex v (0 where it has no faces)."""
+    nx = 0.0
+    ny = 0.0
+    nz = 0.0
+    for k in range(adj_start[v], adj_start[v + 1]):
+        f = adj_faces[k]
+        nx += face_normals[f, 0]
+        ny += face_normals[f, 1]
+        nz += face_normals[f, 2]
+    l2 = nx * nx + ny * ny + nz * nz
+    inv = 1.0 / np.sqrt(l2) if l2 > 0.0 else 0.0
+    out[v, 0] = nx * inv
+    out[v, 1] = ny * inv
+    out[v, 2] = nz * inv
+
+
 @njit(cache=True, nogil=True, parallel=True)
 def face_normals(vertices, triangles, out):
     """Unnormalised face normals (cross products: length = twice the area)."""
     for t in prange(triangles.shape[0]):
-        a = triangles[t, 0]
-        b = triangles[t, 1]
-        c = triangles[t, 2]
-        e1x = vertices[b, 0] - vertices[a, 0]
-        e1y = vertices[b, 1] - vertices[a, 1]
-        e1z = vertices[b, 2] - vertices[a, 2]
-        e2x = vertices[c, 0] - vertices[a, 0]
-        e2y = vertices[c, 1] - vertices[a, 1]
-        e2z = vertices[c, 2] - vertices[a, 2]
-        out[t, 0] = e1y * e2z - e1z * e2y
-        out[t, 1] = e1z * e2x - e1x * e2z
-        out[t, 2] = e1x * e2y - e1y * e2x
+        _face_normal(vertices, triangles, t, out)
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -101,19 +125,19 @@ def vertex_normals(vertices, triangles, adj_start, adj_faces, face_scratch, out)
     """
     face_normals(vertices, triangles, face_scratch)
     for v in prange(out.shape[0]):
-        nx = 0.0
-        ny = 0.0
-        nz = 0.0
-        for k in range(adj_start[v], adj_start[v + 1]):
-            f = adj_faces[k]
-            nx += face_scratch[f, 0]
-            ny += face_scratch[f, 1]
-            nz += face_scratch[f, 2]
-        l2 = nx * nx + ny * ny + nz * nz
-        inv = 1.0 / np.sqrt(l2) if l2 > 0.0 else 0.0
-        out[v, 0] = nx * inv
-        out[v, 1] = ny * inv
-        out[v, 2] = nz * inv
+        _vertex_normal(v, adj_start, adj_faces, face_scratch, out)
+
+
+@njit(cache=True, nogil=True)
+def vertex_normals_at(x, tris, adj_start, adj_faces, faces, verts, out):
+    """Area-weighted unit normals at the vertices `verts` only, into out (n, 3); faces (m, 3)
+    scratch: what `vertex_normals` gives there, bit for bit, on the calling thread (the skin
+    contact's clothed vertices: its parallel loops over the whole body mostly waited for the
+    other thread to wake)."""
+    for t in range(tris.shape[0]):
+        _face_normal(x, tris, t, faces)
+    for q in range(verts.shape[0]):
+        _vertex_normal(verts[q], adj_start, adj_faces, faces, out)
 
 
 class MeshNormals:
@@ -127,33 +151,3 @@ class MeshNormals:
     def __call__(self, vertices: np.ndarray, out: np.ndarray) -> np.ndarray:
         vertex_normals(vertices, self.triangles, self.adj_start, self.adj_faces, self._faces, out)
         return out
-
-
-@njit(cache=True, nogil=True)
-def vertex_normals_at(x, tris, adj_start, adj_faces, faces, verts, out):
-    """Area-weighted unit normals at the vertices `verts` only, into out (n, 3); faces (m, 3)
-    scratch: what `vertex_normals` gives there, bit for bit, on the calling thread (the skin
-    contact's clothed vertices: its parallel loops over the whole body mostly waited for the
-    other thread to wake)."""
-    for t in range(tris.shape[0]):
-        a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
-        e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
-        e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
-        faces[t, 0] = e1y * e2z - e1z * e2y
-        faces[t, 1] = e1z * e2x - e1x * e2z
-        faces[t, 2] = e1x * e2y - e1y * e2x
-    for q in range(verts.shape[0]):
-        v = verts[q]
-        nx = 0.0
-        ny = 0.0
-        nz = 0.0
-        for k in range(adj_start[v], adj_start[v + 1]):
-            f = adj_faces[k]
-            nx += faces[f, 0]
-            ny += faces[f, 1]
-            nz += faces[f, 2]
-        l2 = nx * nx + ny * ny + nz * nz
-        inv = 1.0 / np.sqrt(l2) if l2 > 0.0 else 0.0
-        out[v, 0] = nx * inv
-        out[v, 1] = ny * inv
-        out[v, 2] = nz * inv
