@@ -254,7 +254,7 @@ def cmd_ingest(args) -> int:
             start = 0
         else:
             source = BVHSource(_clips(data, [args.clip])[0], pace=args.pace, loop=args.loop, every=args.every,
-                               max_frames=args.max_frames)
+                               max_frames=args.max_frames, loop_from=START_FRAME)
             start = START_FRAME
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
                 "clip": "live" if args.live else Path(source.path).stem}

@@ -23,6 +23,7 @@ from cloth.geometry import vertex_normals as geometry_vertex_normals
 from cloth.layers import LayerModel, LayerState, layer_outfit, stack_layer
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
+from cloth.snapshot import StateSnapshot
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
 from skinning.body import ARM_LIMBS, Body, body_clothed_faces, body_regions
@@ -284,6 +285,13 @@ class OutfitSession:
         if self._own_pool:
             self._pool.close()
         self._pool = None
+
+    def snapshot(self) -> StateSnapshot:
+        """Every garment's state as it is now (coarse, detailed, layering): `restore()` puts the
+        session back to this moment, e.g. garments settled into a pose the motion comes back to.
+        Stepping on from there gives what stepping on from here would, bit for bit."""
+        return StateSnapshot(*(s.state for s in self.sims), *(sf.state for sf in self.surfaces),
+                             *(ls for _, ls in self.layers))
 
     def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5,
                 contact: bool = True):

@@ -97,6 +97,8 @@ class GarmentSession:
         self.started = False
         self.skin_contact = True
         self.announced_ns = 0  # stamp of the announcement it was set up from (0: none)
+        self.start_q: np.ndarray | None = None  # the pose the garments were settled into,
+        self.start_state = None  # and their state then (cloth.snapshot.StateSnapshot)
         self.end_frame: int | None = None  # set by the session's end message
         self.skipped_since = 0  # frames stepped without their surface since the last published one
         self._msg: Message | None = None  # the body frame being stepped (read by _publish_garment)
@@ -111,17 +113,49 @@ class GarmentSession:
             self.latched.publish(key(session, "topology", "garment", n), encode(topo))
 
     def preroll(self, q: np.ndarray) -> None:
-        """Settle the garments from the rest pose into pose q, then tell the session we are ready."""
+        """Settle the garments from the rest pose into pose q, then tell the session we are ready.
+        The settled garments are kept (`restart`)."""
         t0 = time.perf_counter()
+        q = np.array(q, dtype=np.float64)
         with self.service.animator_lock:  # the service's one animator poses the blend
-            self.sim.preroll(np.array(q, dtype=np.float64), self.dt, contact=self.skin_contact)
+            self.sim.preroll(q, self.dt, contact=self.skin_contact)
+        self.start_q, self.start_state = q, self.sim.snapshot()
         self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
         self.started = True
+        self._report_ready()
+
+    def _report_ready(self) -> None:
         # announced_ns: which announcement this answers (an ingest that changed the outfit waits
         # for the new one's, while the old one's may still be latched)
         ready = Message("control", self.session, meta={"event": "ready", "from": "cloth", "garments": self.names,
                                                        "outfit": self.spec.outfit, "announced_ns": self.announced_ns})
         self.latched.publish(key(self.session, "status", "cloth"), encode(ready))
+
+    def starts_again_as_before(self, desc: dict) -> bool:
+        """Whether an announcement of this session asks for the garments exactly as they were
+        settled at its start: the same outfit, fabric, level, frame time and skin contact, and
+        the same first pose bit for bit (a looped clip starting again; services.ingest)."""
+        if self.start_state is None:
+            return False
+        try:
+            spec = OutfitSpec.from_description(desc, self.service.default, key(self.session, "session"))
+        except MessageError:
+            return False  # (the setup that follows names what is wrong)
+        q = desc.get("first_q")
+        return (spec == self.spec and desc.get("frame_time", 1 / 60) == self.dt
+                and desc.get("skin_contact", True) == self.skin_contact and isinstance(q, list)
+                and len(q) == len(self.start_q) and all(isinstance(v, (int, float)) for v in q)
+                and np.array_equal(np.array(q, dtype=np.float64), self.start_q))
+
+    def restart(self, announced_ns: int) -> None:
+        """The garments back as they were settled at the session's start (`starts_again_as_before`),
+        at once: what fitting and settling them again would give, bit for bit, without the
+        second's pause."""
+        self.start_state.restore()
+        self.announced_ns = announced_ns
+        self.skipped_since = 0
+        self.stats.add("restarts")
+        self._report_ready()
 
     def start_from_description(self, desc: dict, key_expr: str) -> None:
         contact = desc.get("skin_contact", True)
@@ -430,6 +464,12 @@ class ClothService:
             if old is not None:
                 if msg.stamp_ns <= old.announced_ns:
                     return False  # the announcement it was set up from
+                if "restart_frame" in msg.meta and old.starts_again_as_before(msg.meta):
+                    # a looped clip back at its first pose: the garments as they were settled there
+                    log.info("cloth: session %s starts its garments again (%s) from frame %s, as settled at its "
+                             "start", session, msg.meta.get("restart_reason"), msg.meta["restart_frame"])
+                    old.restart(msg.stamp_ns)
+                    return False
                 # announced anew: its ingest changed the outfit or its motion jumped (a looped clip
                 # starting again; services.ingest), or its last run
                 # never ended (its ingest stopped without an end message) and a new run under the

@@ -383,6 +383,11 @@ class IngestService:
                     continue
                 if before_frame is not None and before_frame(frame.index) is False:
                     break
+                if frame.jump and self.animator.retargeter is not None:
+                    # the motion does not continue the last frame: the IK starts afresh, as at the
+                    # session's first frame (a looped clip's first pose is then the same bit for
+                    # bit, and a cloth service restores the garments it settled there)
+                    self.animator.retargeter.reset()
                 out = self.animator(frame.local_rot, frame.root_position)
                 if not self._announced:
                     with self._change_lock:  # a change asked for before the first frame: the first announcement's

@@ -215,7 +215,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         recorder = Recorder(bus, session, out_dir / f"{session}.mcap") if record else None
         tap = SessionTap(bus, session, set(snapshot_frames or []) if png else set(), window=8 if serve else 1)
         source = BVHSource(clip, pace="realtime" if serve else "fast", loop=serve, every=every,
-                           max_frames=max_frames)
+                           max_frames=max_frames, loop_from=START_FRAME)
         total = None if serve else -(-source.header.n_frames // every) - START_FRAME
         if total and max_frames:
             total = min(total, max_frames - START_FRAME)

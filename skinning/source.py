@@ -46,17 +46,22 @@ class BVHSource:
       the schedule instead: a burst of late frames would only queue up downstream (a cloth
       service a few frames behind adds their whole backlog to every frame's latency).
     loop: start again from the first frame at the end (frame index and time keep counting; that
-      frame says `jump`).
+      frame says `jump`); loop_from: from this frame instead (of the frames taken: a clip whose
+      first frame is its converter's T-pose, which a session skips, loops back to the frame after).
     every: take one frame in `every` (e.g. 2 turns the 120 Hz CMU clips into 60 Hz).
     """
 
     def __init__(self, path: str | Path, pace: str = "fast", loop: bool = False, every: int = 1,
-                 unit: float = CMU_UNIT_M, max_frames: int | None = None, max_lag: float | None = None):
+                 unit: float = CMU_UNIT_M, max_frames: int | None = None, max_lag: float | None = None,
+                 loop_from: int = 0):
         if pace not in ("realtime", "fast"):
             raise ValueError(f"pace must be 'realtime' or 'fast', got {pace!r}")
         if every < 1:
             raise ValueError(f"every must be >= 1, got {every}")
+        if loop_from < 0:
+            raise ValueError(f"loop_from must be >= 0, got {loop_from}")
         self.path = Path(path)
+        self.loop_from = loop_from
         self.pace, self.loop, self.every, self.unit, self.max_frames = pace, loop, every, unit, max_frames
         self._clock: float | None = None  # perf_counter() of the session's time 0, set at the first frame
         self._reader = BVHReader(self.path, unit)
@@ -84,9 +89,11 @@ class BVHSource:
         index = 0
         self._clock = None
         jump = False
+        skip = 0  # frames of the clip not taken again on this pass (loop_from)
         while True:
+            start = index
             for k, values in enumerate(self._reader.rows()):
-                if k % self.every:
+                if k % self.every or k // self.every < skip:
                     continue
                 if self.max_frames is not None and index >= self.max_frames:
                     return
@@ -104,8 +111,9 @@ class BVHSource:
                 yield PoseFrame(index, t, rot, pos, jump)
                 index += 1
                 jump = False
-            if not self.loop or index == 0:
+            if not self.loop or index == start:  # (nothing taken: an empty clip, or loop_from beyond its end)
                 return
             self._reader.close()
             self._reader = BVHReader(self.path, self.unit)
-            jump = True  # from the clip's last pose back to its first
+            jump = True  # from the clip's last pose back to its first (loop_from's)
+            skip = self.loop_from

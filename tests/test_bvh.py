@@ -305,6 +305,17 @@ def test_source_every_and_loop(mocap):
     assert len(frames) == 200 and frames[-1].index == 199
     np.testing.assert_array_equal(frames[75].local_rot, frames[0].local_rot)  # wrapped around
     assert [f.index for f in frames if f.jump] == [75, 150]  # where the motion jumps back to its start
+    # a clip whose first frame is its converter's T-pose loops back to the frame after it
+    with BVHSource(path, every=2, loop=True, loop_from=1, max_frames=80) as src:
+        frames = list(src)
+    assert [f.index for f in frames if f.jump] == [38, 75]  # 38 frames, then 37 a loop
+    np.testing.assert_array_equal(frames[38].local_rot, frames[1].local_rot)
+    np.testing.assert_array_equal(frames[75].root_position, frames[1].root_position)
+    assert [f.index for f in frames] == list(range(80))
+    with BVHSource(path, every=2, loop=True, loop_from=38, max_frames=80) as src:
+        assert len(list(src)) == 38  # nothing left to loop over: the clip plays once
+    with pytest.raises(ValueError, match="loop_from"):
+        BVHSource(path, loop_from=-1)
 
 
 def test_realtime_pacing_waits_for_the_clip_rate(mocap):

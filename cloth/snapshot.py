@@ -1,0 +1,51 @@
+"""A copy of a session's per-frame state, put back later in place.
+
+    start = StateSnapshot(sim.state, surface.state, layer_state)   # garments settled into a pose
+    ...                                                              # frames
+    start.restore()                                                  # back to that moment
+
+What a session keeps from frame to frame is arrays in its state objects (`ClothState`,
+`SurfaceState`, `LayerState` and the objects these hold); the models are shared and never
+change. Restoring copies into the same arrays: the kernels' argument tuples, built once
+(`ClothSim._arguments`), keep referring to them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+
+
+def state_arrays(state) -> Iterator[tuple[object, str, np.ndarray]]:
+    """(owner, attribute, array) for every array `state` holds, and every array of the state
+    objects it holds (objects of this package, e.g. `layers.SheetMoves`)."""
+    for name, value in vars(state).items():
+        if isinstance(value, np.ndarray):
+            yield state, name, value
+        elif type(value).__module__.startswith(__package__ + ".") and hasattr(value, "__dict__"):
+            yield from state_arrays(value)
+
+
+class StateSnapshot:
+    """The arrays of some state objects as they are now (copies), to restore in place."""
+
+    def __init__(self, *states):
+        self._saved = [(owner, name, a.copy()) for s in states for owner, name, a in state_arrays(s)]
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for _, _, a in self._saved)
+
+    def restore(self) -> None:
+        """Every saved array back, into the array it was copied from (one a step replaced with
+        another shape, a scratch grown, gets a copy of the saved one)."""
+        for owner, name, saved in self._saved:
+            current = getattr(owner, name)
+            if current.shape == saved.shape and current.dtype == saved.dtype:
+                np.copyto(current, saved)
+            else:
+                setattr(owner, name, saved.copy())
+
+
+__all__ = ["StateSnapshot", "state_arrays"]
