@@ -26,7 +26,8 @@ PATENT = {  # SPEC.md: dress, blouse + pants (ms per frame)
     "integration": (16.0, 18.0), "collision": (4.6, 6.1), "PN triangles": (10.2, 14.1),
     "surface collision": (13.3, 17.2), "deformation": (25.8, 33.6),
 }
-OUTFITS = {"dress-like (blouse + skirt)": "female_elegantsuit01", "trouser-like (T-shirt + jeans)": "female_casualsuit01"}
+OUTFITS = {"dress-like (blouse + skirt)": "female_elegantsuit01",
+           "trouser-like (T-shirt + jeans)": "female_casualsuit01"}
 
 
 def stage_medians(report, fast) -> dict[str, float]:
@@ -84,7 +85,8 @@ def main() -> None:
               f"whole {total:.2f} ms per frame "
               f"({1000.0 / total:.0f} FPS; patent {patent_total:.1f} ms, {patent_total / total:.0f}x faster)")
     print("\nsurface cost by level, trouser-like outfit (ms per frame, both garments)")
-    print(f"{'level':>5s} {'detailed verts':>14s} {'PN':>6s} {'collision':>9s} {'deformation':>11s} {'us per 1k verts':>15s}")
+    print(f"{'level':>5s} {'detailed verts':>14s} {'PN':>6s} {'collision':>9s} {'deformation':>11s} "
+          f"{'us per 1k verts':>15s}")
     for level in args.levels:
         rep = run_cloth_clip(body, data / "garments" / "female_casualsuit01", clip, max_frames=min(args.frames, 100),
                              surface=SurfaceSettings(level=level))

@@ -751,7 +751,8 @@ CREASE_COS = 0.98  # two push planes nearer parallel (or opposite) than this are
 SLIT_COS = 0.6
 MAX_CREASE_MOVE = 0.03  # m: a crease solution farther than this from the particle is not taken
 NO_FACE_TREE = (np.zeros((1, 6)), np.full((1, 2), -1, np.int32), np.zeros(1, np.int32), np.zeros(1, np.int32),
-                np.zeros(0, np.int32), np.full(1, -1, np.int32), np.full(0, -1, np.int32))  # FaceTree.arrays(), no faces
+                np.zeros(0, np.int32), np.full(1, -1, np.int32),
+                np.full(0, -1, np.int32))  # FaceTree.arrays(), no faces
 FACE_TREE_STACK = 64  # traversal scratch of `tree_nearest_face` (a tree at most this deep, less two)
 MAX_OTHER_PART_DEPTH = 0.01  # m: deeper behind another part's face, the parts intersect: that push is not taken
 UNION_REACH = 0.12  # m: how far along each axis `leave_body_union` looks for a way out (8 cm: deep squats stayed in)

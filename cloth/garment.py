@@ -232,7 +232,8 @@ def load_outfit(outfit_dir: str | Path, base_vertices_m: np.ndarray) -> list[Gar
     obj_path = outfit_dir / clo.obj_file
     _, faces = read_obj_polygons(obj_path)
     if len(clo.refs) < faces.max() + 1:
-        raise GarmentError(f"{clo.path}: {len(clo.refs)} vertex rows but {obj_path.name} uses {faces.max() + 1} vertices")
+        raise GarmentError(f"{clo.path}: {len(clo.refs)} vertex rows but {obj_path.name} uses "
+                           f"{faces.max() + 1} vertices")
     fitted = fit_mhclo(clo, base_vertices_m / MAKEHUMAN_UNIT_M) * MAKEHUMAN_UNIT_M
     return split_garments(outfit_dir.name, fitted, faces)
 

@@ -244,7 +244,8 @@ def build_cloth_model(garment: Garment, fabric: Fabric, settings: SimSettings | 
         triangles=tris, mass=mass, inv_mass=inv_mass, drag=fabric.air_drag * area, spring_i=si, spring_j=sj,
         spring_kind=kind, rest_length=rest, k_stretch=ks, k_compress=kc, c_stretch=cs, c_compress=cc,
         spring_pairs=pairs_packed, spring_params=params_packed,
-        substeps=substeps, stable_dt=dt, n_structural=int(np.sum(kind == STRUCTURAL)), grip=np.zeros(len(verts), dtype=np.uint8),
+        substeps=substeps, stable_dt=dt, n_structural=int(np.sum(kind == STRUCTURAL)),
+        grip=np.zeros(len(verts), dtype=np.uint8),
         region_mask=np.full(len(verts), ALL_REGIONS, dtype=REGION_DTYPE), boundary_loops=boundary_loops(faces),
         coarse=coarse,
     )

@@ -46,6 +46,12 @@ class SurfaceSettings:
     # per garment-frame
     other_parts: bool = True
     penetration_iterations: int = 4  # S103 lifts per particle (one suffices on a flat body)
+    # S103: where the linear lifts fail (n_i along the body, a particle caught in a crease), search
+    # for a lift by doubling and bisection (`wrinkles._lift_out`). Off (fifty-second session): such a
+    # particle keeps its height and `creases.leave_creases` moves it out, to the nearest point
+    # outside (fewer vertices left deeper than 1 mm, fewer edges too long, and 0.4-0.5 ms less on
+    # the walk's crouch; docs/history.md). Turn it on with creases=False
+    lift_search: bool = False
     max_lift: float = 0.02  # m: S103 lifts a particle at most this far per frame
     max_height: float = 0.03  # m: Δh is clamped to this (wrinkles and lifts together) before the
     # S106 neighbour-distance rounds, which may raise a particle beyond it to keep an edge within d_max
@@ -265,7 +271,8 @@ class DetailedSurface:
                                             body.parts, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
                                             s.body_face, s.part_face, face_n, s.q, face_tip, st.tip_share,
                                             st.clearance, st.contact_margin,
-                                            st.face_margin, st.penetration_iterations, st.max_lift, st.max_height)
+                                            st.face_margin, st.penetration_iterations, st.max_lift, st.max_height,
+                                            st.lift_search)
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)
         t2 = time.perf_counter()

@@ -258,7 +258,7 @@ def _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 @kernel
 def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
               nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip,
-              tip_share, clearance, max_iterations, up_cap, down_cap):
+              tip_share, clearance, max_iterations, up_cap, down_cap, search):
     """The smallest move along n_i that puts particle vid `clearance` outside the body (S103):
     a lift of at most up_cap, or (Decision) a lowering of at most down_cap. Distances are less
     `tip_allowance`, as in `avoid_penetration`.
@@ -270,7 +270,8 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
     armpit), and lifting would carry the particle through the whole part: there the same step
     lowers it (rate < 0), towards the side the coarse cloth came from. Where neither works
     (the nearest surface is a side wall, a fold) the move doubles until outside, first in the
-    direction the body's normal suggests, then in the other, and is then bisected. A particle
+    direction the body's normal suggests, then in the other, and is then bisected (`search`;
+    off by default since the fifty-second session: `SurfaceSettings.lift_search`). A particle
     no move gets out of (caught where body parts intersect) keeps its height.
     Returns (signed distance, n_i . n_body) at the end."""
     enough = clearance - LIFT_TOLERANCE
@@ -293,7 +294,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
         it += 1
     if d >= enough:
         return d, rate
-    for attempt in range(2):
+    for attempt in range(2 if search else 0):
         sgn = sense if attempt == 0 else -sense
         cap = up_cap if sgn > 0.0 else down_cap
         lo = dh_pen[vid] if (dh_pen[vid] * sgn > 0.0) else 0.0  # inside, the linear steps' last lift
@@ -341,7 +342,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
 def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, x, coarse_nearest,
                       find_parts, part_seeds, seed_reach, seed_count, parts, reach, body_x, nbr_start, nbr_ids, regions,
                       tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip, tip_share,
-                      clearance, margin, face_margin, max_iterations, max_lift, max_height):
+                      clearance, margin, face_margin, max_iterations, max_lift, max_height, search):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
@@ -369,7 +370,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     around it).
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
-    `_lift_out` for the other cases). Returns the number of particles tested."""
+    `_lift_out` for the other cases; search: its doubling and bisection where the linear steps
+    fail). Returns the number of particles tested."""
     n = p.shape[0]
     n_coarse = coarse_nearest.shape[0]
     face_margin = max(face_margin, margin)  # (never narrower than the test inside a face)
@@ -429,7 +431,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                     d, rate = _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh,
                                         dh_pen, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                                         body_face, part_face, face_n, q, face_tip, tip_share, clearance,
-                                        max_iterations, up, down)
+                                        max_iterations, up, down, search)
                 sd[vid] = d
                 facing[vid] = rate
             if parents[loc, 0] < 0 and sd[vid] < face_margin:

@@ -217,7 +217,8 @@ def cmd_session(args) -> int:
         cfg.listen = ["tcp/0.0.0.0:7447"]  # remote displays and services connect here
     body = load_body(data)
     frames = _frame_list(args.snapshot_frames) if args.snapshot_frames else []
-    print(f"session {session}: {clip.stem} × {args.outfit} (level {args.level if not args.coarse_only else 'coarse'}), "
+    level = args.level if not args.coarse_only else "coarse"
+    print(f"session {session}: {clip.stem} × {args.outfit} (level {level}), "
           f"bus {cfg.mode} listening on {', '.join(cfg.listen) or 'nothing'}")
     if args.serve:
         print(f"  serving: rerun viewer `rerun --connect rerun+http://<this-host>:{args.port}/proxy`; "

@@ -134,7 +134,8 @@ class ClothReport:
         ms = "  ".join(f"{k} {np.median(v):.3f}" for k, v in self.stage_ms.items())
         if self.surface_ms:
             ms += " | surface PN/collision/deformation: " + "  ".join(
-                f"{k} " + "/".join(f"{x:.2f}" for x in np.median(np.array(v), axis=0)) for k, v in self.surface_ms.items())
+                f"{k} " + "/".join(f"{x:.2f}" for x in np.median(np.array(v), axis=0))
+                for k, v in self.surface_ms.items())
         if self.layer_ms:
             ms += f" | layering {np.median(self.layer_ms):.2f}"
         return (f"{self.clip} × {self.outfit}: {self.frames} frames, substeps {self.substeps} | "

@@ -176,9 +176,11 @@ class GarmentSession:
         svc = self.service
         v, q = msg.arrays["vertices"], msg.arrays["q"]
         if v.shape[0] != svc.body.n_visible:
-            raise MessageError(key_expr, f"body has {v.shape[0]} vertices, this service's body has {svc.body.n_visible}")
+            raise MessageError(key_expr, f"body has {v.shape[0]} vertices, this service's body has "
+                                         f"{svc.body.n_visible}")
         if q.shape[0] != svc.animator.character.model.nq:
-            raise MessageError(key_expr, f"q has {q.shape[0]} values, the character needs {svc.animator.character.model.nq}")
+            raise MessageError(key_expr, f"q has {q.shape[0]} values, the character needs "
+                                         f"{svc.animator.character.model.nq}")
         if msg.frame <= self.last_frame:
             raise MessageError(key_expr, f"frame {msg.frame} arrives after frame {self.last_frame}")
         if self.last_frame >= 0 and msg.frame != self.last_frame + 1:

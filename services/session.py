@@ -102,7 +102,8 @@ class SessionResult:
 
     def summary(self) -> str:
         streamed = max(self.seconds - self.setup_seconds, 1e-9)
-        lines = [f"session {self.session}: {self.frames} frames in {self.seconds:.1f} s (setup {self.setup_seconds:.1f} s: "
+        lines = [f"session {self.session}: {self.frames} frames in {self.seconds:.1f} s "
+                 f"(setup {self.setup_seconds:.1f} s: "
                  f"garment models, pre-roll, and on a first run numba compiling; then "
                  f"{max(self.frames - 1, 0) / streamed:.1f} frames/s)"]
         body = {k: v for k, v in self.timings.items() if ":" not in k}
@@ -111,7 +112,8 @@ class SessionResult:
         for g in garments:
             lines.append(f"  {g}  median ms/frame: " + "  ".join(
                 f"{k.split(':')[1][:-3]} {v:.2f}" for k, v in self.timings.items() if k.startswith(g + ":")))
-        lines.append(f"  body frame published -> garment mesh received (offline, one frame queued): p50 {self.latency_ms[0]:.1f} ms, "
+        lines.append(f"  body frame published -> garment mesh received (offline, one frame queued): "
+                     f"p50 {self.latency_ms[0]:.1f} ms, "
                      f"p99 {self.latency_ms[1]:.1f} ms")
         for what, s in self.stats.items():
             c = s["counts"]

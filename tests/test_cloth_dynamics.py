@@ -130,7 +130,8 @@ def test_gershgorin_bounds_the_exact_eigenvalue(monkeypatch):
     pts = np.column_stack([grid, rng.normal(0.0, 0.01, len(grid))])
     pairs = np.array([(i, j) for i in range(36) for j in range(i + 1, 36)
                       if np.linalg.norm(grid[i] - grid[j]) < 0.08], np.int32)
-    sheet = (pts, rng.uniform(20.0, 80.0, 36), pairs[:, 0].copy(), pairs[:, 1].copy(), rng.uniform(10.0, 60.0, len(pairs)))
+    sheet = (pts, rng.uniform(20.0, 80.0, 36), pairs[:, 0].copy(), pairs[:, 1].copy(),
+             rng.uniform(10.0, 60.0, len(pairs)))
     exact = [dynamics.stiffness_eigenvalue(*case, 0.1) for case in (two, sheet)]
     monkeypatch.setattr(dynamics, "EXACT_EIGEN_PARTICLES", 0)
     bound = [dynamics.stiffness_eigenvalue(*case, 0.1) for case in (two, sheet)]
@@ -183,7 +184,8 @@ def uv_sphere(radius=0.5, n_lat=24, n_lon=48):
         th = math.pi * i / n_lat
         for j in range(n_lon):
             ph = 2 * math.pi * j / n_lon
-            verts.append([radius * math.sin(th) * math.cos(ph), radius * math.cos(th), radius * math.sin(th) * math.sin(ph)])
+            verts.append([radius * math.sin(th) * math.cos(ph), radius * math.cos(th),
+                          radius * math.sin(th) * math.sin(ph)])
     verts.append([0.0, -radius, 0.0])
     tris = []
     for j in range(n_lon):

@@ -150,7 +150,8 @@ def test_full_session_across_processes(data, tmp_path, cli_env):
             ingest, log = start(["ingest", "--session", "procs", "--clip", SHORT, "--pace", "realtime", "--loop",
                                  "--mode", "client", "--connect", endpoint, "--level", str(LEVEL),
                                  "--arm-clearance", "12", "--no-hand-clearance", "--no-skin-contact"], None)
-            wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[1]}")) >= 10, 120, "garments from the cloth process")
+            wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[1]}")) >= 10, 120,
+                       "garments from the cloth process")
             topo = fetch_latched(bus, key("procs", "topology", "**"))  # while the session runs
             desc = fetch_latched(bus, key("procs", "session"))[key("procs", "session")].meta
             assert desc["arm_clearance_deg"] == 12.0 and desc["outfit"] == OUTFIT  # how the person was retargeted
@@ -162,7 +163,8 @@ def test_full_session_across_processes(data, tmp_path, cli_env):
             assert ingest.wait(timeout=60) == 0, log.read_text()
             frames = bodies.frames("body")
             assert frames == list(range(START_FRAME, START_FRAME + len(frames)))
-            wait_until(lambda: all(garments.frames(f"garment/{g}") == frames for g in GARMENTS), 120, "every garment frame")
+            wait_until(lambda: all(garments.frames(f"garment/{g}") == frames for g in GARMENTS), 120,
+                       "every garment frame")
             for k, m in garments.messages:
                 t = topo[key("procs", "topology", "garment", parse_key(k)[1][1])]
                 positions, normals = garment_mesh(m.arrays)  # compact on the bus (services.wire)
@@ -194,8 +196,8 @@ def test_a_recorder_stopped_with_sigterm_closes_its_recording(data, tmp_path, cl
     port = free_port()
     out = tmp_path / "term.mcap"
     with open(tmp_path / "record.log", "w") as fh:
-        rec = subprocess.Popen([sys.executable, "-m", "services.cli", "--data", str(data), "record", "--session", "term",
-                                "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}"],
+        rec = subprocess.Popen([sys.executable, "-m", "services.cli", "--data", str(data), "record",
+                                "--session", "term", "--out", str(out), "--listen", f"tcp/127.0.0.1:{port}"],
                                env=cli_env, stdout=fh, stderr=subprocess.STDOUT, text=True)
     log = tmp_path / "record.log"
     try:
@@ -334,7 +336,8 @@ def test_malformed_messages_are_rejected_counted_and_the_session_goes_on(hub, bo
         for p in bad_payloads:
             bus.put(key("bad", "body"), p)
         before = len(garments.frames(f"garment/{GARMENTS[0]}"))
-        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) >= before + 10, 30, "frames after the bad messages")
+        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) >= before + 10, 30,
+                   "frames after the bad messages")
 
         def rejected():
             counts = [m.meta["counts"]["rejected"] for _, m in stats.messages]

@@ -549,20 +549,22 @@ def test_a_body_part_pressing_from_the_outer_side_lowers_the_sheet_and_lets_it_g
     np.testing.assert_allclose(p[:, 1], 0.0, atol=1e-12)
 
 
-@pytest.mark.parametrize("face_margin", [0.01, 0.005])
-def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(face_margin):
+@pytest.mark.parametrize("face_margin,lift_search", [(0.01, True), (0.01, False), (0.005, True)])
+def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(face_margin, lift_search):
     """Decision (S103): a cube of half-width 13 mm whose top is 3 mm above the flat sheet, under
     the middle of the coarse edge from (0, 0, 40) to (40, 0, 40) mm. That edge's end particles
     are 7 mm from the cube, farther than contact_margin (5 mm); every other coarse particle is
     farther still. With face_margin 10 mm the faces around the edge are tested from their
     corners' first subdivision (the mid-edge particle, inside) down, and the particles over
-    the cube are lifted out of it; with face_margin = contact_margin (the rule before) they
-    are never tested and stay inside it."""
+    the cube are found inside and end outside it: lifted by S103's search (lift_search; their
+    walks end on the cube's side walls, along which n_i runs), or without it moved out by
+    `leave_creases`; with face_margin = contact_margin (the rule before) they are never tested
+    and stay inside it."""
     bv, bt = box(half=0.013, n=6)
     centre = np.array([0.02, -0.01, 0.04])
     bv = np.ascontiguousarray(bv + centre)
     body = body_mesh_of(bv, bt)
-    m = build_surface_model(sheet_model().cloth, SurfaceSettings(face_margin=face_margin))
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(face_margin=face_margin, lift_search=lift_search))
     surf = DetailedSurface(m)
     x = m.cloth.rest_positions.copy()
     nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
@@ -572,7 +574,11 @@ def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(f
     assert over.sum() == 9  # a 3 x 3 block of the lattice (spacing 6.7 mm)
     if face_margin > 0.005:
         assert not inside.any()
-        assert np.isfinite(surf.state.sd[over]).all() and surf.state.dh_pen[over].min() > 0.003  # lifted
+        assert np.isfinite(surf.state.sd[over]).all()  # tested
+        if lift_search:
+            assert surf.state.dh_pen[over].min() > 0.003  # lifted
+        else:
+            assert surf.state.sd[over].max() < 0.0 and surf.creased >= over.sum()  # left inside, then moved out
     else:
         assert inside[over].all() and np.isinf(surf.state.sd[over]).all()  # never tested
 
