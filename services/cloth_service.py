@@ -41,7 +41,7 @@ from .cloth_job import (GARMENT_COLORS, Outfit, OutfitSession, collision_body, f
 from .heap import freeze_heap, reclaim_heap
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
-from .wire import CompactMesh
+from .wire import CompactMesh, body_vertices, vertex_count
 
 log = logging.getLogger("tryon.cloth")
 
@@ -174,9 +174,9 @@ class GarmentSession:
         """Step the cloth to this body frame. publish=False (catching up): S101 only, no surface and
         no garment message; the next published frame's surface step spans the skipped frames."""
         svc = self.service
-        v, q = msg.arrays["vertices"], msg.arrays["q"]
-        if v.shape[0] != svc.body.n_visible:
-            raise MessageError(key_expr, f"body has {v.shape[0]} vertices, this service's body has "
+        q = msg.arrays["q"]
+        if vertex_count(msg.arrays) != svc.body.n_visible:
+            raise MessageError(key_expr, f"body has {vertex_count(msg.arrays)} vertices, this service's body has "
                                          f"{svc.body.n_visible}")
         if q.shape[0] != svc.animator.character.model.nq:
             raise MessageError(key_expr, f"q has {q.shape[0]} values, the character needs "
@@ -186,7 +186,7 @@ class GarmentSession:
         if self.last_frame >= 0 and msg.frame != self.last_frame + 1:
             self.stats.add("gaps")
         self.last_frame = msg.frame
-        self.body_x[:] = v
+        body_vertices(msg.arrays, out=self.body_x)  # (compact: decoded straight into it)
         first = not self.started
         if first:  # joined without the announcement: settle the garments into this first pose
             self.preroll(q)

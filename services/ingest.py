@@ -43,6 +43,7 @@ from skinning.source import PoseFrame
 from .bus import Latched, Stats, fetch_latched, key, wait_matching
 from .heap import freeze_heap
 from .protocol import Message, MessageError, decode, encode
+from .wire import CompactPositions
 
 log = logging.getLogger("tryon.ingest")
 
@@ -211,14 +212,16 @@ class IngestService:
     change_wait: how long the stream waits for the changed outfit to be ready (module docstring;
     not at all while no cloth service has reported the session ready).
     restart_on_jump: announce the session again where the motion jumps (a looped clip starting
-    again), so the garments start again from that pose (module docstring)."""
+    again), so the garments start again from that pose (module docstring).
+    float32_meshes: publish the body's vertices as float32, not on the compact 16-bit grid
+    (`services.wire`: 6 bytes a vertex instead of 12)."""
 
     SERVICE = "ingest"
 
     def __init__(self, bus: zenoh.Session, session: str, body: Body, source, description: dict,
                  ik: IKSettings | None = None, contact: ContactSettings | None = ContactSettings(),
                  check_outfit: Callable[[dict], None] | None = None, change_wait: float = 30.0,
-                 restart_on_jump: bool = True):
+                 restart_on_jump: bool = True, float32_meshes: bool = False):
         self.bus, self.session, self.body, self.source = bus, session, body, source
         self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
         # displays shade it themselves
@@ -236,7 +239,8 @@ class IngestService:
         self._ready = threading.Event()  # a cloth service reported the session ready, or failed
         self.cloth_failed: str | None = None  # why a cloth service cannot serve the session
         self._status = bus.declare_subscriber(key(session, "status", "*"), self._on_status)
-        self._verts = np.empty((body.n_visible, 3), np.float32)
+        self._verts = np.empty((body.n_visible, 3), np.float32) if float32_meshes else None
+        self._compact = None if float32_meshes else CompactPositions(body.n_visible)
         self._ready_since = 0  # a "ready" counts when it answers an announcement stamped this late or later
         self._cloth_seen = False  # a cloth service has reported this session ready at least once
         self.check_outfit, self.change_wait, self.restart_on_jump = check_outfit, change_wait, restart_on_jump
@@ -315,13 +319,20 @@ class IngestService:
     def publish(self, frame: PoseFrame, origin_ns: int = 0, out=None) -> None:
         """Retarget + skin one pose (unless `out`, its BodyFrame, is given) and publish the body."""
         out = self.animator(frame.local_rot, frame.root_position) if out is None else out
-        self._verts[:] = out.vertices[: self.body.n_visible]
+        if self._compact is not None:
+            try:
+                arrays = dict(self._compact.encode(out.vertices[: self.body.n_visible]), q=out.retarget.q)
+            except ValueError as err:  # a skinned body with NaN: not published, counted, the stream goes on
+                log.error("ingest: frame %d of %s not published: body %s", frame.index, self.session, err)
+                self.stats.add("errors")
+                return
+        else:
+            self._verts[:] = out.vertices[: self.body.n_visible]
+            arrays = {"vertices": self._verts, "q": out.retarget.q}
         st = self.animator.stage_seconds
         meta = {f"{s}_ms": round(float(st[i]) * 1000, 4) for i, s in enumerate(STAGES) if s != "normals"}
         meta["ankle_error_mm"] = round(float(out.retarget.ankle_position_error.max()) * 1000, 4)
-        msg = Message("body", self.session, frame.index, frame.time,
-                      {"vertices": self._verts, "q": out.retarget.q}, meta,
-                      origin_ns=origin_ns)
+        msg = Message("body", self.session, frame.index, frame.time, arrays, meta, origin_ns=origin_ns)
         self.publisher.put(encode(msg))
         self.frames += 1
         self.last_index = frame.index

@@ -35,13 +35,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAGIC = b"TRYN"
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 MAX_LEVEL = 16  # the finest PN tessellation level a session description may ask for
 # versions this build reads. Version 1 differs only in the body message, which had to carry the
 # skin's vertex normals: half its bytes, read by no service (a display computes them from the
 # latched topology). Version 2 garments are float32 only; version 3 adds the compact garment
-# arrays (`services.wire`). Recordings of either still replay.
-READABLE_VERSIONS = (1, 2, 3)
+# arrays (`services.wire`), version 4 the body's vertices in the same compact form. Recordings of
+# any of them still replay.
+READABLE_VERSIONS = (1, 2, 3, 4)
 PREFIX = struct.Struct("<4sHI")
 MAX_HEADER = 1 << 20
 ALIGN = 8
@@ -55,22 +56,27 @@ SCHEMAS: dict[str, dict[str, tuple[tuple[str, ...], tuple]]] = {
     "skeleton": {"parents": (("<i4",), (None,)), "heads": (("<f8", "<f4"), (None, 3)),
                  "tails": (("<f8", "<f4"), (None, 3))},
     "pose": {"local_rotations": (("<f8", "<f4"), (None, 4)), "root_position": (("<f8", "<f4"), (3,))},
-    "body": {"vertices": (("<f4",), (None, 3)), "q": (("<f8",), (None,))},
-    "garment": {},  # positions and normals, as float32 or compact: GARMENT_FORMS
+    "body": {"q": (("<f8",), (None,))},  # and its vertices, as float32 or compact: FORMS
+    "garment": {},  # positions and normals, as float32 or compact: FORMS
     "topology": {"triangles": (("<i4",), (None, 3))},
     "stats": {},
     "control": {},
 }
+# The compact form of positions (`services.wire`): a per-frame, per-axis 16-bit grid.
+COMPACT_POSITIONS = {"positions_u16": (("<u2",), (None, 3)), "position_origin": (("<f4",), (3,)),
+                     "position_step": (("<f4",), (3,))}
 # Arrays a message may carry, validated like the required ones when present.
 OPTIONAL: dict[str, dict[str, tuple[tuple[str, ...], tuple]]] = {
-    "body": {"normals": (("<f4",), (None, 3))},  # version 1 always had them
+    "body": {"vertices": (("<f4",), (None, 3)), "normals": (("<f4",), (None, 3)),  # (version 1 always had normals)
+             **COMPACT_POSITIONS},
     "garment": {"positions": (("<f4",), (None, 3)), "normals": (("<f4",), (None, 3)),
-                "positions_u16": (("<u2",), (None, 3)), "position_origin": (("<f4",), (3,)),
-                "position_step": (("<f4",), (3,)), "normals_oct16": (("<i2",), (None, 2))},
+                **COMPACT_POSITIONS, "normals_oct16": (("<i2",), (None, 2))},
 }
-# A garment carries its positions and its normals each in exactly one of these forms.
-GARMENT_FORMS = {"positions": (("positions",), ("positions_u16", "position_origin", "position_step")),
-                 "normals": (("normals",), ("normals_oct16",))}
+# A body carries its vertices, a garment its positions and its normals, each in exactly one of
+# these forms (float32, or compact: `services.wire`).
+COMPACT = ("positions_u16", "position_origin", "position_step")
+FORMS = {"body": {"vertices": (("vertices",), COMPACT)},
+         "garment": {"positions": (("positions",), COMPACT), "normals": (("normals",), ("normals_oct16",))}}
 
 
 class MessageError(ValueError):
@@ -202,8 +208,8 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
             raise MessageError(key, f"array {name!r} has shape {tuple(a.shape)}, expected {want}")
         if a.dtype.kind == "f" and not np.isfinite(a).all():
             raise MessageError(key, f"array {name!r} holds NaN or infinite values")
-    if k == "garment":
-        _check_garment_forms(arrays, key)
+    if k in FORMS:
+        _check_forms(k, arrays, key)
     points = arrays.get("vertices" if k == "body" else "positions", arrays.get("positions_u16"))
     normals = arrays.get("normals", arrays.get("normals_oct16"))
     if normals is not None and points is not None and normals.shape[0] != points.shape[0]:
@@ -211,16 +217,16 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
     return Message(k, s, frame, float(t), arrays, meta, stamp, origin)
 
 
-def _check_garment_forms(arrays: dict[str, np.ndarray], key: str) -> None:
-    for what, forms in GARMENT_FORMS.items():
+def _check_forms(kind: str, arrays: dict[str, np.ndarray], key: str) -> None:
+    for what, forms in FORMS[kind].items():
         present = [f for f in forms if any(name in arrays for name in f)]
         if len(present) != 1:
             names = " or ".join("+".join(f) for f in forms)
-            raise MessageError(key, f"garment message needs its {what} as {names}"
+            raise MessageError(key, f"{kind} message needs its {what} as {names}"
                                     + (", not both" if present else ""))
         missing = [name for name in present[0] if name not in arrays]
         if missing:
-            raise MessageError(key, f"garment message lacks array {missing[0]!r} (with {present[0][0]!r})")
+            raise MessageError(key, f"{kind} message lacks array {missing[0]!r} (with {present[0][0]!r})")
     step = arrays.get("position_step")
     if step is not None and not (step > 0).all():
         raise MessageError(key, f"array 'position_step' must be > 0, got {step.tolist()}")

@@ -29,7 +29,7 @@ from .protocol import MessageError, decode
 from .recorder import Recorder
 from .spin import LIVE_SPIN
 from .viewer import RecordingSink, VertexNormals, ViewerBridge
-from .wire import garment_mesh
+from .wire import body_vertices, garment_mesh
 
 # how long the ingest waits for its in-process cloth service to report the session ready (or failed)
 EMBEDDED_WAIT_READY = 1800.0
@@ -76,7 +76,7 @@ class SessionTap:
                 self.last_garment_frame = max(self.last_garment_frame, msg.frame)
             if msg.frame in self.wanted:
                 if msg.kind == "body":
-                    pos, normals = msg.arrays["vertices"], msg.arrays.get("normals")  # normals: none since schema 2
+                    pos, normals = body_vertices(msg.arrays), msg.arrays.get("normals")  # normals: none since schema 2
                 else:
                     pos, normals = garment_mesh(msg.arrays)
                 self.frames.setdefault(msg.frame, {})["/".join(parts)] = (

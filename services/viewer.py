@@ -22,7 +22,7 @@ from skinning.skin import MeshNormals
 
 from .bus import Stats, fetch_latched, key, parse_key
 from .protocol import MessageError, decode
-from .wire import garment_mesh, garment_vertices
+from .wire import body_vertices, garment_mesh, vertex_count
 
 log = logging.getLogger("tryon.viewer")
 
@@ -255,11 +255,11 @@ class ViewerBridge:
             if ent not in self.topology:
                 raise MessageError(key_expr, "no topology latched for this mesh yet")
         topo = self.topology[ent]
-        n = len(msg.arrays["vertices"]) if msg.kind == "body" else garment_vertices(msg.arrays)
+        n = vertex_count(msg.arrays)
         if n != topo["n_vertices"]:
             raise MessageError(key_expr, f"{n} vertices, the topology has {topo['n_vertices']}")
-        if msg.kind == "body":
-            pos, normals = msg.arrays["vertices"], msg.arrays.get("normals")
+        if msg.kind == "body":  # (compact: decoded into a fresh array, as the garments)
+            pos, normals = body_vertices(msg.arrays), msg.arrays.get("normals")
         else:  # fresh arrays every frame: rerun may still hold the last frame's when it returns
             pos, normals = garment_mesh(msg.arrays)
         self.stats.add("received")

@@ -26,7 +26,7 @@ from services.ingest import BusPoseSource, IngestService, publish_capture, reque
 from services.protocol import Message, decode, encode
 from services.recorder import Recorder, read_recording, replay
 from services.viewer import RecordingSink, ViewerBridge
-from services.wire import garment_mesh
+from services.wire import body_vertices, garment_mesh
 from skinning.animate import BodyAnimator
 from skinning.source import BVHSource
 
@@ -236,7 +236,8 @@ def test_late_joining_display_gets_topology_and_frames(hub, body, data, tmp_path
             late = Collector(display, key("late", "garment", "*"))
             bodies = Collector(display, key("late", "body"))
             wait_until(lambda: bodies.messages, 30, "a body frame at the late display")
-            assert set(bodies.messages[0][1].arrays) == {"vertices", "q"}  # the display shades the skin itself
+            # compact vertices, no normals: the display shades the skin itself
+            assert set(bodies.messages[0][1].arrays) == {"positions_u16", "position_origin", "position_step", "q"}
             wait_until(lambda: len(late.frames(f"garment/{GARMENTS[1]}")) >= 5, 30, "frames at the late display")
             assert min(late.frames(f"garment/{GARMENTS[1]}")) > joined_at
             wait_until(lambda: all(bridge.frames_shown.get(e, -1) > joined_at for e in bridge.topology), 10,
@@ -624,7 +625,7 @@ def test_a_looped_clip_starts_the_garments_again_where_it_jumps_back(hub, body, 
         assert sorted({m.frame for _, m in garments.messages}) == frames
         wait_until(lambda: "looped" in cloth.closed_stats, 30, "the session's end at the cloth service")
         assert cloth.closed_stats["looped"]["counts"]["restarts"] == 1  # restored, not fitted and settled again
-        body_at = {m.frame: m.arrays["vertices"] for _, m in bodies.messages}
+        body_at = {m.frame: body_vertices(m.arrays) for _, m in bodies.messages}
         worn = {(m.frame, k): m.arrays for k, m in garments.messages}
         assert np.abs(body_at[38] - body_at[37]).max() > 2.0  # the jump back
         for f in range(38, 38 + 8):
@@ -737,8 +738,36 @@ def test_live_pose_stream_drives_the_body_like_the_file(hub, body, data):
             expected = {f.index: animator(f.local_rot, f.root_position).vertices[: body.n_visible].copy()
                         for f in ref if f.index >= 1}
         for _, m in bodies.messages:
-            np.testing.assert_allclose(m.arrays["vertices"], expected[m.frame], atol=1e-5)
+            # on the compact grid: within half a step (at most 14 µm) and float32's rounding
+            np.testing.assert_allclose(body_vertices(m.arrays), expected[m.frame], atol=2e-5)
         source.close()
     finally:
         capture_bus.close()
         ingest_bus.close()
+
+
+def test_an_ingest_that_skins_a_body_with_nan_logs_and_counts_it_and_publishes_the_next_frame(hub, body, data,
+                                                                                              caplog):
+    """A skinned body the compact grid cannot hold (NaN) is not published: the ingest logs the
+    frame, counts an error, and the next frame goes out as usual."""
+    port, _ = hub
+    bus = peer(port)
+    bodies = Collector(bus, key("nanbody", "body"))
+    try:
+        with BVHSource(mocap_clip(data), every=2, max_frames=3) as source:
+            frames = list(source)
+            svc = IngestService(bus, "nanbody", body, source, {"outfit": OUTFIT, "level": LEVEL})
+            bad = svc.animator(frames[1].local_rot, frames[1].root_position)
+            bad.vertices[5, 1] = np.nan
+            with caplog.at_level(logging.ERROR, logger="tryon.ingest"):
+                svc.publish(frames[1], out=bad)
+            assert svc.stats.counts["errors"] == 1 and svc.frames == 0
+            assert "frame 1 of nanbody not published" in caplog.text and "NaN" in caplog.text
+            svc.publish(frames[2])
+            assert svc.frames == 1
+        wait_until(lambda: bodies.frames("body") == [2], 10, "the next body frame")
+        assert np.isfinite(body_vertices(bodies.messages[0][1].arrays)).all()
+        svc.close()
+    finally:
+        bodies.close()
+        bus.close()
