@@ -13,6 +13,8 @@ Key expressions of a session <s> (a name of letters, digits, '-', '_' and '.'):
     tryon/<s>/control             session events ({"event": "end"} when the motion source ends)
     tryon/<s>/status/cloth        {"event": "ready"} once the garments are settled into the first pose
                                   (latched), or {"event": "failed", "reason": ...} when it cannot serve
+                                  (with "kept": the outfit still worn, after a change it cannot make)
+    tryon/<s>/status/ingest       {"event": "outfit", "worn": ...} how an outfit change went
 
 "Latched" messages are put once when they are made and also answered by a queryable on the same
 key, so a display that joins later gets them with one `get("tryon/<s>/topology/**")`.
@@ -193,9 +195,11 @@ class Latched:
         self.bus.put(key_expr, payload)
 
     def close(self) -> None:
+        """Stop answering (a later `publish` answers again)."""
         for q in self._queryables:
             q.undeclare()
         self._queryables.clear()
+        self._payloads.clear()
 
 
 def fetch_latched(bus: zenoh.Session, selector: str, timeout: float = 2.0,

@@ -280,12 +280,20 @@ def cmd_outfit(args) -> int:
     with bus_config_from_args(args).open() as bus:
         try:
             answer = request_outfit(bus, session, args.name, args.fabric, None if args.coarse_only else args.level,
-                                    set_level=args.coarse_only or args.level is not None, timeout=args.timeout)
+                                    set_level=args.coarse_only or args.level is not None, timeout=args.timeout,
+                                    wait=args.wait)
         except ValueError as err:
             raise SystemExit(f"tryon outfit: {err}") from None
     if not answer.get("accepted"):
         raise SystemExit(f"tryon outfit: refused: {answer.get('reason', 'no reason given')}")
-    print(f"session {session}: outfit {args.name} from the frame after {answer.get('after_frame')}")
+    if args.wait <= 0:
+        print(f"session {session}: outfit {args.name} from the frame after {answer.get('after_frame')}")
+    elif answer.get("worn"):
+        print(f"session {session}: outfit {args.name} worn from frame {answer.get('frame')}")
+    elif answer.get("worn") is None:
+        raise SystemExit(f"tryon outfit: accepted, but {answer.get('reason')} (it may still come)")
+    else:
+        raise SystemExit(f"tryon outfit: not worn: {answer.get('reason', 'no reason given')}")
     return 0
 
 
@@ -505,6 +513,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--level", type=_level, default=None, help="PN tessellation level (default: the session's)")
     p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the session's ingest to answer")
+    p.add_argument("--wait", type=float, default=60.0,
+                   help="seconds to wait, once accepted, until the garments are on (the cloth service fits and "
+                        "settles them; 0: return once accepted)")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_outfit)
 

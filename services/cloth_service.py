@@ -104,22 +104,45 @@ class GarmentSession:
         self._msg: Message | None = None  # the body frame being stepped (read by _publish_garment)
         self._first = False  # ... and whether it is the session's first
         self.last_seen = time.monotonic()
+        self._topology = []
         for k, (n, m) in enumerate(zip(self.names, outfit.models)):
             tris = self.sim.surfaces[k].model.tess.triangles if self.sim.surfaces else m.triangles
             topo = Message("topology", session, arrays={"triangles": np.ascontiguousarray(tris, dtype=np.int32)},
                            meta={"what": "garment", "garment": n, "fabric": m.fabric.name,
                                  "color": list(GARMENT_COLORS[k % len(GARMENT_COLORS)]),
                                  "level": spec.level, "n_vertices": int(tris.max()) + 1})
-            self.latched.publish(key(session, "topology", "garment", n), encode(topo))
+            self._topology.append((key(session, "topology", "garment", n), encode(topo)))
+        self.latch(ready=False)
 
-    def preroll(self, q: np.ndarray) -> None:
+    def latch(self, ready: bool = True) -> None:
+        """Latch each garment's topology, and (ready) the session's status: ready, as set up."""
+        for k, payload in self._topology:
+            self.latched.publish(k, payload)
+        if ready:
+            self._report_ready()
+
+    def unlatch(self) -> None:
+        """No longer answer for the session's topology and status (another outfit is being set up
+        for it; `latch` answers again)."""
+        self.latched.close()
+
+    def preroll(self, q: np.ndarray, loop_q: np.ndarray | None = None) -> None:
         """Settle the garments from the rest pose into pose q, then tell the session we are ready.
-        The settled garments are kept (`restart`)."""
+        The settled garments are kept (`restart`); loop_q: the ones settled into that pose
+        instead (the pose a looped clip comes back to, announced with an outfit change: settled
+        now, in the change's pause, rather than at the next loop)."""
         t0 = time.perf_counter()
         q = np.array(q, dtype=np.float64)
         with self.service.animator_lock:  # the service's one animator poses the blend
-            self.sim.preroll(q, self.dt, contact=self.skin_contact)
-        self.start_q, self.start_state = q, self.sim.snapshot()
+            if loop_q is not None and not np.array_equal(loop_q, q):
+                fresh = self.sim.snapshot()
+                self.sim.preroll(loop_q, self.dt, contact=self.skin_contact)
+                self.start_q, self.start_state = loop_q, self.sim.snapshot()
+                fresh.restore()
+                self.sim.preroll(q, self.dt, contact=self.skin_contact)
+            else:
+                self.sim.preroll(q, self.dt, contact=self.skin_contact)
+                self.start_q, self.start_state = q, self.sim.snapshot()
         self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
         self.started = True
         self._report_ready()
@@ -166,9 +189,13 @@ class GarmentSession:
         if q is None:
             return  # no first pose announced: the first body frame starts the session
         nq = self.service.animator.character.model.nq
-        if not isinstance(q, list) or len(q) != nq or not all(isinstance(v, (int, float)) for v in q):
-            raise MessageError(key_expr, f"'first_q' must list the character's {nq} configuration values")
-        self.preroll(np.array(q, dtype=np.float64))
+        loop_q = desc.get("loop_q")
+        for name, v in (("first_q", q), ("loop_q", loop_q)):
+            if name == "loop_q" and v is None:
+                continue  # (optional)
+            if not isinstance(v, list) or len(v) != nq or not all(isinstance(a, (int, float)) for a in v):
+                raise MessageError(key_expr, f"'{name}' must list the character's {nq} configuration values")
+        self.preroll(np.array(q, dtype=np.float64), None if loop_q is None else np.array(loop_q, dtype=np.float64))
 
     def on_body(self, msg: Message, key_expr: str, publish: bool = True) -> None:
         """Step the cloth to this body frame. publish=False (catching up): S101 only, no surface and
@@ -293,7 +320,10 @@ class ClothService:
         # sessions being fitted and settled on the setup thread: (its result, messages held for it)
         self._setup = ThreadPoolExecutor(1, thread_name_prefix="session-setup")
         self._preparing: dict[str, tuple[Future, list[tuple[str, bytes, bool]]]] = {}
-        self._carried: dict[str, Stats] = {}  # counts of a session whose outfit is being changed
+        # a session whose outfit is being changed (or whose motion jumped): its garments as they
+        # were and the new announcement's stamp, kept until the new ones are ready, and kept on if
+        # they cannot be
+        self._replaced: dict[str, tuple[GarmentSession, int]] = {}
         self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
         self._subs = [bus.declare_subscriber(key(sessions, k), self._queue.put) for k in ("session", "body", "control")]
         self._stop = threading.Event()
@@ -342,6 +372,9 @@ class ClothService:
             if fut.exception() is None:
                 fut.result().close()
         self._preparing.clear()
+        for gs, _ in self._replaced.values():
+            gs.close()
+        self._replaced.clear()
         for gs in self.sessions.values():
             gs.close()
         self.sessions.clear()
@@ -398,17 +431,22 @@ class ClothService:
                 continue
             del self._preparing[session]
             err = fut.exception()
-            carried = self._carried.pop(session, None)
+            old, announced_ns = self._replaced.pop(session, (None, 0))
             if err is None:
                 self.sessions[session] = fut.result()
-                if carried is not None:
-                    self.sessions[session].stats.carry(carried)
+                if old is not None:  # the session's counts go on
+                    self.sessions[session].stats.carry(old.stats)
+                    self.closed_stats[session] = old.stats.snapshot()
+                    old.close()
                 freeze_heap()  # the session's models and state: alive until it ends
             else:
                 if not isinstance(err, (MessageError, FileNotFoundError, ValueError)):
                     log.error("cloth: setting up session %s failed", session, exc_info=err)
                     self.stats.add("errors")
-                self._fail(session, key(session, "session"), err)
+                if old is not None:
+                    self._keep(session, old, announced_ns, err)
+                else:
+                    self._fail(session, key(session, "session"), err)
             self._count_done()  # the announcement
             bodies = [j for j, (k, _, _) in enumerate(held) if k.endswith("/body")]
             for j, (k, payload, publish) in enumerate(held):
@@ -422,6 +460,20 @@ class ClothService:
         self.failed[session] = f"session cannot be served: {err}"
         self.stats.reject(MessageError(key_expr, self.failed[session]))
         msg = Message("control", session, meta={"event": "failed", "from": "cloth", "reason": self.failed[session]})
+        self.bus.put(key(session, "status", "cloth"), encode(msg))
+
+    def _keep(self, session: str, old: "GarmentSession", announced_ns: int, err: BaseException) -> None:
+        """The garments an announcement asked for cannot be served (an outfit this machine's data
+        lacks or cannot read, a pose it cannot settle into): the session keeps the ones it wore,
+        from where they were, and its ingest, told so on tryon/<s>/status/cloth, announces them
+        again."""
+        reason = f"the garments asked for cannot be served: {err}; {old.spec.outfit} stays on"
+        old.stats.reject(MessageError(key(session, "session"), reason))
+        old.stats.add("failed_changes")
+        self.sessions[session] = old
+        old.latch()
+        msg = Message("control", session, meta={"event": "failed", "from": "cloth", "reason": reason,
+                                                "kept": old.spec.outfit, "announced_ns": announced_ns})
         self.bus.put(key(session, "status", "cloth"), encode(msg))
 
     def _set_up(self, session: str, key_expr: str, desc: dict, stamp_ns: int) -> "GarmentSession":
@@ -476,15 +528,19 @@ class ClothService:
                 # starting again; services.ingest), or its last run
                 # never ended (its ingest stopped without an end message) and a new run under the
                 # same name starts. Either way the garments start again, from the announced pose.
+                self.sessions.pop(session)
                 if "restart_frame" in msg.meta:
                     log.info("cloth: session %s starts its garments again (%s, outfit %s -> %s) from frame %s",
                              session, msg.meta.get("restart_reason"), old.spec.outfit, msg.meta.get("outfit"),
                              msg.meta["restart_frame"])
-                    self._carried[session] = old.stats  # the session's counts go on
+                    # the new garments' topology and status are the ones to answer with; the old
+                    # ones are kept (not stepped: the ingest waits) in case the new cannot be served
+                    old.unlatch()
+                    self._replaced[session] = (old, msg.stamp_ns)
                 else:
                     log.warning("cloth: session %s announced again; its earlier run is closed", session)
-                self.closed_stats[session] = old.stats.snapshot()
-                self.sessions.pop(session).close()
+                    self.closed_stats[session] = old.stats.snapshot()
+                    old.close()
             self.failed.pop(session, None)
             self._preparing[session] = (self._setup.submit(self._set_up, session, key_expr, msg.meta, msg.stamp_ns),
                                         [])

@@ -17,6 +17,9 @@ optional: the session's stay) is answered at once, {"accepted": true} or {"accep
 session again with the new outfit and that frame's pose (`first_q`; `restart_frame`,
 `restart_reason`), and waits, as at the start, until a cloth service has fitted the new outfit and
 settled it into that pose; the cloth service replaces the session's garments from that frame on.
+If it cannot (its data lacks the outfit), it keeps the garments the session wore and says so, and
+the ingest latches the description as it was. How it went is put on tryon/<s>/status/ingest
+({"event": "outfit", "worn": bool, "frame", "reason", "kept"}), which `request_outfit(wait=)` waits for.
 A looped clip starting again is announced the same way, with the same outfit: the body jumps back
 to where the clip began, and a loose garment would be left where it was. `request_outfit`
 sends one (`tryon outfit`).
@@ -238,6 +241,8 @@ class IngestService:
         self._announced = False
         self._ready = threading.Event()  # a cloth service reported the session ready, or failed
         self.cloth_failed: str | None = None  # why a cloth service cannot serve the session
+        self.cloth_kept: str | None = None  # the outfit it kept on when it could not serve another
+        self._description_payload = b""  # the latched description, as latched
         self._status = bus.declare_subscriber(key(session, "status", "*"), self._on_status)
         self._verts = np.empty((body.n_visible, 3), np.float32) if float32_meshes else None
         self._compact = None if float32_meshes else CompactPositions(body.n_visible)
@@ -247,6 +252,7 @@ class IngestService:
         self._change: dict | None = None  # an accepted outfit change, applied at the next frame
         self._change_lock = threading.Lock()
         self.restarts = 0  # announcements after the first (outfit changes, jumps in the motion)
+        self._loop_q: list[float] | None = None  # the pose a looped source comes back to (the first one)
         self._changes = bus.declare_queryable(key(session, "outfit"), self._on_outfit_request)
 
     def announce(self) -> None:
@@ -262,8 +268,8 @@ class IngestService:
     def _publish_description(self) -> int:
         """Latch the session description (again, after a change); returns its stamp."""
         stamp = time.time_ns()
-        self.latched.publish(key(self.session, "session"),
-                             encode(Message("session", self.session, meta=self.description), stamp_ns=stamp))
+        self._description_payload = encode(Message("session", self.session, meta=self.description), stamp_ns=stamp)
+        self.latched.publish(key(self.session, "session"), self._description_payload)
         return stamp
 
     def _on_outfit_request(self, query) -> None:
@@ -300,21 +306,57 @@ class IngestService:
         service to have the garments fitted and settled into that pose."""
         with self._change_lock:
             change, self._change = self._change, None
+        before, before_payload = dict(self.description), self._description_payload
         self.description.update(change or {}, first_q=[float(v) for v in q], restart_frame=index,
                                 restart_reason="outfit change" if change else "motion jump")
+        # a looped source comes back to its first pose: the cloth service settles the new garments
+        # into that one too, now (in the pause of the change), to put them back there at each loop
+        self.description.pop("loop_q", None)
+        if change and self._loop_q is not None:
+            self.description["loop_q"] = self._loop_q
         self._ready.clear()
-        self.cloth_failed = None
+        self.cloth_failed = self.cloth_kept = None
         self._ready_since = self._publish_description()
         self.restarts += 1
-        if not self._cloth_seen:
-            return  # no cloth service has answered this session: nothing to wait for (a body-only display)
+        if not self._cloth_seen:  # no cloth service has answered this session: nothing to wait for
+            if change:
+                self._report_change(change, index, False, "no cloth service serves this session (yet)")
+            return
         t0 = time.monotonic()
-        if not self.wait_ready(self.change_wait):
+        if self.wait_ready(self.change_wait):
+            if change:
+                self._report_change(change, index, True)
+        elif self.cloth_kept is not None:
+            # the cloth service kept the garments it had on: so does the description, latched as it
+            # was (its stamp tells a cloth service it has it already)
+            log.error("ingest: session %s: %s", self.session, self.cloth_failed)
+            self.stats.add("failed_changes")
+            if change:
+                self._report_change(change, index, False, self.cloth_failed, kept=self.cloth_kept)
+            self.description, self._description_payload = before, before_payload
+            self.latched.publish(key(self.session, "session"), before_payload)
+            self.cloth_failed = None
+        else:
             log.warning("ingest: no cloth service reported %s ready again in %.0f s%s", self.session,
                         self.change_wait, f": {self.cloth_failed}" if self.cloth_failed else "")
+            if change:
+                self._report_change(change, index, False, self.cloth_failed
+                                    or f"no cloth service reported it ready in {self.change_wait:.0f} s")
         waited = time.monotonic() - t0
         if waited > 0.1 and hasattr(self.source, "hold"):
             self.source.hold(waited)
+
+    def _report_change(self, change: dict, index: int, worn: bool, reason: str = "", kept: str | None = None) -> None:
+        """Tell whoever asked for an outfit change how it went, on tryon/<s>/status/ingest
+        (`request_outfit` waits for it): worn from frame `index` on, or not and why (kept: the
+        outfit the session still wears)."""
+        meta = dict(change, event="outfit", worn=worn, frame=index)
+        if not worn:
+            meta["reason"] = reason
+        if kept is not None:
+            meta["kept"] = kept
+        self.bus.put(key(self.session, "status", self.SERVICE), encode(Message("control", self.session, index,
+                                                                                meta=meta)))
 
     def publish(self, frame: PoseFrame, origin_ns: int = 0, out=None) -> None:
         """Retarget + skin one pose (unless `out`, its BodyFrame, is given) and publish the body."""
@@ -366,7 +408,11 @@ class IngestService:
         if msg is None:
             return
         if msg.meta.get("event") == "failed":
+            kept = msg.meta.get("kept")
+            if kept is not None and msg.meta.get("announced_ns") != self._ready_since:
+                return  # (another announcement's)
             self.cloth_failed = str(msg.meta.get("reason", "no reason given"))
+            self.cloth_kept = str(kept) if kept is not None else None
             self._ready.set()
         elif self._answers(msg):
             self.cloth_failed = None
@@ -404,6 +450,8 @@ class IngestService:
                     with self._change_lock:  # a change asked for before the first frame: the first announcement's
                         change, self._change = self._change, None
                     self.description.update(change or {}, first_q=[float(v) for v in out.retarget.q])
+                    if getattr(self.source, "loop", False) and getattr(self.source, "loop_from", 0) == frame.index:
+                        self._loop_q = self.description["first_q"]  # where each loop starts again
                     self.announce()
                     t0 = time.monotonic()
                     if wait_subscribers > 0 and not self.wait_for_subscribers(wait_subscribers):
@@ -447,16 +495,51 @@ class IngestService:
 
 
 def request_outfit(bus: zenoh.Session, session: str, outfit: str, fabric: str | None = None,
-                   level: int | None = None, set_level: bool = False, timeout: float = 5.0) -> dict:
+                   level: int | None = None, set_level: bool = False, timeout: float = 5.0,
+                   wait: float = 0.0) -> dict:
     """Ask the ingest of a running session to change its outfit (module docstring). fabric None:
     the session's; level: set only with set_level (None there: coarse cloth only). Returns the
-    ingest's answer ({"accepted": bool, "reason": ...}); ValueError when no ingest answers."""
+    ingest's answer ({"accepted": bool, "reason": ...}); ValueError when no ingest answers.
+    wait > 0: an accepted change is also waited for (up to `wait` s) until the garments are on:
+    the answer then says "worn" (bool; with "frame", the first frame that wears them) and,
+    if not, the "reason" and the outfit the session still wears ("kept"); "worn" is None when
+    the wait ran out."""
     meta: dict = {"outfit": outfit}
     if fabric is not None:
         meta["fabric"] = fabric
     if set_level:
         meta["level"] = level
     k = key(session, "outfit")
+    outcomes: queue.Queue = queue.Queue()
+    listen = bus.declare_subscriber(key(session, "status", IngestService.SERVICE), outcomes.put) if wait > 0 else None
+    try:
+        answer = _ask_outfit(bus, session, k, meta, timeout)
+        if listen is None or not answer.get("accepted"):
+            return answer
+        deadline = time.monotonic() + wait
+        while True:
+            try:
+                sample = outcomes.get(timeout=max(0.0, deadline - time.monotonic()))
+            except queue.Empty:
+                return dict(answer, worn=None, reason=f"not worn after {wait:.0f} s")
+            try:
+                got = decode(sample.payload.to_bytes(), str(sample.key_expr), session, "control").meta
+            except MessageError:
+                continue
+            if got.get("event") != "outfit" or not isinstance(got.get("frame"), int):
+                continue
+            if got["frame"] <= answer.get("after_frame", -1):
+                continue  # an earlier change's
+            if got.get("outfit") != outfit:  # another request came after this one, before the frame
+                return dict(answer, worn=False, frame=got["frame"],
+                            reason=f"replaced by a request for {got.get('outfit')!r}")
+            return dict(answer, **{f: got[f] for f in ("worn", "frame", "reason", "kept") if f in got})
+    finally:
+        if listen is not None:
+            listen.undeclare()
+
+
+def _ask_outfit(bus: zenoh.Session, session: str, k: str, meta: dict, timeout: float) -> dict:
     deadline = time.monotonic() + timeout
     while True:  # a process that has just joined the bus learns of the ingest's queryable a moment later
         for reply in bus.get(k, payload=encode(Message("control", session, meta=meta)),

@@ -539,7 +539,10 @@ def test_a_session_changes_its_outfit_mid_stream(hub, body, data, tmp_path):
     def before_frame(index):
         if index == START_FRAME + 3:
             answers.append(request_outfit(display, "change", "no-such-outfit"))
-            answers.append(request_outfit(display, "change", new))
+            # asked from another thread, waiting until the garments are on (the change is made at the next frame)
+            threading.Thread(target=lambda: answers.append(request_outfit(display, "change", new, wait=60)),
+                             daemon=True).start()
+            wait_until(lambda: svc._change is not None, 30, "the ingest to accept the change")
         return True
 
     try:
@@ -548,10 +551,12 @@ def test_a_session_changes_its_outfit_mid_stream(hub, body, data, tmp_path):
                             check_outfit=outfit_checker(data))
         assert svc.run(start_frame=START_FRAME, before_frame=before_frame, wait_subscribers=10,
                        wait_ready=30) == 10 - START_FRAME
+        wait_until(lambda: len(answers) == 2, 30, "the outcome of the change")
         refused, accepted = answers
         assert not refused["accepted"] and "no-such-outfit" in refused["reason"] and "not found" in refused["reason"]
         assert svc.stats.counts["rejected"] == 1
         assert accepted["accepted"] and accepted["outfit"] == new and accepted["after_frame"] == START_FRAME + 2
+        assert accepted["worn"] is True and accepted["frame"] == START_FRAME + 3 and "reason" not in accepted
         assert svc.restarts == 1 and svc.description["restart_frame"] == START_FRAME + 3
         assert svc.description["restart_reason"] == "outfit change"
         frames = list(range(START_FRAME, 10))
@@ -572,6 +577,65 @@ def test_a_session_changes_its_outfit_mid_stream(hub, body, data, tmp_path):
         assert {e for e in bridge.topology if "garment" in e} == {f"world/garment/{g}" for g in worn[frames[-1]]}
         assert bridge._gone == {f"world/garment/{g}" for g in GARMENTS}
         assert bridge.stats.counts["rejected"] == 0
+        svc.close()
+    finally:
+        bridge.stop()
+        sink.close()
+        garments.close()
+        bus.close()
+        display.close()
+
+
+def test_an_outfit_the_cloth_service_cannot_fit_leaves_the_old_one_on(hub, body, data, tmp_path):
+    """An outfit the ingest accepts but the cloth service cannot fit (its machine's data lacks
+    it): the session keeps the garments it wore, from where they were, on every frame; the
+    ingest latches its description as it was; the one who asked learns why, and which outfit
+    stays on. A viewer bridge goes on showing the old garments."""
+    port, cloth = hub
+    bus, display = peer(port), peer(port)
+    garments = Collector(display, key("kept", "garment", "*"))
+    sink = RecordingSink("kept", rrd=tmp_path / "kept.rrd")
+    bridge = ViewerBridge(display, "kept", sink, lossless=True).start()
+    outcome, latched_before = [], []
+
+    def before_frame(index):
+        if index == START_FRAME + 3:
+            latched_before.append(fetch_latched(display, key("kept", "session"))[key("kept", "session")])
+            # asked from another thread: its answer waits for the change, made at the next frame
+            threading.Thread(target=lambda: outcome.append(request_outfit(display, "kept", "no-such-outfit",
+                                                                          wait=60)), daemon=True).start()
+            wait_until(lambda: svc._change is not None, 30, "the ingest to accept the change")
+        return True
+
+    try:
+        source = BVHSource(mocap_clip(data), every=2, max_frames=10)
+        svc = IngestService(bus, "kept", body, source, {"outfit": OUTFIT, "level": LEVEL})  # (checks types only)
+        assert svc.run(start_frame=START_FRAME, before_frame=before_frame, wait_subscribers=10,
+                       wait_ready=30) == 10 - START_FRAME
+        wait_until(lambda: len(outcome) == 1, 30, "the outcome of the change")
+        answer = outcome[0]
+        assert answer["accepted"] and answer["worn"] is False and answer["frame"] == START_FRAME + 3
+        assert "no-such-outfit" in answer["reason"] and answer["kept"] == OUTFIT
+        assert svc.description["outfit"] == OUTFIT and svc.restarts == 1
+        assert svc.stats.counts["failed_changes"] == 1 and svc.cloth_failed is None
+        latched = fetch_latched(display, key("kept", "session"))[key("kept", "session")]
+        assert latched.meta == latched_before[0].meta and latched.stamp_ns == latched_before[0].stamp_ns
+        frames = list(range(START_FRAME, 10))
+        wait_until(lambda: len(garments.messages) == 2 * len(frames), 60, "every frame's garments")
+        worn = {}
+        for k, m in garments.messages:
+            worn.setdefault(m.frame, set()).add(parse_key(k)[1][1])
+        assert sorted(worn) == frames and all(worn[f] == set(GARMENTS) for f in frames), worn
+        wait_until(lambda: "kept" in cloth.closed_stats, 30, "the session's end at the cloth service")
+        served = cloth.closed_stats["kept"]
+        assert served["counts"]["received"] == len(frames) and served["counts"]["published"] == 2 * len(frames)
+        assert served["counts"]["failed_changes"] == 1 and served["counts"].get("restarts", 0) == 0
+        assert "kept" not in cloth.failed
+        wait_until(lambda: all(f"world/garment/{g}" in bridge.frames_shown for g in GARMENTS), 30,
+                   "the viewer bridge to show the garments")
+        wait_until(lambda: all(bridge.frames_shown[f"world/garment/{g}"] == frames[-1] for g in GARMENTS), 30,
+                   "the viewer bridge to show the last frame")
+        assert bridge.stats.counts["rejected"] == 0 and not bridge._gone
         svc.close()
     finally:
         bridge.stop()
@@ -636,6 +700,35 @@ def test_a_looped_clip_starts_the_garments_again_where_it_jumps_back(hub, body, 
                 for name, a in worn[(f, k)].items():
                     np.testing.assert_array_equal(a, worn[(first, k)][name], err_msg=f"{g} {name} frame {f}")
         svc.close()
+
+        # the same clip started in other clothes, changed to these before the loop: the cloth service
+        # settles the new garments into the loop's pose too, in the change's pause, and at the loop
+        # puts them back as this session's were (no fitting and settling there)
+        changed = Collector(watch, key("looped-change", "garment", "*"))
+        source = BVHSource(mocap_clip(data), every=2, loop=True, loop_from=START_FRAME, max_frames=38 + 8)
+        svc = IngestService(bus, "looped-change", body, source, {"outfit": OUTFIT, "level": LEVEL},
+                            check_outfit=outfit_checker(data))
+
+        def before_frame(index):
+            if index == START_FRAME + 3:
+                assert request_outfit(watch, "looped-change", new)["accepted"]
+            return True
+
+        try:
+            svc.run(start_frame=START_FRAME, before_frame=before_frame, wait_subscribers=10, wait_ready=30)
+            assert svc.restarts == 2 and "loop_q" not in svc.description
+            wait_until(lambda: len(changed.messages) == 2 * len(frames), 60, "every frame's garments")
+            wait_until(lambda: "looped-change" in cloth.closed_stats, 30, "the session's end at the cloth service")
+            assert cloth.closed_stats["looped-change"]["counts"]["restarts"] == 1
+            after = {(m.frame, parse_key(k)[1][1]): m.arrays for k, m in changed.messages}
+            for f in range(38, 38 + 8):
+                for g in (f"{new}.bottom", f"{new}.top"):
+                    for name, a in after[(f, g)].items():
+                        np.testing.assert_array_equal(a, worn[(f, key("looped", "garment", g))][name],
+                                                      err_msg=f"{g} {name} frame {f}")
+        finally:
+            svc.close()
+            changed.close()
     finally:
         garments.close()
         bodies.close()
@@ -657,6 +750,11 @@ def test_tryon_outfit_reports_a_refusal_and_a_session_nobody_runs(hub, body, dat
         done = subprocess.run(cmd, env=cli_env, capture_output=True, text=True, timeout=120)
         assert done.returncode == 1 and "refused" in done.stderr and "no fabric 'tweed'" in done.stderr, done.stderr
         assert svc.description["outfit"] == OUTFIT and svc.stats.counts["rejected"] == 1
+        # accepted: it waits until the garments are on, and says from which frame
+        done = subprocess.run(cmd[:-3] + ["female_elegantsuit01"], env=cli_env, capture_output=True, text=True,
+                              timeout=120)
+        assert done.returncode == 0 and "outfit female_elegantsuit01 worn from frame" in done.stdout, done.stderr
+        assert svc.description["outfit"] == "female_elegantsuit01"
         with pytest.raises(ValueError, match="no ingest answered on tryon/nobody/outfit"):
             request_outfit(bus, "nobody", OUTFIT, timeout=1.0)
     finally:
