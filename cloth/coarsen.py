@@ -42,14 +42,23 @@ class CoarseMesh:
         return int(np.count_nonzero(self.faces[:, 3] < 0))
 
 
+def _cross(u, v) -> np.ndarray:
+    """u × v of two 3-vectors: what np.cross computes (the same products and differences, so the
+    same bits) without its general-shape handling, which took most of a garment's coarsening
+    (32,000 calls: 1.1 of 1.8 s per outfit)."""
+    u0, u1, u2 = float(u[0]), float(u[1]), float(u[2])
+    v0, v1, v2 = float(v[0]), float(v[1]), float(v[2])
+    return np.array((u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0))
+
+
 def _normal(p0, p1, p2):
-    n = np.cross(p1 - p0, p2 - p0)
+    n = _cross(p1 - p0, p2 - p0)
     return n, float(np.linalg.norm(n))
 
 
 def _quality(p0, p1, p2) -> float:
     """4√3·area / Σ edge² : 1 for equilateral, 0 for degenerate."""
-    n = np.linalg.norm(np.cross(p1 - p0, p2 - p0))
+    n = np.linalg.norm(_cross(p1 - p0, p2 - p0))
     s = np.dot(p1 - p0, p1 - p0) + np.dot(p2 - p1, p2 - p1) + np.dot(p0 - p2, p0 - p2)
     return 0.0 if s == 0 else 2.0 * np.sqrt(3.0) * n / s
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from cloth.coarsen import coarsen, spatial_order
+from cloth.coarsen import _cross, coarsen, spatial_order
 from cloth.geometry import morton_order
 from cloth.garment import GarmentError, fit_mhclo, load_garment_file, load_outfit, read_mhclo
 from cloth.topology import boundary_loops, orient_faces, polygon_edges, triangulate
@@ -80,6 +80,16 @@ def test_coarse_models_are_quad_dominant_and_keep_every_boundary(outfits):
             mapped = np.einsum("nk,nkd->nd", c.fine_bary, c.vertices[tris[c.fine_triangle]])
             # 4 cm coarse edges on curved cloth: chord deviation of a centimetre or two
             assert np.percentile(np.linalg.norm(mapped - g.vertices, axis=1), 95) < 0.02
+
+
+def test_the_coarsening_cross_product_is_numpys_bit_for_bit():
+    """The coarsening's collapse tests take u x v thousands of times on 3-vectors; written out, it
+    must give np.cross's bits, or the coarse meshes (and every result after them) would move."""
+    rng = np.random.default_rng(7)
+    u, v = rng.normal(size=(2000, 3)) * rng.uniform(1e-4, 10, (2000, 1)), rng.normal(size=(2000, 3))
+    for a, b in zip(u, v):
+        assert np.array_equal(_cross(a, b), np.cross(a, b))
+    np.testing.assert_array_equal(_cross(np.array([1.0, 0, 0]), np.array([0, 1.0, 0])), [0, 0, 1.0])
 
 
 def test_morton_order_follows_the_z_curve_and_spatial_order_keeps_the_mesh():
