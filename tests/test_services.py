@@ -462,10 +462,10 @@ def test_a_joining_session_does_not_stall_the_running_ones(hub, body, data, monk
     slow = 1.5  # s: a pre-roll made slow on purpose
     real_preroll = cloth_service.GarmentSession.preroll
 
-    def slow_preroll(self, q):
+    def slow_preroll(self, q, *args, **kwargs):
         if self.session == "newcomer":
             time.sleep(slow)
-        real_preroll(self, q)
+        real_preroll(self, q, *args, **kwargs)
 
     monkeypatch.setattr(cloth_service.GarmentSession, "preroll", slow_preroll)
     buses = [peer(port), peer(port)]
@@ -791,6 +791,27 @@ def test_an_ingest_stops_waiting_when_the_cloth_service_cannot_serve_its_session
         assert "unserved" in cloth.failed and "unserved" not in cloth.sessions
         svc.close()
     finally:
+        bus.close()
+
+
+@pytest.mark.parametrize("field", ["first_q", "loop_q"])
+def test_a_description_with_a_malformed_pose_is_refused_naming_it(hub, field):
+    """A session description whose first pose, or the pose its loops come back to, is not the
+    character's configuration: the cloth service reports the session failed, naming the key."""
+    port, cloth = hub
+    bus = peer(port)
+    session = f"badpose-{field.replace('_', '')}"
+    status = Collector(bus, key(session, "status", "cloth"))
+    try:
+        good = [float(v) for v in cloth.animator.rest_configuration()]
+        desc = {"outfit": OUTFIT, "level": LEVEL, "first_q": good, field: good[:3] + ["x"]}
+        bus.put(key(session, "session"), encode(Message("session", session, meta=desc)))
+        wait_until(lambda: any(m.meta.get("event") == "failed" for _, m in status.messages), 30, "the refusal")
+        reason = next(m.meta["reason"] for _, m in status.messages if m.meta.get("event") == "failed")
+        assert f"'{field}' must list the character's" in reason, reason
+        assert session in cloth.failed and session not in cloth.sessions
+    finally:
+        status.close()
         bus.close()
 
 
