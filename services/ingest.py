@@ -413,6 +413,7 @@ class IngestService:
                 return  # (another announcement's)
             self.cloth_failed = str(msg.meta.get("reason", "no reason given"))
             self.cloth_kept = str(kept) if kept is not None else None
+            self._cloth_seen = True  # (a cloth service serves the bus: a change is worth waiting for)
             self._ready.set()
         elif self._answers(msg):
             self.cloth_failed = None

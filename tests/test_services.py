@@ -783,12 +783,27 @@ def test_an_ingest_stops_waiting_when_the_cloth_service_cannot_serve_its_session
             return ok
 
         svc.wait_ready = timed_wait
-        assert svc.run(start_frame=START_FRAME, wait_subscribers=10, wait_ready=600) == 3
-        assert svc.cloth_failed is not None and "no-such-outfit" in svc.cloth_failed
+        failed, outcome = [], []
+
+        def before_frame(index):  # then an outfit it has: the session gets its garments from this frame on
+            if index == START_FRAME + 1:
+                failed.append((svc.cloth_failed, "unserved" in cloth.failed, "unserved" in cloth.sessions))
+                threading.Thread(target=lambda: outcome.append(request_outfit(bus, "unserved", OUTFIT, wait=60)),
+                                 daemon=True).start()
+                wait_until(lambda: svc._change is not None, 30, "the ingest to accept the change")
+            return True
+
+        assert svc.run(start_frame=START_FRAME, before_frame=before_frame, wait_subscribers=10, wait_ready=600) == 3
+        reason, was_failed, was_served = failed[0]
+        assert reason is not None and "no-such-outfit" in reason and was_failed and not was_served
         assert waited[0] < 300  # it stopped on the report, not at the end of its 600 s
         assert any("cannot serve unserved" in r.getMessage() and "no-such-outfit" in r.getMessage()
                    for r in caplog.records)
-        assert "unserved" in cloth.failed and "unserved" not in cloth.sessions
+        wait_until(lambda: len(outcome) == 1, 30, "the outcome of the change")
+        assert outcome[0]["worn"] is True and outcome[0]["frame"] == START_FRAME + 1
+        assert "unserved" not in cloth.failed and svc.cloth_failed is None
+        wait_until(lambda: "unserved" in cloth.closed_stats, 30, "the session's end at the cloth service")
+        assert cloth.closed_stats["unserved"]["counts"]["published"] == 2 * 2  # frames START_FRAME + 1 and + 2
         svc.close()
     finally:
         bus.close()
