@@ -338,20 +338,28 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, UNDER_SIDE, s.q)
 
 
-def nearest(points: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(distance, index) of the nearest of targets to each point (brute force, setup only)."""
+def nearest(points: np.ndarray, targets: np.ndarray, within: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """(distance, index) of the nearest of targets to each point (setup only); within: only
+    where that is within this distance (elsewhere inf and -1)."""
     pts = np.ascontiguousarray(points, dtype=np.float64)
     tgt = np.ascontiguousarray(targets, dtype=np.float64)
-    index = np.zeros(len(pts), dtype=np.int64)
-    nearest_vertices(pts, tgt, index, np.ones(len(tgt), dtype=np.uint8), np.ones(len(pts), dtype=np.uint8))
-    return np.linalg.norm(pts - tgt[index], axis=1), index.astype(np.int32)
+    index = np.full(len(pts), -1, dtype=np.int64)
+    nearest_vertices(pts, tgt, index, np.ones(len(tgt), dtype=np.uint8), np.ones(len(pts), dtype=np.uint8),
+                     within)
+    found = index >= 0
+    dist = np.full(len(pts), np.inf)
+    dist[found] = np.linalg.norm(pts[found] - tgt[index[found]], axis=1)
+    if np.isfinite(within):
+        dist[dist > within] = np.inf  # (a brute-force search for a few points finds every one)
+        index[np.isinf(dist)] = -1
+    return dist, index.astype(np.int32)
 
 
 def sheet_track(rest: np.ndarray, edges: np.ndarray, other_rest: np.ndarray, other_triangles: np.ndarray,
                 other_edges: np.ndarray, reach: float = LAYER_REACH, limit: np.ndarray | None = None) -> SheetTrack:
     """One garment's side of a pair from the two detailed meshes at rest (m): its vertices within
     reach of the other garment; limit: its maximum neighbour distance per edge (None: no limit)."""
-    dist, index = nearest(rest, other_rest)
+    dist, index = nearest(rest, other_rest, reach)
     candidates = np.flatnonzero(dist < reach).astype(np.int32)
     slot = np.full(len(rest), -1, dtype=np.int64)
     slot[candidates] = np.arange(len(candidates))
@@ -405,8 +413,8 @@ def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[Laye
     pairs = []
     for a in range(len(models)):
         for b in range(a + 1, len(models)):
-            d_ab, _ = nearest(rest[a], rest[b])
-            d_ba, _ = nearest(rest[b], rest[a])
+            d_ab, _ = nearest(rest[a], rest[b], LAYER_BAND)
+            d_ba, _ = nearest(rest[b], rest[a], LAYER_BAND)
             in_a, in_b = d_ab < LAYER_BAND, d_ba < LAYER_BAND
             if not (in_a.any() and in_b.any()):
                 continue

@@ -1195,3 +1195,39 @@ def test_track_parts_adds_the_part_the_contact_pass_found_and_drops_it_when_far(
     x[0] = [-0.05, 0.0, 0.0]  # 0.2 m from B's vertex
     track_parts(x, *args, np.array([a_v], np.int32), seeds, 0.06)
     assert seeds[0, 0] == a_v and seeds[0, 1] == -1
+
+
+def test_the_nearest_vertex_grid_gives_the_brute_forces_answers():
+    """The setup's nearest-vertex search through a grid: the same vertex as trying every one,
+    ties (the lowest index), region masks (none matching: left as it was), points far outside
+    the vertices, NaN points, a flat cloud; and with `within`, that vertex where it is within
+    the distance and nothing (left as it was) where it is not."""
+    from cloth.geometry import nearest_vertices, nearest_vertices_brute
+
+    rng = np.random.default_rng(5)
+    for trial in range(60):
+        n, m = rng.integers(64, 800), rng.integers(64, 800)
+        v = rng.normal(size=(m, 3)) * [0.3, 1.0, 0.2] if trial % 4 else rng.uniform(-1, 1, (m, 3))
+        p = rng.normal(size=(n, 3)) * rng.uniform(0.5, 4.0)
+        if trial % 3 == 0:  # on a 0.1 lattice: many equally near vertices
+            v, p = np.round(v, 1), np.round(p, 1)
+        if trial % 5 == 0:
+            v[rng.integers(0, m, 20)] = v[0]
+        if trial % 6 == 0:
+            v[:, 2] = 0.25
+        p[:2] = [[np.nan, 0, 0], [np.inf, 0, 0]]
+        regions = rng.integers(1, 16, m).astype(np.uint16)
+        masks = rng.integers(0, 16, n).astype(np.uint16)
+        masks[2] = 0
+        brute, grid = np.full(n, -7, np.int32), np.full(n, -7, np.int32)
+        nearest_vertices_brute(p, v, brute, regions, masks)
+        nearest_vertices(p, v, grid, regions, masks)
+        np.testing.assert_array_equal(grid, brute, err_msg=f"trial {trial}")
+        assert brute[0] == brute[1] == brute[2] == -7
+        within, near = 0.2, np.full(n, -7, np.int32)
+        nearest_vertices(p, v, near, regions, masks, within)
+        ok = brute >= 0
+        d = np.full(n, np.inf)
+        d[ok] = np.linalg.norm(p[ok] - v[brute[ok]], axis=1)
+        np.testing.assert_array_equal(near[d <= within], brute[d <= within])
+        assert np.all(near[d > within * 1.000001] == -7)
