@@ -87,6 +87,14 @@ class Collector:
         with self._lock:
             return [m.frame for k, m in self.messages if parse_key(k)[1] == parts]
 
+    def worn(self) -> dict[int, set[str]]:
+        """The garments each frame's messages came for (on tryon/<session>/garment/<name>)."""
+        out: dict[int, set[str]] = {}
+        with self._lock:
+            for k, m in self.messages:
+                out.setdefault(m.frame, set()).add(parse_key(k)[1][1])
+        return out
+
     def close(self) -> None:
         self._sub.undeclare()
 
@@ -561,9 +569,7 @@ def test_a_session_changes_its_outfit_mid_stream(hub, body, data, tmp_path):
         assert svc.description["restart_reason"] == "outfit change"
         frames = list(range(START_FRAME, 10))
         wait_until(lambda: len(garments.messages) == 2 * len(frames), 60, "every frame's garments")
-        worn = {}
-        for k, m in garments.messages:
-            worn.setdefault(m.frame, set()).add(parse_key(k)[1][1])
+        worn = garments.worn()
         assert sorted(worn) == frames
         for f in frames:
             outfit = OUTFIT if f < START_FRAME + 3 else new
@@ -622,9 +628,7 @@ def test_an_outfit_the_cloth_service_cannot_fit_leaves_the_old_one_on(hub, body,
         assert latched.meta == latched_before[0].meta and latched.stamp_ns == latched_before[0].stamp_ns
         frames = list(range(START_FRAME, 10))
         wait_until(lambda: len(garments.messages) == 2 * len(frames), 60, "every frame's garments")
-        worn = {}
-        for k, m in garments.messages:
-            worn.setdefault(m.frame, set()).add(parse_key(k)[1][1])
+        worn = garments.worn()
         assert sorted(worn) == frames and all(worn[f] == set(GARMENTS) for f in frames), worn
         wait_until(lambda: "kept" in cloth.closed_stats, 30, "the session's end at the cloth service")
         served = cloth.closed_stats["kept"]
