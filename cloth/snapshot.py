@@ -37,6 +37,22 @@ class StateSnapshot:
     def nbytes(self) -> int:
         return sum(a.nbytes for _, _, a in self._saved)
 
+    def onto(self, *states) -> "StateSnapshot":
+        """This snapshot for other state objects built as the saved ones were (another session of
+        the same outfit's models): `restore()` on it puts these values into their arrays. A
+        session settled elsewhere (on a background thread, `services.cloth_service`) is so
+        handed over. ValueError if the states do not hold the same arrays under the same names."""
+        targets = [(owner, name, a) for s in states for owner, name, a in state_arrays(s)]
+        if len(targets) != len(self._saved):
+            raise ValueError(f"snapshot of {len(self._saved)} arrays onto states holding {len(targets)}")
+        for (owner, name, a), (saved_owner, saved_name, saved) in zip(targets, self._saved):
+            if type(owner) is not type(saved_owner) or name != saved_name:
+                raise ValueError(f"snapshot's {type(saved_owner).__name__}.{saved_name} onto "
+                                 f"{type(owner).__name__}.{name}")
+        moved = StateSnapshot()
+        moved._saved = [(owner, name, saved) for (owner, name, _), (_, _, saved) in zip(targets, self._saved)]
+        return moved
+
     def restore(self) -> None:
         """Every saved array back, into the array it was copied from (one a step replaced with
         another shape, a scratch grown, gets a copy of the saved one)."""

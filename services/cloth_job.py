@@ -31,6 +31,7 @@ from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings
 from skinning.source import BVHSource
 
+from .model_cache import ModelCache, folder_digest, object_digest
 from .spin import SpinPool
 
 OUTFITS = ("female_casualsuit01", "female_elegantsuit01", "female_sportsuit01")
@@ -110,6 +111,31 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
         # bottoms are held up by their waistband (elastic or buttoned): it grips the body
         models.append(prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=g.name.endswith(".bottom")))
     return Outfit(outfit_dir.name, garments, models, rest_body)
+
+
+def build_outfit(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
+                 fabrics: dict[str, Fabric] | Fabric | None = None, settings: SimSettings | None = None,
+                 surface: SurfaceSettings | None = None, cache: ModelCache | None = None,
+                 body_digest: str | None = None) -> tuple[Outfit, list | None, list[LayerModel]]:
+    """An outfit's models: (the fitted outfit and its coarse models, the detailed surface models
+    at `surface`'s settings or None, the layer pairs), read from `cache` when they were built
+    before from the same body, outfit files, fabrics, settings and code (`services.model_cache`).
+    body_digest: `object_digest(body)`, if the caller keeps it (else computed here)."""
+    outfit_dir = Path(outfit_dir)
+
+    def build():
+        outfit = load_outfit_models(body, animator, body_mesh, outfit_dir, fabrics, settings)
+        if surface is None:
+            return outfit, None, []
+        surfaces = [build_surface_model(m, surface) for m in outfit.models]
+        return outfit, surfaces, outfit_layers(outfit, surfaces, body.n_visible)
+
+    if cache is None or cache.folder is None:
+        return build()
+    rest = animator.pose(animator.rest_configuration()).vertices  # what the garments are fitted on
+    parts = ("outfit models", body_digest or object_digest(body), object_digest((rest, animator.world_offset)),
+             outfit_dir.name, folder_digest(outfit_dir), fabrics, settings, surface)
+    return cache.get(parts, build)
 
 
 @dataclass
@@ -291,24 +317,32 @@ class OutfitSession:
         """Every garment's state as it is now (coarse, detailed, layering): `restore()` puts the
         session back to this moment, e.g. garments settled into a pose the motion comes back to.
         Stepping on from there gives what stepping on from here would, bit for bit."""
-        return StateSnapshot(*(s.state for s in self.sims), *(sf.state for sf in self.surfaces),
-                             *(ls for _, ls in self.layers))
+        return StateSnapshot(*self.states())
+
+    def states(self) -> tuple:
+        """The objects holding every garment's per-frame state (coarse, detailed, layering)."""
+        return (*(s.state for s in self.sims), *(sf.state for sf in self.surfaces), *(ls for _, ls in self.layers))
 
     def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5,
-                contact: bool = True):
+                contact: bool = True, stop: Callable[[], bool] | None = None) -> bool:
         """Blend the body from rest to the first frame's pose, then hold it while the cloth settles.
-        contact: pose the blend with the animator's skin contact (as the session's frames are)."""
+        contact: pose the blend with the animator's skin contact (as the session's frames are);
+        stop: asked before each step, True abandons the pre-roll (the session is not settled).
+        Returns whether it ran to the end."""
         model = self.animator.character.model
         q_rest = self.animator.rest_configuration()
         n_blend = max(1, int(round(blend_seconds / dt)))
         n_settle = max(1, int(round(settle_seconds / dt)))
         n = n_blend + n_settle
         for k in range(1, n + 1):
+            if stop is not None and stop():
+                return False
             t = smoothstep(min(1.0, k / n_blend))
             q = pin.interpolate(model, q_rest, q_first, t)
             frame = self.animator.pose(q, contact=contact)
             # the detailed surface only needs the last few steps to settle onto the coarse cloth
             self.step_cloth(frame.vertices, dt, surface=k > n - self.PREROLL_SURFACE_STEPS)
+        return True
 
 
 def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max_frames: int | None = None,
@@ -321,9 +355,11 @@ def run_cloth_clip(body: Body, outfit_dir: Path, clip: Path, every: int = 2, max
     with BVHSource(clip, every=every, max_frames=max_frames) as source:
         animator = BodyAnimator(body, source.skeleton, ik=ik, contact=contact)
         body_mesh = collision_body(body)
-        outfit = load_outfit_models(body, animator, body_mesh, Path(outfit_dir), fabrics, settings)
+        outfit, surface_models, layers = build_outfit(body, animator, body_mesh, Path(outfit_dir), fabrics, settings,
+                                                      surface, ModelCache.from_env())
         # garments one after the other: the per-garment stage timings stay those of one core
-        session = OutfitSession(body, animator, body_mesh, outfit, surface, threads=1)
+        session = OutfitSession(body, animator, body_mesh, outfit, surface_models=surface_models, threads=1,
+                                layers=layers)
         session.profile = profile
         report = ClothReport(Path(clip).stem, outfit.name, [m.name for m in outfit.models], models=outfit.models)
         report.surface_triangles = [sf.model.tess.triangles for sf in session.surfaces]

@@ -26,24 +26,36 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 import zenoh
 
 from cloth.fabric import fabric as fabric_preset
 from cloth.geometry import vertex_normals
-from cloth.surface import SurfaceSettings, build_surface_model
+from cloth.surface import SurfaceSettings
 from skinning.animate import BodyAnimator
 from skinning.body import Body
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
-from .cloth_job import (GARMENT_COLORS, Outfit, OutfitSession, collision_body, find_outfit, load_outfit_models,
-                        outfit_layers)
+from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, build_outfit, collision_body, find_outfit
+from .model_cache import ModelCache, object_digest
 from .heap import freeze_heap, reclaim_heap
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
 from .wire import CompactMesh, body_vertices, vertex_count
 
 log = logging.getLogger("tryon.cloth")
+
+
+def _yielding_thread() -> None:
+    """A thread whose work no frame waits for: it yields the cores to the serving threads (a
+    lower scheduling priority, where the system allows it) and runs numba's parallel kernels
+    (the animator's skinning) on itself alone."""
+    try:
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), 10)
+    except (AttributeError, OSError):
+        pass
+    numba.set_num_threads(1)
 
 
 @dataclass(frozen=True)
@@ -99,6 +111,8 @@ class GarmentSession:
         self.announced_ns = 0  # stamp of the announcement it was set up from (0: none)
         self.start_q: np.ndarray | None = None  # the pose the garments were settled into,
         self.start_state = None  # and their state then (cloth.snapshot.StateSnapshot)
+        self._loop_job: Future | None = None  # ... or that state being settled in the background
+        self.closing = threading.Event()  # closed (a background settling for it stops)
         self.end_frame: int | None = None  # set by the session's end message
         self.skipped_since = 0  # frames stepped without their surface since the last published one
         self._msg: Message | None = None  # the body frame being stepped (read by _publish_garment)
@@ -129,23 +143,37 @@ class GarmentSession:
     def preroll(self, q: np.ndarray, loop_q: np.ndarray | None = None) -> None:
         """Settle the garments from the rest pose into pose q, then tell the session we are ready.
         The settled garments are kept (`restart`); loop_q: the ones settled into that pose
-        instead (the pose a looped clip comes back to, announced with an outfit change: settled
-        now, in the change's pause, rather than at the next loop)."""
+        instead (the pose a looped clip comes back to, announced with an outfit change). Those are
+        settled after the session is ready, on the service's background thread, while its frames
+        stream (`ClothService.settle_later`): the change's pause holds one pre-roll, not two."""
         t0 = time.perf_counter()
         q = np.array(q, dtype=np.float64)
         with self.service.animator_lock:  # the service's one animator poses the blend
-            if loop_q is not None and not np.array_equal(loop_q, q):
-                fresh = self.sim.snapshot()
-                self.sim.preroll(loop_q, self.dt, contact=self.skin_contact)
-                self.start_q, self.start_state = loop_q, self.sim.snapshot()
-                fresh.restore()
-                self.sim.preroll(q, self.dt, contact=self.skin_contact)
-            else:
-                self.sim.preroll(q, self.dt, contact=self.skin_contact)
-                self.start_q, self.start_state = q, self.sim.snapshot()
+            self.sim.preroll(q, self.dt, contact=self.skin_contact)
+        if loop_q is not None and not np.array_equal(loop_q, q):
+            self.start_q, self.start_state = loop_q, None
+            self._loop_job = self.service.settle_later(self, loop_q)
+        else:
+            self.start_q, self.start_state = q, self.sim.snapshot()
         self.stats.values["preroll_s"] = round(time.perf_counter() - t0, 3)
         self.started = True
         self._report_ready()
+
+    def _start_state(self):
+        """The garments as settled into start_q (None: not available), once the background
+        settling of a loop pose is done (waited for here if it is not)."""
+        job, self._loop_job = self._loop_job, None
+        if job is not None:
+            try:
+                snapshot = job.result()
+            except Exception:  # noqa: BLE001 - the loop then fits and settles the garments afresh
+                log.exception("cloth: session %s: settling the garments into the loop's pose failed", self.session)
+                snapshot = None
+            if snapshot is None:
+                self.start_q = None
+            else:  # settled in another session of the same models: its values into this one's arrays
+                self.start_state = snapshot.onto(*self.sim.states())
+        return self.start_state
 
     def _report_ready(self) -> None:
         # announced_ns: which announcement this answers (an ingest that changed the outfit waits
@@ -158,7 +186,7 @@ class GarmentSession:
         """Whether an announcement of this session asks for the garments exactly as they were
         settled at its start: the same outfit, fabric, level, frame time and skin contact, and
         the same first pose bit for bit (a looped clip starting again; services.ingest)."""
-        if self.start_state is None:
+        if self._start_state() is None:
             return False
         try:
             spec = OutfitSpec.from_description(desc, self.service.default, key(self.session, "session"))
@@ -174,7 +202,7 @@ class GarmentSession:
         """The garments back as they were settled at the session's start (`starts_again_as_before`),
         at once: what fitting and settling them again would give, bit for bit, without the
         second's pause."""
-        self.start_state.restore()
+        self._start_state().restore()
         self.announced_ns = announced_ns
         self.skipped_since = 0
         self.stats.add("restarts")
@@ -266,6 +294,10 @@ class GarmentSession:
         self.stats.add("published")
 
     def close(self) -> None:
+        self.closing.set()
+        if self._loop_job is not None and not self._loop_job.cancel():
+            self._loop_job.exception()  # (running: it stops at its next step)
+        self._loop_job = None
         self.sim.close()
         self.stats.publish(self.service.bus, force=True)
         for p in self.publishers:
@@ -281,7 +313,7 @@ class ClothService:
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
                  queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
                  catch_up: bool = False, spin: float = 0.0, cpus: list[int] | None = None,
-                 float32_meshes: bool = False):
+                 float32_meshes: bool = False, model_cache: ModelCache | None = None):
         """catch_up: when a session's body frames queue up, step the coarse cloth through every one
         of them but build and publish the detailed surface only for the newest (live displays stay
         current; the output then depends on timing). Off: every frame is published, in order, and
@@ -293,8 +325,12 @@ class ClothService:
         thread on the first, a garment helper on each of the others; None: one helper per core
         beyond the first, unpinned.
         float32_meshes: publish garment positions and normals as float32 (24 bytes a vertex)
-        rather than compact (`services.wire`: a 16-bit grid and octahedral normals, 10 bytes)."""
+        rather than compact (`services.wire`: a 16-bit grid and octahedral normals, 10 bytes).
+        model_cache: where outfit models built before are read back (`services.model_cache`;
+        default: $TRYON_CACHE's folder, ~/.cache/tryon)."""
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
+        self.model_cache = model_cache if model_cache is not None else ModelCache.from_env()
+        self._body_digest: str | None = None
         self.float32_meshes = float32_meshes
         self.catch_up = catch_up
         self.spin = spin
@@ -319,6 +355,8 @@ class ClothService:
         self.animator_lock = threading.Lock()
         # sessions being fitted and settled on the setup thread: (its result, messages held for it)
         self._setup = ThreadPoolExecutor(1, thread_name_prefix="session-setup")
+        # work for the sessions that no frame waits for (`settle_later`)
+        self._background = ThreadPoolExecutor(1, thread_name_prefix="cloth-background", initializer=_yielding_thread)
         self._preparing: dict[str, tuple[Future, list[tuple[str, bytes, bool]]]] = {}
         # a session whose outfit is being changed (or whose motion jumped): its garments as they
         # were and the new announcement's stamp, kept until the new ones are ready, and kept on if
@@ -331,6 +369,23 @@ class ClothService:
         self.frames_done = 0
         self.done = threading.Condition()
 
+    def settle_later(self, gs: GarmentSession, q: np.ndarray) -> Future:
+        """Settle a fresh copy of session gs's garments into pose q on the background thread, as
+        `OutfitSession.preroll` settles gs's own; the future's result is the settled state
+        (`OutfitSession.snapshot`; None if gs closed first), for `StateSnapshot.onto` gs's."""
+        return self._background.submit(self._settle, gs, np.array(q, dtype=np.float64))
+
+    def _settle(self, gs: GarmentSession, q: np.ndarray):
+        outfit, surface_models, layers = self.outfit_models(gs.spec)
+        fresh = OutfitSession(self.body, self.animator, self.body_mesh, outfit, surface_models=surface_models,
+                              threads=1, layers=layers)
+        t0 = time.perf_counter()
+        with self.animator_lock:
+            done = fresh.preroll(q, gs.dt, contact=gs.skin_contact, stop=gs.closing.is_set)
+        log.info("cloth: session %s: garments settled into the loop's pose in %.2f s (background)%s", gs.session,
+                 time.perf_counter() - t0, "" if done else ", abandoned: the session closed")
+        return fresh.snapshot() if done else None
+
     # -- models shared by sessions with the same outfit, fabric and level (built once) --
     def outfit_models(self, spec: OutfitSpec):
         with self._models_lock:
@@ -340,12 +395,11 @@ class ClothService:
         if spec not in self._models:
             outfit_dir = find_outfit(self.data, spec.outfit)
             fabrics = fabric_preset(spec.fabric) if spec.fabric else None
-            outfit = load_outfit_models(self.body, self.animator, self.body_mesh, outfit_dir, fabrics)
-            surfaces, layers = None, []
-            if spec.level is not None:
-                surfaces = [build_surface_model(m, SurfaceSettings(level=spec.level)) for m in outfit.models]
-                layers = outfit_layers(outfit, surfaces, self.body.n_visible)
-            self._models[spec] = (outfit, surfaces, layers)
+            if self._body_digest is None and self.model_cache.folder is not None:
+                self._body_digest = object_digest(self.body)
+            self._models[spec] = build_outfit(self.body, self.animator, self.body_mesh, outfit_dir, fabrics,
+                                              surface=None if spec.level is None else SurfaceSettings(level=spec.level),
+                                              cache=self.model_cache, body_digest=self._body_digest)
         return self._models[spec]
 
     def backlog(self) -> int:
@@ -378,6 +432,7 @@ class ClothService:
         for gs in self.sessions.values():
             gs.close()
         self.sessions.clear()
+        self._background.shutdown(wait=True, cancel_futures=True)
         self.garment_pool.close()
 
     def serve(self) -> None:

@@ -8,6 +8,22 @@ from skinning.data import data_dir
 CLIPS = ["cmu_13_29_jumping_jacks", "cmu_131_01_walk_3dsmax", "cmu_npybvh_example_75f"]
 
 
+@pytest.fixture(scope="session", autouse=True)
+def model_cache(tmp_path_factory):
+    """Outfit models built once for the whole run (services.model_cache), in a folder of the run's
+    own rather than the user's cache; subprocesses started by the tests inherit it."""
+    from services.model_cache import CACHE_ENV
+
+    folder = tmp_path_factory.mktemp("model-cache")
+    before = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = str(folder)
+    yield folder
+    if before is None:
+        os.environ.pop(CACHE_ENV, None)
+    else:
+        os.environ[CACHE_ENV] = before
+
+
 @pytest.fixture(scope="session")
 def data() -> Path:
     return data_dir()

@@ -740,6 +740,43 @@ def test_a_looped_clip_starts_the_garments_again_where_it_jumps_back(hub, body, 
         watch.close()
 
 
+def test_a_loop_pose_is_settled_in_the_background_as_the_session_would_settle_it(hub, body, data):
+    """An outfit change's loop pose is settled on the service's background thread, after the
+    session is ready, in a fresh session of the same models: handed over, every state array is
+    what the session's own pre-roll into that pose gives, bit for bit. A session closed before
+    that settling ends abandons it."""
+    from cloth.snapshot import state_arrays
+    from services.cloth_service import GarmentSession
+
+    _, cloth = hub
+    with BVHSource(mocap_clip(data), every=2, max_frames=12) as source:
+        animator = BodyAnimator(body, source.skeleton)
+        poses = [animator(f.local_rot, f.root_position).retarget.q.copy() for f in source if f.index >= START_FRAME]
+    loop_q, q = poses[0], poses[-1]
+    spec = OutfitSpec(OUTFIT, None, LEVEL)
+    changed = GarmentSession(cloth, "settled-behind", spec, 1 / 60)
+    alone = GarmentSession(cloth, "settled-alone", spec, 1 / 60)
+    try:
+        changed.preroll(q, loop_q)
+        assert changed.started and changed.start_state is None  # ready before the loop pose is settled
+        np.testing.assert_array_equal(changed.start_q, loop_q)
+        start = changed._start_state()  # (waits for the background thread)
+        assert start is not None
+        alone.preroll(loop_q)
+        start.restore()
+        ours = [(n, a) for st in changed.sim.states() for _, n, a in state_arrays(st)]
+        theirs = [(n, a) for st in alone.sim.states() for _, n, a in state_arrays(st)]
+        assert len(ours) == len(theirs) > 50
+        for (n, a), (m, b) in zip(ours, theirs):
+            assert n == m
+            np.testing.assert_array_equal(a, b, err_msg=n)
+        changed.closing.set()
+        assert cloth._settle(changed, loop_q) is None  # closed: abandoned at its first step
+    finally:
+        changed.close()
+        alone.close()
+
+
 def test_tryon_outfit_reports_a_refusal_and_a_session_nobody_runs(hub, body, data, cli_env):
     """`tryon outfit` from another process: the ingest's refusal, with its reason, as the
     command's error (exit 1); a session no ingest runs: a clear error, not a hang."""

@@ -85,3 +85,26 @@ def test_a_restored_session_steps_on_as_a_freshly_settled_one_bit_for_bit(body, 
     for frame_got, frame_expected in zip(got, expected):
         for a, b in zip(frame_got, frame_expected):
             np.testing.assert_array_equal(a, b)
+
+
+def test_a_snapshot_goes_onto_another_object_of_the_same_kind_and_nothing_else():
+    a, b = _State(), _State()
+    a.x += 5.0
+    a.moves.move[:] = 7.0
+    x = b.x
+    moved = StateSnapshot(a).onto(b)
+    a.x[:] = 0.0  # (the original is not read again)
+    moved.restore()
+    assert b.x is x
+    np.testing.assert_array_equal(b.x, np.arange(6.0).reshape(2, 3) + 5.0)
+    np.testing.assert_array_equal(b.moves.move, [7.0, 7.0])
+
+    class _Other(_State):  # the same arrays under the same names, another kind of state
+        pass
+
+    for other in ((b, b), (_Other(),)):
+        try:
+            StateSnapshot(a).onto(*other)
+        except ValueError:
+            continue
+        raise AssertionError(f"a snapshot of one _State onto {other} was taken")
