@@ -10,6 +10,7 @@ view in a loop with branches costs numba two atomic reference counts (see `cloth
 
 from __future__ import annotations
 
+import hashlib
 import math
 import threading
 from dataclasses import dataclass
@@ -1380,7 +1381,35 @@ class FaceTree:
             self._build(body_x)
         refit_face_tree(body_x, self.triangles, self.order, self.child, self.first, self.count, self.box)
 
+    # the shapes built so far, by what they were built from (every garment's simulation builds its
+    # tree from the rest body: about 90 ms of Python each time): (child, first, count, order,
+    # parent, leaf, stack_depth), shared by the trees built from the same (no kernel writes them:
+    # the refit writes each tree's own boxes)
+    _shapes: dict[bytes, tuple] = {}
+    _shapes_lock = threading.Lock()
+    SHAPES_KEPT = 16
+
     def _build(self, body_x: np.ndarray) -> None:
+        h = hashlib.sha1()
+        for a in (self.triangles, self.faces, self.face_region, body_x):
+            a = np.ascontiguousarray(a)
+            h.update(repr((a.dtype.str, a.shape)).encode())
+            h.update(a.data)
+        shape_key = h.digest() + self.LEAF_FACES.to_bytes(4, "little")
+        with self._shapes_lock:
+            shape = self._shapes.get(shape_key)
+        if shape is None:
+            self._build_shape(body_x)
+            shape = (self.child, self.first, self.count, self.order, self.parent, self.leaf, self.stack_depth)
+            with self._shapes_lock:
+                while len(self._shapes) >= self.SHAPES_KEPT:
+                    self._shapes.pop(next(iter(self._shapes)))
+                self._shapes[shape_key] = shape
+        self.child, self.first, self.count, self.order, self.parent, self.leaf, self.stack_depth = shape
+        self.box = np.zeros((len(self.child), 6))  # lo xyz, hi xyz: this tree's own, refitted per pose
+        self.built = True
+
+    def _build_shape(self, body_x: np.ndarray) -> None:
         centre = body_x[self.triangles[self.faces]].mean(axis=1)
         child, first, count, order = [], [], [], []
         todo = [(-1, 0, np.arange(len(self.faces)))]  # (parent, which child, faces); pre-order
@@ -1420,12 +1449,10 @@ class FaceTree:
         self.leaf = np.full(len(self.triangles), -1, dtype=np.int32)  # each tree face's leaf, -1: not in the tree
         for node in np.flatnonzero(self.child[:, 0] < 0):
             self.leaf[self.order[self.first[node]:self.first[node] + self.count[node]]] = node
-        self.box = np.zeros((len(child), 6))  # lo xyz, hi xyz
         self.stack_depth = self._depth() + 2
         if self.stack_depth > FACE_TREE_STACK:
             raise ValueError(f"face tree {self.stack_depth - 2} levels deep; FACE_TREE_STACK allows "
                              f"{FACE_TREE_STACK - 2}")
-        self.built = True
 
     def _depth(self) -> int:
         depth = np.zeros(len(self.child), dtype=np.int64)

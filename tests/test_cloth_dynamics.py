@@ -600,6 +600,29 @@ def test_resolve_contacts_finds_a_nearer_face_of_the_same_part_by_the_face_tree(
         assert placed[0] == 0.0
 
 
+def test_face_trees_built_from_the_same_pose_share_their_shape_and_refit_their_own_boxes():
+    """Every garment's simulation builds its face tree from the rest body: the shape (nodes,
+    faces per leaf) is built once and shared, each tree refits boxes of its own; a tree first
+    seen in another pose gets the shape that pose gives."""
+    verts, tris = uv_sphere(0.1, 12, 24)
+    regions = np.where(verts[:, 1] > 0.0, 1, 2).astype(np.uint8)
+    a, b, c = (FaceTree(tris, np.arange(len(tris)), regions) for _ in range(3))
+    a.update(verts)
+    b.update(verts)
+    stretched = verts * [1.0, 3.0, 0.5]  # the longest axis is another: other median splits
+    c.update(stretched)
+    assert all(x is y for x, y in zip(a.arrays()[1:], b.arrays()[1:]))
+    assert a.box is not b.box
+    b.update(verts + 0.05)
+    np.testing.assert_array_equal(a.box[0], np.r_[verts.min(axis=0), verts.max(axis=0)])
+    np.testing.assert_array_equal(b.box[0], np.r_[verts.min(axis=0), verts.max(axis=0)] + 0.05)
+    assert not np.array_equal(c.arrays()[4], a.arrays()[4])  # (the faces' order in the leaves)
+    fresh = FaceTree(tris, np.arange(len(tris)), regions)
+    fresh._build_shape(verts)  # built again, not shared: the same shape
+    for name in ("child", "first", "count", "order", "parent", "leaf"):
+        np.testing.assert_array_equal(getattr(fresh, name), getattr(a, name))
+
+
 def test_face_tree_boxes_hold_their_faces_and_its_query_finds_the_brute_force_nearest_face():
     """A sphere of two body parts (upper and lower half), the tree built on it and refitted
     after the upper half moved: every face lies in the box of every node above it, the two
