@@ -327,6 +327,7 @@ class OutfitSession:
                 contact: bool = True, stop: Callable[[], bool] | None = None) -> bool:
         """Blend the body from rest to the first frame's pose, then hold it while the cloth settles.
         contact: pose the blend with the animator's skin contact (as the session's frames are);
+        the caller keeps the animator to itself meanwhile (its frame buffer is read through the hold);
         stop: asked before each step, True abandons the pre-roll (the session is not settled).
         Returns whether it ran to the end."""
         model = self.animator.character.model
@@ -337,9 +338,10 @@ class OutfitSession:
         for k in range(1, n + 1):
             if stop is not None and stop():
                 return False
-            t = smoothstep(min(1.0, k / n_blend))
-            q = pin.interpolate(model, q_rest, q_first, t)
-            frame = self.animator.pose(q, contact=contact)
+            if k <= n_blend:  # held after the blend: the body posed last (the animator's own buffer)
+                t = smoothstep(min(1.0, k / n_blend))
+                q = pin.interpolate(model, q_rest, q_first, t)
+                frame = self.animator.pose(q, contact=contact)
             # the detailed surface only needs the last few steps to settle onto the coarse cloth
             self.step_cloth(frame.vertices, dt, surface=k > n - self.PREROLL_SURFACE_STEPS)
         return True
