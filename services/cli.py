@@ -12,6 +12,7 @@ from pathlib import Path
 
 from skinning.data import ENV_VAR, data_dir
 
+from .diskspace import DEFAULT_MIN_FREE
 from .spin import LIVE_SPIN, check_cpus, default_cpus
 
 
@@ -231,7 +232,8 @@ def cmd_session(args) -> int:
                              serve_port=args.port if args.serve else None,
                              web_port=args.web_port if args.serve else None, record=not args.no_record,
                              snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None,
-                             ik=ik, contact=_contact(args), stop=stop)
+                             ik=ik, contact=_contact(args), stop=stop, rrd=not args.no_rrd,
+                             min_free=_keep_free(args))
     print(result.summary())
     return 0
 
@@ -326,6 +328,19 @@ def cmd_cloth_service(args) -> int:
     return 0
 
 
+def _keep_free(args) -> int:
+    """--keep-free GB in bytes."""
+    if args.keep_free < 0:
+        raise ValueError(f"--keep-free must be >= 0 GB, got {args.keep_free}")
+    return int(args.keep_free * 1e9)
+
+
+def _keep_free_argument(p) -> None:
+    p.add_argument("--keep-free", type=float, default=DEFAULT_MIN_FREE / 1e9, metavar="GB",
+                   help="disk space the recordings leave free: each is finished, complete, when less is left "
+                        f"and the session goes on (default {DEFAULT_MIN_FREE / 1e9:.2f})")
+
+
 def cmd_viewer(args) -> int:
     from .bus import bus_config_from_args, check_session_name
     from .viewer import RecordingSink, ViewerBridge
@@ -336,7 +351,7 @@ def cmd_viewer(args) -> int:
         raise ValueError("viewer: choose at least one of --save FILE.rrd, --spawn, --serve")
     with bus_config_from_args(args).open() as bus:
         sink = RecordingSink(session, rrd=args.save, spawn=args.spawn, serve_port=args.port if args.serve else None,
-                             web_port=args.web_port)
+                             web_port=args.web_port, min_free=_keep_free(args))
         bridge = ViewerBridge(bus, session, sink).start()
         if sink.url:
             print(f"viewer: serving {sink.url}", flush=True)
@@ -344,7 +359,8 @@ def cmd_viewer(args) -> int:
         time.sleep(0.3)
         bridge.stop()
         path = sink.close()
-        print(f"viewer {session}: {bridge.stats.snapshot()['counts']}" + (f"; wrote {path}" if path else ""))
+        print(f"viewer {session}: {bridge.stats.snapshot()['counts']}" + (f"; wrote {path}" if path else "")
+              + (f" (finished early: {sink.stopped})" if sink.stopped else ""))
     return 0
 
 
@@ -357,7 +373,7 @@ def cmd_record(args) -> int:
     session = check_session_name(args.session)
     ended = []
     with bus_config_from_args(args).open() as bus:
-        rec = Recorder(bus, session, args.out)
+        rec = Recorder(bus, session, args.out, min_free=_keep_free(args))
 
         def on_control(sample):
             try:
@@ -373,7 +389,8 @@ def cmd_record(args) -> int:
         _wait(lambda: bool(ended) and time.monotonic() - ended[0] > args.linger)
         sub.undeclare()
         path = rec.close()
-        print(f"recorder {session}: {rec.messages} messages -> {path}")
+        print(f"recorder {session}: {rec.messages} messages -> {path}"
+              + (f" (finished early: {rec.stopped})" if rec.stopped else ""))
     return 0
 
 
@@ -478,6 +495,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--port", type=int, default=9876, help="rerun gRPC port with --serve (default 9876)")
     p.add_argument("--web-port", type=int, default=None, help="also serve rerun's web viewer on this port")
     p.add_argument("--no-record", action="store_true", help="do not write the bus recording")
+    p.add_argument("--no-rrd", action="store_true", help="do not write the rerun recording (.rrd)")
+    _keep_free_argument(p)
     p.add_argument("--no-png", action="store_true", help="skip the PNG snapshots")
     p.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
     _body_arguments(p)
@@ -546,6 +565,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--port", type=int, default=9876, help="gRPC port with --serve (default 9876)")
     p.add_argument("--web-port", type=int, default=None, help="also serve rerun's web viewer on this port")
     p.add_argument("--until-end", action="store_true", help="stop when the session's body stream ends")
+    _keep_free_argument(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_viewer)
 
@@ -553,6 +573,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--session", default="demo")
     p.add_argument("--out", required=True, help="the .mcap file")
     p.add_argument("--linger", type=float, default=2.0, help="seconds to keep recording after the body stream ends")
+    _keep_free_argument(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_record)
 

@@ -8,7 +8,9 @@ format is self-describing, see services/protocol.py); log_time is when the recor
 it, publish_time the sender's stamp_ns.
 
 The file is written as <file>.part and renamed only once MCAP's summary and footer are
-written, so a recording that is interrupted never looks complete.
+written, so a recording that is interrupted never looks complete. When its disk runs low
+(`services.diskspace`), or a write fails, the recording is finished there, complete, and the
+session goes on without it (`stopped` says why).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from .bus import Latched, Stats, check_session_name, key, parse_key, wait_matching
+from .diskspace import DEFAULT_MIN_FREE, SpaceGuard
 from .protocol import READABLE_VERSIONS, SCHEMA_VERSION, MessageError, peek_header, retag
 
 log = logging.getLogger("tryon.recorder")
@@ -34,9 +37,13 @@ LATCHED = ("session", "topology", "skeleton")  # kinds of key served to late joi
 class Recorder:
     SERVICE = "recorder"
 
-    def __init__(self, bus: zenoh.Session, session: str, path: str | Path):
+    def __init__(self, bus: zenoh.Session, session: str, path: str | Path, min_free: int = DEFAULT_MIN_FREE):
+        """min_free: bytes to leave free on the file's disk; the recording is finished when fewer are."""
         self.bus, self.session, self.path = bus, session, Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._space = SpaceGuard(self.path.parent, min_free)
+        self.stopped: str | None = None  # why the recording was finished before close()
+        self._finished = False
         self.part = self.path.with_name(self.path.name + ".part")
         self.stats = Stats(self.SERVICE, session)
         self._file = open(self.part, "wb")
@@ -72,21 +79,56 @@ class Recorder:
                 ch = self._channels[key_expr] = self._writer.register_channel(key_expr, MESSAGE_ENCODING, 0)
             now = max(time.time_ns(), self._last_log + 1)  # strictly increasing: replay keeps the order
             self._last_log = now
-            self._writer.add_message(ch, log_time=now, data=payload, publish_time=stamp, sequence=self.messages)
+            try:
+                self._writer.add_message(ch, log_time=now, data=payload, publish_time=stamp, sequence=self.messages)
+            except OSError as err:
+                self.stats.add("errors")
+                self._stop(f"writing failed: {err}")
+                return
             self.messages += 1
+            free = self._space.low()
+            if free is not None:
+                self._stop(self._space.why(free))
         self.stats.add("received")
+
+    def _stop(self, why: str) -> None:
+        """(Under the lock.) Finish the file now, as close() does, and record nothing more."""
+        self._closed = True
+        self.stopped = why
+        self.stats.values["stopped"] = why
+        log.warning("recorder: %s finished after %d messages: %s; the session goes on unrecorded", self.path,
+                    self.messages, why)
+        self._finish()
+
+    def _finish(self) -> None:
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            self._writer.finish()
+            self._file.close()
+        except OSError as err:
+            log.error("recorder: %s could not be finished (%s); what was written stays in %s", self.path, err,
+                      self.part)
+            try:
+                self._file.close()
+            except OSError:
+                pass
+            return
+        self.part.replace(self.path)
 
     def close(self) -> Path:
         """Finish the MCAP file (summary, footer) and give it its final name."""
         with self._lock:
-            if self._closed:
-                return self.path
+            already = self._closed
             self._closed = True
-        self._sub.undeclare()  # outside the lock: a callback in flight may be waiting for it
+        if already and self._sub is None:
+            return self.path
+        if self._sub is not None:
+            self._sub.undeclare()  # outside the lock: a callback in flight may be waiting for it
         with self._lock:
-            self._writer.finish()
-            self._file.close()
-        self.part.replace(self.path)
+            self._finish()
+        self._sub = None
         log.info("recorder: %d messages -> %s", self.messages, self.path)
         return self.path
 

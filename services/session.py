@@ -26,6 +26,7 @@ from .cloth_job import START_FRAME, outfit_checker
 from .cloth_service import ClothService, OutfitSpec
 from .ingest import IngestService
 from .protocol import MessageError, decode
+from .diskspace import DEFAULT_MIN_FREE
 from .recorder import Recorder
 from .spin import LIVE_SPIN
 from .viewer import RecordingSink, VertexNormals, ViewerBridge
@@ -118,9 +119,11 @@ class SessionResult:
         for what, s in self.stats.items():
             c = s["counts"]
             lines.append(f"  {what}: " + ", ".join(f"{k} {v}" for k, v in c.items()))
+        stopped = {"rerun": self.stats.get("viewer", {}).get("values", {}).get("rrd_stopped"),
+                   "recording": self.stats.get("recorder", {}).get("values", {}).get("stopped")}
         for label, p in (("rerun", self.rrd), ("recording", self.recording), ("snapshots", self.snapshots)):
             if p is not None:
-                lines.append(f"  {label}: {p}")
+                lines.append(f"  {label}: {p}" + (f" (finished early: {stopped[label]})" if stopped.get(label) else ""))
         return "\n".join(lines)
 
 
@@ -200,8 +203,11 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
                 serve_port: int | None = None, web_port: int | None = None, record: bool = True,
                 snapshot_frames: list[int] | None = None, png: bool = True, progress: bool | None = None,
                 window: int = 1, stop: threading.Event | None = None, ik: IKSettings | None = None,
-                contact: ContactSettings | None = ContactSettings()) -> SessionResult:
-    """Run one session end to end in this process (see the module docstring)."""
+                contact: ContactSettings | None = ContactSettings(), rrd: bool = True,
+                min_free: int = DEFAULT_MIN_FREE) -> SessionResult:
+    """Run one session end to end in this process (see the module docstring). rrd, record: write
+    the rerun and bus recordings; min_free: bytes they leave free on their disk (each is finished,
+    complete, when fewer are: services.diskspace)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     serve = serve_port is not None
     bus = (bus_config or BusConfig()).open()
@@ -212,9 +218,10 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         # `tryon cloth-service` does; offline they come back to back and it never waits
         cloth = ClothService(bus, body, data, spec, sessions=session, catch_up=serve,
                              spin=LIVE_SPIN if serve else 0.0).start()
-        sink = RecordingSink(session, rrd=out_dir / f"{session}.rrd", serve_port=serve_port, web_port=web_port)
+        sink = RecordingSink(session, rrd=out_dir / f"{session}.rrd" if rrd else None, serve_port=serve_port,
+                             web_port=web_port, min_free=min_free)
         viewer = ViewerBridge(bus, session, sink, lossless=not serve).start()
-        recorder = Recorder(bus, session, out_dir / f"{session}.mcap") if record else None
+        recorder = Recorder(bus, session, out_dir / f"{session}.mcap", min_free=min_free) if record else None
         tap = SessionTap(bus, session, set(snapshot_frames or []) if png else set(), window=8 if serve else 1)
         source = BVHSource(clip, pace="realtime" if serve else "fast", loop=serve, every=every,
                            max_frames=max_frames, loop_from=START_FRAME)

@@ -21,6 +21,7 @@ import zenoh
 from skinning.skin import MeshNormals
 
 from .bus import Stats, fetch_latched, key, parse_key
+from .diskspace import DEFAULT_MIN_FREE, SpaceGuard
 from .protocol import MessageError, decode
 from .wire import body_vertices, garment_mesh, vertex_count
 
@@ -47,40 +48,95 @@ def session_layout() -> rrb.Blueprint:
     )
 
 
+class _Streams:
+    """The rerun streams a recording goes to (its file's, the live one's); each call goes to every
+    one still open. None open: nothing is kept (a rerun stream without a sink buffers in memory)."""
+
+    def __init__(self, streams: list):
+        self.streams = streams
+
+    def log(self, *args, **kwargs) -> None:
+        for s in self.streams:
+            s.log(*args, **kwargs)
+
+    def set_time(self, *args, **kwargs) -> None:
+        for s in self.streams:
+            s.set_time(*args, **kwargs)
+
+    def send_blueprint(self, blueprint) -> None:
+        for s in self.streams:
+            s.send_blueprint(blueprint)
+
+
 class RecordingSink:
     """Where the rerun stream goes: an .rrd file (written as <file>.part, renamed when complete),
-    a spawned local viewer, and/or a gRPC server that remote viewers connect to."""
+    a spawned local viewer, and/or a gRPC server that remote viewers connect to.
+
+    The file has a rerun stream of its own (the live sinks share another): when its disk runs
+    low (`services.diskspace`, checked by `check_space`), the file is finished there, complete,
+    while the live viewers go on (a stream's sinks cannot be changed without restarting its
+    gRPC server)."""
 
     def __init__(self, session: str, rrd: str | Path | None = None, spawn: bool = False,
-                 serve_port: int | None = None, web_port: int | None = None):
-        self.rec = rr.RecordingStream("tryon", recording_id=session)
+                 serve_port: int | None = None, web_port: int | None = None, min_free: int = DEFAULT_MIN_FREE):
         self.rrd = Path(rrd) if rrd else None
         self.url = None
-        sinks = []
+        self.stopped: str | None = None  # why the file was finished before close()
+        self._file = None
+        streams = []
         if self.rrd is not None:
             self.rrd.parent.mkdir(parents=True, exist_ok=True)
             self._part = self.rrd.with_name(self.rrd.name + ".part")
-            sinks.append(rr.FileSink(str(self._part)))
+            self._file = rr.RecordingStream("tryon", recording_id=session)
+            self._file.set_sinks(rr.FileSink(str(self._part)))
+            self._space = SpaceGuard(self.rrd.parent, min_free)
+            streams.append(self._file)
+        live = []
         if serve_port is not None:
-            sinks.append(rr.GrpcServerSink(port=serve_port))
+            live.append(rr.GrpcServerSink(port=serve_port))
             self.url = f"rerun+http://127.0.0.1:{serve_port}/proxy"
         if spawn:  # a local viewer process, fed over gRPC beside the other sinks
             rr.spawn(connect=False)
-            sinks.append(rr.GrpcSink())
-        if sinks:
-            self.rec.set_sinks(*sinks)
+            live.append(rr.GrpcSink())
+        if live:
+            stream = rr.RecordingStream("tryon", recording_id=session)
+            stream.set_sinks(*live)
+            streams.append(stream)
+        self.rec = _Streams(streams)
         if web_port is not None and self.url is not None:
             rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=self.url)
         self.rec.send_blueprint(session_layout())
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Y_UP, static=True)
 
-    def close(self) -> Path | None:
-        self.rec.flush()
-        self.rec.disconnect()
-        if self.rrd is not None and self._part.exists():
+    def check_space(self) -> str | None:
+        """Finish the .rrd file if its disk is running low; returns why it was finished (None: it
+        goes on, or there is none)."""
+        if self._file is None:
+            return None
+        free = self._space.low()
+        if free is None:
+            return None
+        self.stopped = self._space.why(free)
+        log.warning("viewer: %s finished: %s; the live viewers go on", self.rrd, self.stopped)
+        self._finish_file()
+        return self.stopped
+
+    def _finish_file(self) -> None:
+        file, self._file = self._file, None
+        self.rec.streams.remove(file)
+        file.flush()
+        file.disconnect()
+        if self._part.exists():
             self._part.replace(self.rrd)
-            return self.rrd
-        return None
+
+    def close(self) -> Path | None:
+        if self._file is not None:
+            self._finish_file()
+        for s in self.rec.streams:
+            s.flush()
+            s.disconnect()
+        self.rec.streams = []
+        return self.rrd if self.rrd is not None and self.rrd.exists() else None
 
 
 class LatestPerKey:
@@ -263,6 +319,9 @@ class ViewerBridge:
         else:  # fresh arrays every frame: rerun may still hold the last frame's when it returns
             pos, normals = garment_mesh(msg.arrays)
         self.stats.add("received")
+        stopped = self.sink.check_space()
+        if stopped is not None:
+            self.stats.values["rrd_stopped"] = stopped
         self.rec.set_time("frame", sequence=msg.frame)
         self.rec.set_time("session_time", duration=msg.time)
         if normals is None:  # the body (schema 2): shaded here, from the latched topology

@@ -263,6 +263,56 @@ def test_late_joining_display_gets_topology_and_frames(hub, body, data, tmp_path
         bus.close()
 
 
+def test_a_recording_whose_write_fails_is_finished_with_what_it_had(hub, tmp_path, caplog):
+    """A write that fails (a full disk the free-space check did not foresee, an I/O error): the
+    recorder counts the error, finishes the file with the messages it had, complete, says why,
+    and records nothing more; its close() is then the same file."""
+    port, _ = hub
+    bus = peer(port)
+    try:
+        rec = Recorder(bus, "failing", tmp_path / "failing.mcap")
+        for frame in range(3):
+            rec.write(key("failing", "control"), encode(Message("control", "failing", frame, meta={"n": frame})))
+        real = rec._writer.add_message
+
+        def full(*args, **kwargs):
+            raise OSError(28, "No space left on device")
+
+        rec._writer.add_message = full
+        with caplog.at_level(logging.WARNING, logger="tryon.recorder"):
+            rec.write(key("failing", "control"), encode(Message("control", "failing", 3)))
+        rec._writer.add_message = real
+        rec.write(key("failing", "control"), encode(Message("control", "failing", 4)))  # ignored: finished
+        assert rec.stats.counts["errors"] == 1 and "No space left on device" in rec.stopped
+        assert "finished after 3 messages" in caplog.text
+        assert rec.close() == tmp_path / "failing.mcap"
+        frames = [decode(p).frame for _, p, _ in read_recording(tmp_path / "failing.mcap")]
+        assert frames == [0, 1, 2] and not list(tmp_path.glob("*.part"))
+    finally:
+        bus.close()
+
+
+def test_an_rrd_on_a_disk_running_low_is_finished_while_the_served_viewers_go_on(tmp_path):
+    import rerun as rr
+
+    sink = RecordingSink("low", rrd=tmp_path / "low.rrd", serve_port=free_port(), min_free=10**18)
+    try:
+        sink.rec.log("world/p", rr.Points3D(np.zeros((4, 3))))
+        why = sink.check_space()
+        assert why is not None and "recordings keep 1000000000.00 GB free" in why and sink.stopped == why
+        assert (tmp_path / "low.rrd").exists() and not (tmp_path / "low.rrd.part").exists()
+        assert len(sink.rec.streams) == 1  # the served one
+        sink.rec.log("world/p", rr.Points3D(np.ones((4, 3))))  # still shown live
+        assert sink.check_space() is None  # (no file left to finish)
+    finally:
+        assert sink.close() == tmp_path / "low.rrd"
+    assert sink.rec.streams == []
+    rerun = Path(sys.executable).parent / "rerun"
+    printed = subprocess.run([str(rerun), "rrd", "print", str(tmp_path / "low.rrd")], capture_output=True, text=True,
+                             check=True).stdout
+    assert "/world/p" in printed
+
+
 def test_replay_reproduces_garment_meshes_exactly(hub, body, data, tmp_path):
     port, _ = hub
     bus = peer(port)

@@ -161,3 +161,32 @@ def test_a_live_snapshot_is_the_first_frame_of_its_window_with_the_most_garments
     assert snapshot_choice(tap) == [12, 20]  # 30's window has no garment: left out
     tap.window = 1
     assert snapshot_choice(tap) == [20]
+
+
+def test_recordings_on_a_disk_running_low_are_finished_complete_and_the_session_goes_on(tmp_path, capsys,
+                                                                                        monkeypatch):
+    """A disk with less free than the recordings keep: the bus recording and the .rrd are each
+    finished at once, complete (readable, no .part left), the summary says why, and every frame
+    is still stepped and published."""
+    import services.diskspace as diskspace
+
+    usage = diskspace.shutil.disk_usage(tmp_path)
+    monkeypatch.setattr(diskspace.shutil, "disk_usage", lambda folder: usage._replace(free=5 * 10**8))  # 0.5 GB
+    rc = main(["session", "--session", "t4", "--max-frames", "9", "--level", "3", "--no-png", "--keep-free", "2",
+               "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert re.search(r"cloth: received 8, published 16, rejected 0", out), out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t4.mcap", "t4.rrd"]
+    for label in ("rerun", "recording"):
+        assert re.search(label + r": \S+ \(finished early: 500 MB left free on the disk of .* \(recordings keep "
+                         r"2.00 GB free\)\)", out), out
+    recorded = [parse_key(k)[1][0] for k, _, _ in read_recording(tmp_path / "t4.mcap")]
+    assert 1 <= len(recorded) < 10  # finished after its first message, readable
+    rerun = Path(sys.executable).parent / "rerun"
+    subprocess.run([str(rerun), "rrd", "print", str(tmp_path / "t4.rrd")], capture_output=True, check=True)
+
+
+def test_keep_free_must_not_be_negative(tmp_path, capsys):
+    assert main(["session", "--keep-free", "-1", "--out", str(tmp_path)]) != 0
+    assert "--keep-free must be >= 0 GB, got -1" in capsys.readouterr().err
