@@ -228,7 +228,7 @@ class IngestService:
         self.bus, self.session, self.body, self.source = bus, session, body, source
         self.stats = getattr(source, "stats", None) or Stats(self.SERVICE, session)
         # displays shade it themselves
-        self.animator = BodyAnimator(body, source.skeleton, ik=ik, normals=False, contact=contact)
+        self.animator = BodyAnimator(body, source.skeleton, ik=ik, normals=False, contact=contact, helpers=False)
         self.latched = Latched(bus)
         self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible,
                                 arm_clearance_deg=self.animator.retargeter.ik.arm_clearance_deg,

@@ -37,9 +37,12 @@ class BodyAnimator:
 
     def __init__(self, body: Body, person: Skeleton | None = None, ik: IKSettings | None = None,
                  person_floor_y: float = 0.0, normals: bool = True,
-                 contact: ContactSettings | None = ContactSettings()):
+                 contact: ContactSettings | None = ContactSettings(), helpers: bool = True):
         """normals: compute the skin's vertex normals each frame (False: a service that publishes
         the body for displays that compute their own; BodyFrame.normals is then None).
+        helpers: skin the helper vertices after the visible skin too (garments are fitted to
+        them); False: BodyFrame.vertices holds the visible skin only (a third fewer vertices to
+        skin; what a service publishing the body needs).
         contact: where the skinned body cuts through itself, bring the skin to a contact surface
         (`SkinContact`); None: the skin as linear blend skinning leaves it.
         With a person, `ik.hand_clearance` turns a retargeted arm out where its hand sinks into the
@@ -65,8 +68,9 @@ class BodyAnimator:
         self._arm = np.empty((3, 3))
         self._axis = np.empty(3)
         self.stage_seconds = np.zeros(len(STAGES))
+        self._n_skinned = len(body.vertices) if helpers else body.n_visible
         self.frame = BodyFrame(
-            vertices=np.empty_like(body.vertices),
+            vertices=np.empty((self._n_skinned, 3)),
             normals=np.empty((body.n_visible, 3)) if normals else None,
             joint_rotations=np.empty((n_bones, 3, 3)),
             joint_positions=np.empty((n_bones, 3)),
@@ -88,7 +92,8 @@ class BodyAnimator:
         self.character.global_pose(q, self._local, self._root, f.joint_rotations, f.joint_positions)
         skin_matrices(f.joint_rotations, f.joint_positions, self.body.skeleton.heads, self._matrices)
         w = self._weights
-        linear_blend_skinning(self.body.vertices, w.start, w.bones, w.weights, self._matrices, f.vertices)
+        linear_blend_skinning(self.body.vertices[: self._n_skinned], w.start, w.bones, w.weights, self._matrices,
+                              f.vertices)
 
     def _clear_hands(self, q: np.ndarray, arm_turn: np.ndarray) -> bool:
         """Turn out (in q) each arm whose hand the skinned frame has inside the torso or a leg;

@@ -12,6 +12,22 @@ def test_rest_pose_reproduces_rest_mesh(body):
     assert abs(frame.vertices[: body.n_visible, 1].min()) < 1e-12  # soles on the floor y = 0
 
 
+def test_the_visible_skin_alone_is_the_whole_bodys_visible_part_bit_for_bit(body):
+    """helpers=False (the ingest, which publishes the visible skin): the helper vertices are not
+    skinned, and the visible ones are what the whole body's skinning gives them, contact and all."""
+    whole, visible = BodyAnimator(body), BodyAnimator(body, helpers=False)
+    q = whole.rest_configuration()
+    rng = np.random.default_rng(5)
+    for joint in range(2, len(q) // 4):  # (spherical joints' quaternions after the free flyer)
+        i = 7 + 4 * (joint - 2)
+        if i + 4 <= len(q):
+            turn = rng.normal(size=4) * [0.2, 0.2, 0.2, 0.0] + [0.0, 0.0, 0.0, 1.0]
+            q[i:i + 4] = turn / np.linalg.norm(turn)
+    a, b = whole.pose(q).vertices, visible.pose(q).vertices
+    assert a.shape == body.vertices.shape and b.shape == (body.n_visible, 3)
+    np.testing.assert_array_equal(b, a[: body.n_visible])
+
+
 def test_single_bone_vertex_moves_rigidly(body):
     rng = np.random.default_rng(3)
     n_bones = len(body.skeleton.names)
