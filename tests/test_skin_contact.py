@@ -26,18 +26,21 @@ def two_boxes(overlap: float):
     return rest, posed, tris, np.repeat([0, 1], len(v))
 
 
-def test_overlapping_boxes_meet_on_the_midplane():
+@pytest.mark.parametrize("gap", [0.0, 0.003])
+def test_overlapping_boxes_meet_on_the_midplane_a_gap_apart(gap):
     rest, posed, tris, which = two_boxes(0.02)
     x = posed.copy()
-    contact = SkinContact(rest, tris)
+    contact = SkinContact(rest, tris, ContactSettings(gap=gap))
     moved = contact(x)
     # the faces that cut into each other: A's at x = 0.1, B's at x = 0.08; away from their rims
-    # every vertex normal is the face's, and each ray leaves the other box after 2 cm
+    # every vertex normal is the face's, and each ray leaves the other box after 2 cm: each goes
+    # back 1 cm and the gap into its own box
     inner = (np.abs(posed[:, 1]) < 0.09) & (np.abs(posed[:, 2]) < 0.09)
     face_a = inner & (which == 0) & np.isclose(posed[:, 0], 0.1)
     face_b = inner & (which == 1) & np.isclose(posed[:, 0], 0.08)
     assert face_a.sum() > 20 and face_b.sum() > 20
-    np.testing.assert_allclose(x[face_a | face_b, 0], 0.09, atol=1e-9)
+    np.testing.assert_allclose(x[face_a, 0], 0.09 - gap, atol=1e-9)
+    np.testing.assert_allclose(x[face_b, 0], 0.09 + gap, atol=1e-9)
     np.testing.assert_array_equal(x[face_a | face_b, 1:], posed[face_a | face_b, 1:])
     # beyond the lens's 2 cm rims and the smoothing's two rings of 2.5 cm edges nothing moves
     near = ((which == 0) & (posed[:, 0] > 0.08 - 0.05 - 1e-9)) | ((which == 1) & (posed[:, 0] < 0.1 + 0.05 + 1e-9))
@@ -61,6 +64,10 @@ def test_far_side_of_the_own_part_and_the_rest_pose_are_left_alone():
 def test_settings_are_validated():
     with pytest.raises(ValueError, match="ContactSettings.reach"):
         ContactSettings(reach=0.0)
+    for gap in (-0.001, 0.06):
+        with pytest.raises(ValueError, match="ContactSettings.gap"):
+            ContactSettings(gap=gap)
+    assert ContactSettings().gap == 0.003
 
 
 THIGH, KNEE = -80.0, 110.0
