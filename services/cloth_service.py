@@ -38,8 +38,8 @@ from skinning.body import Body
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, build_outfit, collision_body, find_outfit
-from .model_cache import ModelCache, object_digest
 from .heap import freeze_heap, reclaim_heap
+from .model_cache import ModelCache, object_digest
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
 from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
 from .wire import CompactMesh, body_vertices, vertex_count
@@ -352,7 +352,7 @@ class ClothService:
         self.stats = Stats(self.SERVICE, "_service")  # rejections of messages with no usable session
         self._models: dict[OutfitSpec, tuple[Outfit, list | None]] = {}
         self._models_lock = threading.Lock()
-        self.animator_lock = threading.Lock()
+        self.animator_lock = threading.Lock()  # the one animator: pre-rolls and fitting pose the body with it
         # sessions being fitted and settled on the setup thread: (its result, messages held for it)
         self._setup = ThreadPoolExecutor(1, thread_name_prefix="session-setup")
         # work for the sessions that no frame waits for (`settle_later`)
@@ -397,9 +397,11 @@ class ClothService:
             fabrics = fabric_preset(spec.fabric) if spec.fabric else None
             if self._body_digest is None and self.model_cache.folder is not None:
                 self._body_digest = object_digest(self.body)
-            self._models[spec] = build_outfit(self.body, self.animator, self.body_mesh, outfit_dir, fabrics,
-                                              surface=None if spec.level is None else SurfaceSettings(level=spec.level),
-                                              cache=self.model_cache, body_digest=self._body_digest)
+            with self.animator_lock:  # (fitting poses the rest body: not while a pre-roll reads the animator)
+                self._models[spec] = build_outfit(self.body, self.animator, self.body_mesh, outfit_dir, fabrics,
+                                                  surface=None if spec.level is None else
+                                                  SurfaceSettings(level=spec.level),
+                                                  cache=self.model_cache, body_digest=self._body_digest)
         return self._models[spec]
 
     def backlog(self) -> int:
