@@ -76,26 +76,8 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
 
 
 @helper
-def _parent_hint(p, vid, other, face_ids, f, parents, loc):
-    """A lower bound on detailed particle vid's distance to the other body parts, from its
-    parents' (lattice point loc of coarse face f): max over them of other[parent] minus the
-    distance to it; -inf for a corner (no parents)."""
-    hint = -np.inf
-    if parents[loc, 0] < 0:
-        return hint
-    for m in range(3):
-        if parents[loc, m] < 0:
-            continue
-        par = face_ids[f, parents[loc, m]]
-        hint = max(hint, other[par] - math.sqrt((p[par, 0] - p[vid, 0]) ** 2 + (p[par, 1] - p[vid, 1]) ** 2
-                                                + (p[par, 2] - p[vid, 2]) ** 2))
-    return hint
-
-
-@helper
-def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, other_d, face_ids, f_face, parents,
-                            loc, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
-                            part_face, face_n, q):
+def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, body_x, nbr_start, nbr_ids, regions,
+                            tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
     """Signed distance of detailed particle i (at p[i]) to the body, by a walk over the body's
     faces (`face_walk_distance`) from the face its last walk ended on (body_face[i]): the
     body and the cloth move little between two tests, so that is usually one exact closest
@@ -111,12 +93,12 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
     near its corners (`other_part_seeds`, and each corner's nearest vertex), the corner each
     was found from (x: the coarse positions) and that corner's place in the face (0-2), grouped
     by body part; reach[:n_parts] their distance from it. One walk
-    per part, from its seed nearest to p, where the part is not ruled out by those distances or
-    by `hint` (a lower bound on p's distance to the other parts, from its parents'), nor the
-    part the first walk ended in (loc >= 0: `hint` is computed when first needed, from the
-    parents of lattice point loc of coarse face f_face and their distances other_d; see
-    `avoid_penetration`); start_face >= 0 (the face where p's walk in another part
-    ended the frame before, part_face[i]) replaces them while that walk ends in another part.
+    per part, from its seed nearest to p, where the part is not ruled out by those distances,
+    nor the part the first walk ended in; start_face >= 0 (the face where p's walk in another
+    part ended the frame before, part_face[i]) replaces them while that walk ends in another part.
+    (No bound from the particle's parents in the hierarchy: a parent on a coarse edge or corner
+    was measured in a neighbouring coarse face, against that face's parts, and its distance
+    ruled out a part of this face that it never looked at; fifty-fifth session.)
     Returns (d, n_body, closest point, p's distance to the other parts as far as it is known:
     the nearest walked to, else the bounds that ruled them out; inf if none)."""
     px, py, pz = p[i, 0], p[i, 1], p[i, 2]
@@ -187,11 +169,8 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hi
             slot = parts[j, 2]
             bound = max(bound, reach[j] - PART_SLACK - (dc0 if slot == 0 else (dc1 if slot == 1 else dc2)))
         g = e
-        if loc >= 0:  # the parents' bound, computed once, here: most particles need none
-            hint = _parent_hint(p, i, other_d, face_ids, f_face, parents, loc)
-            loc = -1
-        if bound >= abs(d) or hint >= abs(d):
-            other = min(other, max(bound, hint))
+        if bound >= abs(d):
+            other = min(other, bound)
             continue
         dk, mx, my, mz, ax, ay, az, last = other_part_distance(px, py, pz, sk, -1, abs(d), body_x, nbr_start,
                                                                nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
@@ -229,18 +208,15 @@ def tip_allowance(body_face, i, face_tip, tip_share, rate, other):
 
 
 @kernel
-def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint, body_x, nbr_start, nbr_ids, regions,
+def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, body_x, nbr_start, nbr_ids, regions,
                            tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, normals, face_tip,
                            tip_share):
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
     particles a frame), where the call costs little and more inlined copies would cost
-    compilation time; less `tip_allowance`, as in `avoid_penetration`. The lifts pass hint
-    itself (loc -1: the parents' arrays after it are not read, and any of the right types will
-    do)."""
-    d, nx, ny, nz, qx, qy, qz, other = _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, hint,
-                                                               reach, parts, 0, parts, -1, body_x, nbr_start, nbr_ids,
-                                                               regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
-                                                               part_face, face_n, q)
+    compilation time; less `tip_allowance`, as in `avoid_penetration`."""
+    d, nx, ny, nz, qx, qy, qz, other = _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, body_x,
+                                                               nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
+                                                               tri_nbrs, body_face, part_face, face_n, q)
     rate = normals[i, 0] * nx + normals[i, 1] * ny + normals[i, 2] * nz
     d -= tip_allowance(body_face, i, face_tip, tip_share, rate, other)
     return d, nx, ny, nz, qx, qy, qz, other
@@ -287,7 +263,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
             break
         _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift)
         d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
-                                                              -np.inf, body_x, nbr_start, nbr_ids, regions, tris,
+                                                              body_x, nbr_start, nbr_ids, regions, tris,
                                                               tri_start, tri_ids, tri_nbrs, body_face, part_face,
                                                               face_n, q, normals, face_tip, tip_share)
         rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
@@ -306,7 +282,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
             step *= 2.0
             _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
             d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
-                                                                  part_face[vid], -np.inf, body_x, nbr_start, nbr_ids,
+                                                                  part_face[vid], body_x, nbr_start, nbr_ids,
                                                                   regions, tris, tri_start, tri_ids, tri_nbrs,
                                                                   body_face, part_face, face_n, q, normals, face_tip,
                                                                   tip_share)
@@ -319,7 +295,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
                 mid = 0.5 * (lo + hi)
                 _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, mid)
                 dm, mx, my, mz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
-                                                                       part_face[vid], -np.inf, body_x, nbr_start,
+                                                                       part_face[vid], body_x, nbr_start,
                                                                        nbr_ids, regions, tris, tri_start, tri_ids,
                                                                        tri_nbrs, body_face, part_face, face_n, q,
                                                                        normals, face_tip, tip_share)
@@ -332,7 +308,7 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
             return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
     _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
     d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
-                                                          -np.inf, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
+                                                          body_x, nbr_start, nbr_ids, regions, tris, tri_start,
                                                           tri_ids, tri_nbrs, body_face, part_face, face_n, q, normals,
                                                           face_tip, tip_share)
     return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
@@ -413,15 +389,12 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
             if sd[vid] == UNTESTED:
                 tested += 1
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
-                # top-down like the test itself: the parents' distances to the other body parts
-                # bound the particle's (`_parent_hint`; a walk in another part starts where its
-                # own ended the frame before, if it ended near)
+                # (a walk in another part starts where its own ended the frame before, if it ended near)
                 d, bx, by, bz, qx, qy, qz, other[vid] = _detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
-                                                                                part_face[vid], -np.inf, other,
-                                                                                face_ids, f, parents, loc, body_x,
-                                                                                nbr_start, nbr_ids, regions, tris,
-                                                                                tri_start, tri_ids, tri_nbrs, body_face,
-                                                                                part_face, face_n, q)
+                                                                                part_face[vid], body_x, nbr_start,
+                                                                                nbr_ids, regions, tris, tri_start,
+                                                                                tri_ids, tri_nbrs, body_face, part_face,
+                                                                                face_n, q)
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 d -= tip_allowance(body_face, vid, face_tip, tip_share, rate, other[vid])
                 if d < clearance - LIFT_TOLERANCE:
