@@ -73,8 +73,7 @@ def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_s
     no_parts = np.zeros((0, 3), dtype=np.int32)  # no walks in other body parts: the walk itself
     part_face = np.full(points.shape[0], -1, dtype=np.int32)
     for i in range(points.shape[0]):
-        out[i] = _detail_signed_distance(points, i, seeds[i], points, no_parts, np.zeros(0), 0, -1, -np.inf,
-                                         np.zeros(0), no_parts, 0, no_parts, -1, body_x,
+        out[i] = _detail_signed_distance(points, i, seeds[i], points, no_parts, np.zeros(0), 0, -1, body_x,
                                          nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
                                          part_face, face_n, q)[0]
 
