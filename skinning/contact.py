@@ -44,7 +44,6 @@ _INLINE = {"forceinline": True} if hasattr(DefaultOptions, "forceinline") else {
 _HASH_BITS = 15
 MIN_T = 1e-9  # m
 PARALLEL_RAYS = 256  # a flood ring with fewer rays is cast on one thread
-GAP = 0.003  # m: ContactSettings.gap
 
 
 @dataclass(frozen=True)
@@ -57,7 +56,7 @@ class ContactSettings:
     smooth_passes: int = 2  # rounds that fill the vertices a lens's rays missed and fade the moves over its rim
     # m, how much farther than halfway each sheet goes back into its own part: the two skins end
     # 2 x gap apart (see module)
-    gap: float = GAP
+    gap: float = 0.003
 
     def __post_init__(self):
         for key in ("reach", "margin", "cell", "sample"):
