@@ -175,8 +175,12 @@ class SurfaceState:
         self.part_seeds = np.zeros((n, MAX_PART_SEEDS), dtype=np.int32)  # S103: other body parts near each
         self.seed_reach = np.zeros((n, MAX_PART_SEEDS))  # coarse particle (other_part_seeds)
         self.seed_count = np.zeros(n, dtype=np.int32)
-        self.parts = np.zeros((3 * (MAX_PART_SEEDS + 1), 3), dtype=np.int32)  # S103 scratch
-        self.reach = np.zeros(3 * (MAX_PART_SEEDS + 1))
+        K = 3 * (MAX_PART_SEEDS + 1)  # S103 scratch: the body parts near a coarse face (part_groups)
+        self.corners = np.zeros(3, dtype=np.int32)
+        self.parts = np.zeros((K, 3), dtype=np.int32)
+        self.reach = np.zeros(K)
+        self.groups = np.zeros((K, 3), dtype=np.int32)
+        self.group_reach = np.zeros((K, 3))
         self.part, self.part_vertex, self.part_d2 = part_scratch()  # other_part_seeds scratch
         self.floor = np.zeros(N)  # S106: the lowest and highest heights S103 allows
         self.ceiling = np.zeros(N)
@@ -267,12 +271,12 @@ class DetailedSurface:
                 face_tip = s.no_tips
             self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, s.facing, s.other, t.face_ids, t.order,
                                             t.parents, x, coarse_nearest, find_parts, s.part_seeds, s.seed_reach,
-                                            s.seed_count, s.parts, s.reach, body_x, body.nbr_start, body.nbr_ids,
-                                            body.parts, body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs,
-                                            s.body_face, s.part_face, face_n, s.q, face_tip, st.tip_share,
-                                            st.clearance, st.contact_margin,
-                                            st.face_margin, st.penetration_iterations, st.max_lift, st.max_height,
-                                            st.lift_search)
+                                            s.seed_count, s.corners, s.parts, s.reach, s.groups, s.group_reach,
+                                            body_x, body.nbr_start, body.nbr_ids, body.parts, body.triangles,
+                                            body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face, s.part_face,
+                                            face_n, s.q, face_tip, st.tip_share, st.clearance,
+                                            st.contact_margin, st.face_margin, st.penetration_iterations,
+                                            st.max_lift, st.max_height, st.lift_search)
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)
         t2 = time.perf_counter()

@@ -76,8 +76,8 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
 
 
 @helper
-def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, body_x, nbr_start, nbr_ids, regions,
-                            tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
+def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, n_groups, start_face, body_x, nbr_start,
+                            nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q):
     """Signed distance of detailed particle i (at p[i]) to the body, by a walk over the body's
     faces (`face_walk_distance`) from the face its last walk ended on (body_face[i]): the
     body and the cloth move little between two tests, so that is usually one exact closest
@@ -89,13 +89,17 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, bo
     A walk ends at a local minimum of the distance: where another body part comes near (an arm
     inside a sleeve beside the torso) it can stop on the torso while p is inside the arm. So a
     walk also starts in each other part near the coarse face and the nearest surface found
-    decides, as the closest point does: parts[:n_parts] (int32 (K, 3)) are vertices of the parts
-    near its corners (`other_part_seeds`, and each corner's nearest vertex), the corner each
-    was found from (x: the coarse positions) and that corner's place in the face (0-2), grouped
-    by body part; reach[:n_parts] their distance from it. One walk
-    per part, from its seed nearest to p, where the part is not ruled out by those distances,
-    nor the part the first walk ended in; start_face >= 0 (the face where p's walk in another
-    part ended the frame before, part_face[i]) replaces them while that walk ends in another part.
+    decides, as the closest point does. The parts near the face (`part_groups`): groups[:n_groups]
+    (int32 (G, 3): region bit, first and end row in `parts`), one per body part; parts (int32 (K, 3))
+    their seed vertices (`other_part_seeds`, and each corner's nearest vertex); group_reach (G, 3)
+    per corner of the face (corners: their coarse particles, x: the coarse positions) the farthest
+    its seeds of that part are from it (-inf: none). One walk per part, from its seed nearest to p,
+    where the part is not ruled out by those distances, nor the part the first walk ended in
+    (starting from where p's last vertex walk in the part stopped instead: walks of a step or
+    two, 8 % off S103, but more particles deeper than 1 mm, 647 / 1,561 → 664 / 1,642 on the
+    walk's casual outfit; fifty-sixth session); start_face >= 0 (the face where p's walk
+    in another part ended the frame before, part_face[i]) replaces them while that walk ends in
+    another part.
     (No bound from the particle's parents in the hierarchy: a parent on a coarse edge or corner
     was measured in a neighbouring coarse face, against that face's parts, and its distance
     ruled out a part of this face that it never looked at; fifty-fifth session.)
@@ -130,48 +134,36 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, bo
                 d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
             return d, nx, ny, nz, qx, qy, qz, abs(dk)
         part_face[i] = -1  # it came back to the first walk's part: look again
-    # one walk per group of parts[:n_parts] (one body part each), from its seed nearest to p
-    # (the first of equals), where the part is not ruled out by a lower bound on p's distance
-    # to it: no vertex of it was nearer than reach[j] to corner parts[j, 1] (and a face is
-    # nearer than its vertices by less than PART_SLACK). Grouped, a particle's bookkeeping is
-    # one pass over the seeds and three square roots (captured walk frames: 2-5 % of S103)
-    dc0 = dc1 = dc2 = -1.0  # p's distances to the face's corners, when a bound needs them
-    g = 0
-    while g < n_parts:
-        r = regions[parts[g, 0]]
-        e = g + 1
-        while e < n_parts and regions[parts[e, 0]] == r:
-            e += 1
+    # one walk per other part, where it is not ruled out by a lower bound on p's distance to it:
+    # no vertex of it was nearer than group_reach[g, c] to corner c (and a face is nearer than
+    # its vertices by less than PART_SLACK). The groups are built once per coarse face
+    # (`part_groups`): a particle's bookkeeping is three square roots (5-7 % of S103 against
+    # going over the seeds per particle, fifty-sixth session)
+    dc0 = -1.0  # p's distances to the face's corners, once a bound needs them
+    dc1 = dc2 = 0.0
+    for g in range(n_groups):
+        r = groups[g, 0]
         if r == walked:
-            g = e
             continue
-        if dc0 < 0.0:  # (each corner has its nearest vertex among the seeds: all three are set)
-            for j in range(n_parts):
-                slot = parts[j, 2]
-                if (dc0 if slot == 0 else (dc1 if slot == 1 else dc2)) >= 0.0:
-                    continue  # (a corner with several seeds: its distance once)
-                c = parts[j, 1]
-                dc = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
-                if slot == 0:
-                    dc0 = dc
-                elif slot == 1:
-                    dc1 = dc
-                else:
-                    dc2 = dc
-        sk = parts[g, 0]
+        if dc0 < 0.0:
+            c = corners[0]
+            dc0 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
+            c = corners[1]
+            dc1 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
+            c = corners[2]
+            dc2 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
+        bound = max(group_reach[g, 0] - PART_SLACK - dc0, group_reach[g, 1] - PART_SLACK - dc1,
+                    group_reach[g, 2] - PART_SLACK - dc2)
+        if bound >= abs(d):
+            other = min(other, bound)
+            continue
+        sk = parts[groups[g, 1], 0]  # from its seed nearest to p (the first of equals)
         dk2 = np.inf
-        bound = -np.inf
-        for j in range(g, e):
+        for j in range(groups[g, 1], groups[g, 2]):
             sj = parts[j, 0]
             dj2 = (body_x[sj, 0] - px) ** 2 + (body_x[sj, 1] - py) ** 2 + (body_x[sj, 2] - pz) ** 2
             if dj2 < dk2:
                 dk2, sk = dj2, sj
-            slot = parts[j, 2]
-            bound = max(bound, reach[j] - PART_SLACK - (dc0 if slot == 0 else (dc1 if slot == 1 else dc2)))
-        g = e
-        if bound >= abs(d):
-            other = min(other, bound)
-            continue
         dk, mx, my, mz, ax, ay, az, last = other_part_distance(px, py, pz, sk, -1, abs(d), body_x, nbr_start,
                                                                nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                                                                face_n, q)
@@ -181,6 +173,45 @@ def _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, bo
         if abs(dk) < abs(d):
             d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
     return d, nx, ny, nz, qx, qy, qz, other
+
+
+@helper
+def part_groups(f, face_ids, order, coarse_nearest, part_seeds, seed_reach, seed_count, regions, corners, parts,
+                reach, groups, group_reach):
+    """The body parts near coarse face f, for `_detail_signed_distance`: each corner's nearest
+    body vertex and its other parts' seeds (`other_part_seeds`) sorted into one group per body
+    part (insertion sort, in order of arrival within a part). Writes corners (3,) (the corners'
+    coarse particles, in `order`), parts[:K] (seed vertex, corner, corner's place 0-2) and
+    reach[:K] (the seed's distance from its corner), groups[:G] (region bit, first and end row
+    in parts) and group_reach[:G] (per corner, the farthest of its seeds in the group; -inf:
+    none). Returns G."""
+    n_parts = 0
+    for c in range(3):
+        corner = face_ids[f, order[c]]
+        corners[c] = corner
+        for k in range(-1, seed_count[corner]):
+            seed = coarse_nearest[corner] if k < 0 else part_seeds[corner, k]
+            r = 0.0 if k < 0 else seed_reach[corner, k]
+            j = n_parts
+            while j > 0 and regions[parts[j - 1, 0]] > regions[seed]:
+                parts[j, 0], parts[j, 1], parts[j, 2] = parts[j - 1, 0], parts[j - 1, 1], parts[j - 1, 2]
+                reach[j] = reach[j - 1]
+                j -= 1
+            parts[j, 0], parts[j, 1], parts[j, 2] = seed, corner, c
+            reach[j] = r
+            n_parts += 1
+    n_groups = 0
+    for j in range(n_parts):
+        r = regions[parts[j, 0]]
+        if n_groups == 0 or groups[n_groups - 1, 0] != r:
+            groups[n_groups, 0] = r
+            groups[n_groups, 1] = j
+            group_reach[n_groups, 0] = group_reach[n_groups, 1] = group_reach[n_groups, 2] = -np.inf
+            n_groups += 1
+        groups[n_groups - 1, 2] = j + 1
+        c = parts[j, 2]
+        group_reach[n_groups - 1, c] = max(group_reach[n_groups - 1, c], reach[j])
+    return n_groups
 
 
 # m: the most S103 counts off a distance for the body's tips (a ridge where the skin contact
@@ -208,15 +239,16 @@ def tip_allowance(body_face, i, face_tip, tip_share, rate, other):
 
 
 @kernel
-def detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, body_x, nbr_start, nbr_ids, regions,
-                           tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, normals, face_tip,
-                           tip_share):
+def detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, n_groups, start_face, body_x, nbr_start,
+                           nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q,
+                           normals, face_tip, tip_share):
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
     particles a frame), where the call costs little and more inlined copies would cost
     compilation time; less `tip_allowance`, as in `avoid_penetration`."""
-    d, nx, ny, nz, qx, qy, qz, other = _detail_signed_distance(p, i, seed, x, parts, reach, n_parts, start_face, body_x,
-                                                               nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
-                                                               tri_nbrs, body_face, part_face, face_n, q)
+    d, nx, ny, nz, qx, qy, qz, other = _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach,
+                                                               n_groups, start_face, body_x, nbr_start, nbr_ids,
+                                                               regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
+                                                               part_face, face_n, q)
     rate = normals[i, 0] * nx + normals[i, 1] * ny + normals[i, 2] * nz
     d -= tip_allowance(body_face, i, face_tip, tip_share, rate, other)
     return d, nx, ny, nz, qx, qy, qz, other
@@ -232,9 +264,9 @@ def _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift):
 
 
 @kernel
-def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh, dh_pen, body_x, nbr_start,
-              nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip,
-              tip_share, clearance, max_iterations, up_cap, down_cap, search):
+def _lift_out(p, vid, seed, x, corners, parts, groups, group_reach, n_groups, d, bx, by, bz, normals, dh, dh_pen,
+              body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face,
+              face_n, q, face_tip, tip_share, clearance, max_iterations, up_cap, down_cap, search):
     """The smallest move along n_i that puts particle vid `clearance` outside the body (S103):
     a lift of at most up_cap, or (Decision) a lowering of at most down_cap. Distances are less
     `tip_allowance`, as in `avoid_penetration`.
@@ -262,10 +294,11 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
         if (lift - dh_pen[vid]) * sense <= 0.0:
             break
         _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, lift)
-        d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
-                                                              body_x, nbr_start, nbr_ids, regions, tris,
-                                                              tri_start, tri_ids, tri_nbrs, body_face, part_face,
-                                                              face_n, q, normals, face_tip, tip_share)
+        d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, corners, parts, groups, group_reach,
+                                                              n_groups, part_face[vid], body_x, nbr_start, nbr_ids,
+                                                              regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
+                                                              part_face, face_n, q, normals, face_tip,
+                                                              tip_share)
         rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
         it += 1
     if d >= enough:
@@ -281,11 +314,11 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
             hi = sgn * min(hi * sgn + step, cap)
             step *= 2.0
             _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
-            d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
-                                                                  part_face[vid], body_x, nbr_start, nbr_ids,
+            d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, corners, parts, groups, group_reach,
+                                                                  n_groups, part_face[vid], body_x, nbr_start, nbr_ids,
                                                                   regions, tris, tri_start, tri_ids, tri_nbrs,
-                                                                  body_face, part_face, face_n, q, normals, face_tip,
-                                                                  tip_share)
+                                                                  body_face, part_face, face_n, q, normals,
+                                                                  face_tip, tip_share)
             if d >= enough:
                 found = True
                 break
@@ -294,11 +327,12 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
             for _ in range(max_iterations + 2):  # bisect [lo inside, hi outside]
                 mid = 0.5 * (lo + hi)
                 _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, mid)
-                dm, mx, my, mz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
-                                                                       part_face[vid], body_x, nbr_start,
-                                                                       nbr_ids, regions, tris, tri_start, tri_ids,
-                                                                       tri_nbrs, body_face, part_face, face_n, q,
-                                                                       normals, face_tip, tip_share)
+                dm, mx, my, mz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, corners, parts, groups,
+                                                                       group_reach, n_groups, part_face[vid], body_x,
+                                                                       nbr_start, nbr_ids, regions, tris, tri_start,
+                                                                       tri_ids, tri_nbrs, body_face, part_face,
+                                                                       face_n, q, normals, face_tip,
+                                                                       tip_share)
                 if dm >= enough:
                     hi = mid
                     d, bx, by, bz = dm, mx, my, mz
@@ -307,18 +341,19 @@ def _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh
             _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, hi)
             return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
     _set_lift(p, b0, b1, b2, normals, vid, dh, dh_pen, 0.0)
-    d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, parts, reach, n_parts, part_face[vid],
-                                                          body_x, nbr_start, nbr_ids, regions, tris, tri_start,
-                                                          tri_ids, tri_nbrs, body_face, part_face, face_n, q, normals,
-                                                          face_tip, tip_share)
+    d, bx, by, bz, qx, qy, qz, _ = detail_signed_distance(p, vid, seed, x, corners, parts, groups, group_reach,
+                                                          n_groups, part_face[vid], body_x, nbr_start, nbr_ids, regions,
+                                                          tris, tri_start, tri_ids, tri_nbrs, body_face, part_face,
+                                                          face_n, q, normals, face_tip, tip_share)
     return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
 
 
 @kernel
 def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, x, coarse_nearest,
-                      find_parts, part_seeds, seed_reach, seed_count, parts, reach, body_x, nbr_start, nbr_ids, regions,
-                      tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip, tip_share,
-                      clearance, margin, face_margin, max_iterations, max_lift, max_height, search):
+                      find_parts, part_seeds, seed_reach, seed_count, corners, parts, reach, groups, group_reach,
+                      body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face,
+                      face_n, q, face_tip, tip_share, clearance, margin, face_margin, max_iterations,
+                      max_lift, max_height, search):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
@@ -336,11 +371,13 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     particle's distance to the other body parts as far as S103 knows it (inf: none near; out);
     part_seeds, seed_reach, seed_count: each coarse particle's other body parts
     (`other_part_seeds`), whose walks the particles of its faces take too (x: the coarse
-    positions; find_parts False: none are); parts (3 (MAX_PART_SEEDS + 1), 3) int32, reach
-    (3 (MAX_PART_SEEDS + 1),): scratch; body_face: the body face each particle's last distance
-    walk ended on (-1: none yet), and part_face the face its last walk in another body part
-    ended on, both carried between frames. face_tip, tip_share: where the body lies below it, a
-    particle's distance counts tip_share x face_tip of the face its walk ended on less
+    positions; find_parts False: none are); corners (3,) int32, parts (K, 3) int32, reach (K,),
+    groups (K, 3) int32, group_reach (K, 3), K = 3 (MAX_PART_SEEDS + 1): scratch (`part_groups`);
+    body_face: the body face each particle's last distance walk ended on (-1: none yet),
+    and part_face the face its last walk in another body part ended on, both carried between
+    frames.
+    face_tip, tip_share: where the body lies below it, a particle's distance counts tip_share x
+    face_tip of the face its walk ended on less
     (`tip_allowance`; Decision: a body vertex standing out of its ring would come through the
     detailed triangles between particles that are only the clearance away from the faces
     around it).
@@ -358,21 +395,10 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     tested = 0
     for f in range(face_ids.shape[0]):
         near = False
-        n_parts = 0  # the body parts near the face's corners: their nearest vertices, and the other parts'
-        for c in range(3 if find_parts else 0):
-            corner = face_ids[f, order[c]]
-            for k in range(-1, seed_count[corner]):
-                seed = coarse_nearest[corner] if k < 0 else part_seeds[corner, k]
-                r = 0.0 if k < 0 else seed_reach[corner, k]
-                # grouped by body part, in order of arrival within a part (insertion sort)
-                j = n_parts
-                while j > 0 and regions[parts[j - 1, 0]] > regions[seed]:
-                    parts[j, 0], parts[j, 1], parts[j, 2] = parts[j - 1, 0], parts[j - 1, 1], parts[j - 1, 2]
-                    reach[j] = reach[j - 1]
-                    j -= 1
-                parts[j, 0], parts[j, 1], parts[j, 2] = seed, corner, c
-                reach[j] = r
-                n_parts += 1
+        n_groups = 0  # the body parts near the face's corners: their nearest vertices, and the other parts'
+        if find_parts:
+            n_groups = part_groups(f, face_ids, order, coarse_nearest, part_seeds, seed_reach, seed_count, regions,
+                                   corners, parts, reach, groups, group_reach)
         for k in range(order.shape[0]):
             loc = order[k]
             vid = face_ids[f, loc]
@@ -390,21 +416,21 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                 tested += 1
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
                 # (a walk in another part starts where its own ended the frame before, if it ended near)
-                d, bx, by, bz, qx, qy, qz, other[vid] = _detail_signed_distance(p, vid, seed, x, parts, reach, n_parts,
-                                                                                part_face[vid], body_x, nbr_start,
-                                                                                nbr_ids, regions, tris, tri_start,
-                                                                                tri_ids, tri_nbrs, body_face, part_face,
-                                                                                face_n, q)
+                d, bx, by, bz, qx, qy, qz, other[vid] = _detail_signed_distance(p, vid, seed, x, corners, parts, groups,
+                                                                                group_reach, n_groups, part_face[vid],
+                                                                                body_x, nbr_start, nbr_ids, regions,
+                                                                                tris, tri_start, tri_ids, tri_nbrs,
+                                                                                body_face, part_face, face_n, q)
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 d -= tip_allowance(body_face, vid, face_tip, tip_share, rate, other[vid])
                 if d < clearance - LIFT_TOLERANCE:
                     # |Δh| never exceeds max_height
                     up = max(0.0, min(max_lift, max_height - dh[vid]))
                     down = max(0.0, min(max_lift, max_height + dh[vid]))
-                    d, rate = _lift_out(p, vid, seed, x, parts, reach, n_parts, d, bx, by, bz, normals, dh,
-                                        dh_pen, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
-                                        body_face, part_face, face_n, q, face_tip, tip_share, clearance,
-                                        max_iterations, up, down, search)
+                    d, rate = _lift_out(p, vid, seed, x, corners, parts, groups, group_reach, n_groups, d, bx, by, bz,
+                                        normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
+                                        tri_ids, tri_nbrs, body_face, part_face, face_n, q, face_tip,
+                                        tip_share, clearance, max_iterations, up, down, search)
                 sd[vid] = d
                 facing[vid] = rate
             if parents[loc, 0] < 0 and sd[vid] < face_margin:

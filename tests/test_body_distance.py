@@ -73,9 +73,9 @@ def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_s
     no_parts = np.zeros((0, 3), dtype=np.int32)  # no walks in other body parts: the walk itself
     part_face = np.full(points.shape[0], -1, dtype=np.int32)
     for i in range(points.shape[0]):
-        out[i] = _detail_signed_distance(points, i, seeds[i], points, no_parts, np.zeros(0), 0, -1, body_x,
-                                         nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
-                                         part_face, face_n, q)[0]
+        out[i] = _detail_signed_distance(points, i, seeds[i], points, np.zeros(3, dtype=np.int32), no_parts, no_parts,
+                                         np.zeros((0, 3)), 0, -1, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
+                                         tri_ids, tri_nbrs, body_face, part_face, face_n, q)[0]
 
 
 def test_detailed_particle_walk_starts_from_its_last_face_and_re_anchors_at_the_seed():
