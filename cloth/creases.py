@@ -39,6 +39,7 @@ import numpy as np
 
 from .collision import face_walk_distance
 from .jit import helper, kernel
+from .winding import winding_number
 
 CREASE_DEPTH = 0.03  # m: deeper behind a surface than this, the walk's face is as likely a limb's far side: left
 FACING = -0.5  # n_a . n_b below this: the two surfaces face each other (more than 120° apart)
@@ -102,10 +103,12 @@ def out_of_two_planes(px, py, pz, a, b, clearance):
 
 @helper
 def _out_of_crease(p, i, fa, fb, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n,
-                   q, plane_a, plane_b, clearance, rounds):
+                   q, plane_a, plane_b, clearance, rounds, clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole):
     """Measure particle i from body faces fa and fb (fb -1: none) and move it out of the body
-    if it is inside, up to `rounds` times (`leave_creases`). Returns (moved, fa, fb): the faces
-    the walks ended on (fb -1 where its walk came back to fa's part)."""
+    if it is inside, up to `rounds` times (`leave_creases`); whole: not if it is outside the
+    body as a whole (its winding number over wfaces, the grid wlo ... wextent, is 0) while the
+    faces its walks ended on are clothed (`clothed`, those wfaces has). Returns (moved, fa, fb):
+    the faces the walks ended on (fb -1 where its walk came back to fa's part)."""
     p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
     for r in range(rounds):
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
@@ -124,6 +127,9 @@ def _out_of_crease(p, i, fa, fb, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr
                 plane_b[0], plane_b[1], plane_b[2], plane_b[3], plane_b[4], plane_b[5] = qx, qy, qz, nx, ny, nz
         if not (-CREASE_DEPTH < min(da, db) < 0.0):
             break  # outside both (S103's clearance is its own), or too deep to trust
+        if whole and r == 0 and clothed[fa] and (fb < 0 or clothed[fb]) and \
+                winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
+            break  # behind a tangent plane but outside the body: the way out would lead in (module)
         mx, my, mz, ok = out_of_two_planes(px, py, pz, plane_a, plane_b, clearance)
         if not ok or mx * mx + my * my + mz * mz > CREASE_MOVE * CREASE_MOVE:
             break
@@ -144,7 +150,7 @@ def _list_move(p, i, p0, p1, p2, fa, fb, k, ids, moves, faces):
 @kernel
 def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
                   face_n, q, plane_a, plane_b, clearance, rounds, first, spread, d_edges, edge_start, edge_ids, seen,
-                  ids, moves, faces):
+                  ids, moves, faces, clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole):
     """Move each detailed particle that is inside the body near a crease out of it (module
     docstring). p: final positions, moved in place; sd, body_face, part_face: S103's (its
     signed distances, UNTESTED = inf where it did not test, and the faces its walks ended on);
@@ -155,6 +161,9 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
     particle's edges) are measured too, from the faces its walks ended on in two body parts,
     and so on from each one moved: S103 did not test many of them, and one left inside beside a
     moved particle left their edge long. seen (N,) uint8: scratch.
+    whole: a particle outside the body as a whole is not moved, where its walks ended on faces
+    the winding number counts (clothed: `BodyMesh.clothed_faces`; wfaces: `BodyMesh.winding_faces`;
+    wlo ... wextent: the pose's `WindingGrid.arrays()`); False: the planes alone decide.
     Returns the number of particles moved, k; ids[:k] (int32) are they, moves[:k] (k, 3) how
     far each went, faces[:k] (k, 2) int32 the faces its walks ended on."""
     for i in range(p.shape[0]):
@@ -166,7 +175,8 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
         seen[i] = 1
         p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
         out, fa, fb = _out_of_crease(p, i, body_face[i], part_face[i], body_x, tris, tri_nbrs, tri_start, tri_ids,
-                                     nbr_start, nbr_ids, regions, face_n, q, plane_a, plane_b, clearance, rounds)
+                                     nbr_start, nbr_ids, regions, face_n, q, plane_a, plane_b, clearance, rounds,
+                                     clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole)
         if out:
             moved = _list_move(p, i, p0, p1, p2, fa, fb, moved, ids, moves, faces)
     if not spread:
@@ -185,7 +195,8 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
             seen[j] = 1
             p0, p1, p2 = p[j, 0], p[j, 1], p[j, 2]
             out, fa, fb = _out_of_crease(p, j, faces[k, 0], faces[k, 1], body_x, tris, tri_nbrs, tri_start, tri_ids,
-                                         nbr_start, nbr_ids, regions, face_n, q, plane_a, plane_b, clearance, rounds)
+                                         nbr_start, nbr_ids, regions, face_n, q, plane_a, plane_b, clearance, rounds,
+                                         clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole)
             if out:
                 moved = _list_move(p, j, p0, p1, p2, fa, fb, moved, ids, moves, faces)
         k += 1

@@ -23,6 +23,7 @@ from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
+from .winding import NO_WINDING
 from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights,
                        elastic_forces, fold_across, fold_lines, fold_quads, length_displacement, match_required_length,
                        normal_force, offset_along_normals, other_part_seeds, penetration_floor, quad_lattice,
@@ -235,7 +236,8 @@ class DetailedSurface:
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
              body: BodyMesh | None, face_n: np.ndarray | None, dt: float,
-             grid: VertexGrid | None = None, face_tip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+             grid: VertexGrid | None = None, face_tip: np.ndarray | None = None,
+             winding: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
         """One frame of S102-S106 from the coarse positions x (n, 3); returns (positions, normals)
         of the detailed mesh (views of the state arrays, valid until the next step).
 
@@ -245,7 +247,9 @@ class DetailedSurface:
         grid: the body's vertex grid for this pose, through which S103 finds the other body
         parts near each coarse particle (None: S103 walks from the nearest vertex only);
         face_tip: how far each body face's corners stand out of their rings (`BodyPose.face_tip`;
-        None: not at all)."""
+        None: not at all); winding: the pose's winding grid (`WindingGrid.arrays()` over
+        body.winding_faces), through which the moves out of creases leave a particle outside the
+        body as a whole where it is (None: the tangent planes alone decide)."""
         m, s, t, st = self.model, self.state, self.model.tess, self.model.settings
         c = m.cloth
         t0 = time.perf_counter()
@@ -319,7 +323,10 @@ class DetailedSurface:
                                          body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids, body.parts,
                                          face_n, s.q, s.plane_a, s.plane_b, st.clearance, st.crease_rounds,
                                          t.n_coarse, st.crease_spread, m.d_edges, m.d_edge_start, m.d_edge_ids,
-                                         s.crease_seen, s.creased_ids, s.crease_moves, s.crease_faces)
+                                         s.crease_seen, s.creased_ids, s.crease_moves, s.crease_faces,
+                                         body.clothed_faces, body.winding_faces,
+                                         *(NO_WINDING if winding is None else winding),
+                                         winding is not None)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -9,12 +9,13 @@ import pytest
 
 from cloth.creases import CREASE_MOVE
 from cloth.surface import SurfaceSettings
+from cloth.winding import winding_numbers
 from services.cloth_job import OUTFITS, run_cloth_clip
 
 
 @pytest.mark.parametrize("outfit", OUTFITS)
 def test_surface_through_the_run_clip(body, data, outfit):
-    checked, lifted, pressed, creased = [], [], [], []
+    checked, lifted, pressed, creased, from_outside = [], [], [], [], []
 
     def on_frame(index, session, body_frame, positions):
         layered = [p.copy() for p, _ in session.detailed]
@@ -40,6 +41,11 @@ def test_surface_through_the_run_clip(body, data, outfit):
             assert np.all(np.linalg.norm(s.crease_moves[:k], axis=1) <= 2 * CREASE_MOVE)
             creased.append(k)
             p[s.creased_ids[:k]] -= s.crease_moves[:k]
+            # each from inside the body as a whole (its winding number), never from outside it
+            wind = np.zeros(k, dtype=np.int64)
+            winding_numbers(p[s.creased_ids[:k]], session.pose.x, session.body_mesh.winding_faces,
+                            *session.pose.winding.arrays(), wind)
+            from_outside.append(int(np.sum(wind == 0)))
             if not checked:  # every coarse triangle drawn once, most of them as halves of quads
                 faces = m.fold_groups[m.fold_groups >= 0]
                 np.testing.assert_array_equal(np.sort(faces), np.arange(len(m.tess.coarse_triangles)))
@@ -64,5 +70,5 @@ def test_surface_through_the_run_clip(body, data, outfit):
     layers = outfit != "female_sportsuit01"  # the sport suit's top and bottom do not meet
     assert (len(report.layer_ms) == report.frames) == layers and (sum(lifted) > 0) == layers
     assert (sum(pressed) > 0) == layers
-    assert sum(creased) > 0
+    assert sum(creased) > 0 and sum(from_outside) == 0
     assert all(len(v) == report.frames for v in report.surface_ms.values())
