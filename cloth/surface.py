@@ -178,7 +178,7 @@ class SurfaceState:
         self.seed_count = np.zeros(n, dtype=np.int32)
         K = 3 * (MAX_PART_SEEDS + 1)  # S103 scratch: the body parts near a coarse face (part_groups)
         self.corners = np.zeros(3, dtype=np.int32)
-        self.parts = np.zeros((K, 3), dtype=np.int32)
+        self.parts = np.zeros((K, 2), dtype=np.int32)
         self.reach = np.zeros(K)
         self.groups = np.zeros((K, 3), dtype=np.int32)
         self.group_reach = np.zeros((K, 3))

@@ -90,7 +90,7 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
     inside a sleeve beside the torso) it can stop on the torso while p is inside the arm. So a
     walk also starts in each other part near the coarse face and the nearest surface found
     decides, as the closest point does. The parts near the face (`part_groups`): groups[:n_groups]
-    (int32 (G, 3): region bit, first and end row in `parts`), one per body part; parts (int32 (K, 3))
+    (int32 (G, 3): region bit, first and end row in `parts`), one per body part; parts (int32 (K, 2))
     their seed vertices (`other_part_seeds`, and each corner's nearest vertex); group_reach (G, 3)
     per corner of the face (corners: their coarse particles, x: the coarse positions) the farthest
     its seeds of that part are from it (-inf: none). One walk per part, from its seed nearest to p,
@@ -181,7 +181,7 @@ def part_groups(f, face_ids, order, coarse_nearest, part_seeds, seed_reach, seed
     """The body parts near coarse face f, for `_detail_signed_distance`: each corner's nearest
     body vertex and its other parts' seeds (`other_part_seeds`) sorted into one group per body
     part (insertion sort, in order of arrival within a part). Writes corners (3,) (the corners'
-    coarse particles, in `order`), parts[:K] (seed vertex, corner, corner's place 0-2) and
+    coarse particles, in `order`), parts[:K] (seed vertex, its corner's place 0-2) and
     reach[:K] (the seed's distance from its corner), groups[:G] (region bit, first and end row
     in parts) and group_reach[:G] (per corner, the farthest of its seeds in the group; -inf:
     none). Returns G."""
@@ -194,10 +194,10 @@ def part_groups(f, face_ids, order, coarse_nearest, part_seeds, seed_reach, seed
             r = 0.0 if k < 0 else seed_reach[corner, k]
             j = n_parts
             while j > 0 and regions[parts[j - 1, 0]] > regions[seed]:
-                parts[j, 0], parts[j, 1], parts[j, 2] = parts[j - 1, 0], parts[j - 1, 1], parts[j - 1, 2]
+                parts[j, 0], parts[j, 1] = parts[j - 1, 0], parts[j - 1, 1]
                 reach[j] = reach[j - 1]
                 j -= 1
-            parts[j, 0], parts[j, 1], parts[j, 2] = seed, corner, c
+            parts[j, 0], parts[j, 1] = seed, c
             reach[j] = r
             n_parts += 1
     n_groups = 0
@@ -209,7 +209,7 @@ def part_groups(f, face_ids, order, coarse_nearest, part_seeds, seed_reach, seed
             group_reach[n_groups, 0] = group_reach[n_groups, 1] = group_reach[n_groups, 2] = -np.inf
             n_groups += 1
         groups[n_groups - 1, 2] = j + 1
-        c = parts[j, 2]
+        c = parts[j, 1]
         group_reach[n_groups - 1, c] = max(group_reach[n_groups - 1, c], reach[j])
     return n_groups
 
@@ -371,7 +371,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     particle's distance to the other body parts as far as S103 knows it (inf: none near; out);
     part_seeds, seed_reach, seed_count: each coarse particle's other body parts
     (`other_part_seeds`), whose walks the particles of its faces take too (x: the coarse
-    positions; find_parts False: none are); corners (3,) int32, parts (K, 3) int32, reach (K,),
+    positions; find_parts False: none are); corners (3,) int32, parts (K, 2) int32, reach (K,),
     groups (K, 3) int32, group_reach (K, 3), K = 3 (MAX_PART_SEEDS + 1): scratch (`part_groups`);
     body_face: the body face each particle's last distance walk ended on (-1: none yet),
     and part_face the face its last walk in another body part ended on, both carried between

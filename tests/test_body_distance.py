@@ -70,10 +70,11 @@ def test_face_walk_distance_matches_brute_force(shape):
 def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, body_face,
                 face_n, out):
     q = np.zeros(3)
-    no_parts = np.zeros((0, 3), dtype=np.int32)  # no walks in other body parts: the walk itself
+    no_parts = np.zeros((0, 2), dtype=np.int32)  # no walks in other body parts: the walk itself
+    no_groups = np.zeros((0, 3), dtype=np.int32)
     part_face = np.full(points.shape[0], -1, dtype=np.int32)
     for i in range(points.shape[0]):
-        out[i] = _detail_signed_distance(points, i, seeds[i], points, np.zeros(3, dtype=np.int32), no_parts, no_parts,
+        out[i] = _detail_signed_distance(points, i, seeds[i], points, np.zeros(3, dtype=np.int32), no_parts, no_groups,
                                          np.zeros((0, 3)), 0, -1, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
                                          tri_ids, tri_nbrs, body_face, part_face, face_n, q)[0]
 
