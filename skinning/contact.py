@@ -25,6 +25,16 @@ the far side of its own limb, which the ray leaves through otherwise, lay straig
 rest too. Rays from seeds spread over the skin find the lenses (or their rims); the lenses are
 then flooded ring by ring. Only the clothed skin takes part
 (not the head, hands or toes).
+
+Decision (rounds, fifty-seventh session): halfway along each sheet's own normal meets only where
+the two sheets face each other squarely. At a bent elbow or knee, or where an arm lies slanted
+on the thigh, the normals are not opposite and the sheets still cross after one round (the walk's
+crouch, frames 176-198 at 60 Hz: 273 clothed skin vertices more than 2 mm inside another part
+over the twelve frames). So each vertex of a lens measures its lens again from where the round
+left it (`recast_lenses`): its ray, along its new normal, against the faces around the face it
+left the other part through (not the whole grid, which would have to be rebuilt: 0.7 ms a
+round), and goes back half of what is left (`ContactSettings.rounds`, 3: 273 → 138 vertices, for
+about 0.1 ms a pose more).
 """
 
 from __future__ import annotations
@@ -36,7 +46,7 @@ from numba import get_num_threads, get_thread_id, njit, prange
 from numba.core.options import DefaultOptions
 
 from .body import Body, body_clothed_faces
-from .skin import MeshNormals, vertex_faces, vertex_normals_at
+from .skin import MeshNormals, _face_normal, _vertex_normal, vertex_faces, vertex_normals_at
 
 # the lens test inlined by LLVM where numba offers it (a first run compiles far faster than with
 # numba's own inlining; the same machine code), by numba otherwise
@@ -57,11 +67,16 @@ class ContactSettings:
     # m, how much farther than halfway each sheet goes back into its own part: the two skins end
     # 2 x gap apart (see module)
     gap: float = 0.003
+    # measurements of the lenses: the first from the seeds over the whole skin, each later one from
+    # the last one's lens vertices against the faces near where their rays left the other part
+    rounds: int = 3
 
     def __post_init__(self):
         for key in ("reach", "margin", "cell", "sample"):
             if not getattr(self, key) > 0:
                 raise ValueError(f"ContactSettings.{key} must be > 0, got {getattr(self, key)!r}")
+        if not isinstance(self.rounds, int) or self.rounds < 1:
+            raise ValueError(f"ContactSettings.rounds must be an integer >= 1, got {self.rounds!r}")
         if not isinstance(self.smooth_passes, int) or self.smooth_passes < 0:
             raise ValueError(f"ContactSettings.smooth_passes must be an integer >= 0, got {self.smooth_passes!r}")
         if not 0.0 <= self.gap < self.reach:
@@ -227,36 +242,37 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, corners, stamp, ray, inv_cell, 
 
 @njit(cache=True, nogil=True, **_INLINE)
 def _lens_depth(i, x, normals, verts, which, corners, stamp, first_ray, rest, rest_normals, rest_centroid, reach,
-                margin, across, inv_cell, mask, start, ids, depth, trigger):
+                margin, across, inv_cell, mask, start, ids, depth, trigger, hit):
     k = which[i]
     v = verts[k]
     t, f, far = first_exit(x[v, 0], x[v, 1], x[v, 2], -normals[v, 0], -normals[v, 1], -normals[v, 2], reach, v,
                            corners, stamp, first_ray + k, inv_cell, mask, start, ids, rest, rest_normals,
                            rest_centroid, margin, across)
     depth[k] = t if f >= 0 and far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across) else 0.0
+    hit[k] = f
     trigger[k] = far
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def lens_depths(x, normals, verts, which, corners, stamps, first_ray, rest, rest_normals, rest_centroid, reach,
-                margin, across, inv_cell, mask, start, ids, depth, trigger):
+                margin, across, inv_cell, mask, start, ids, depth, trigger, hit):
     """For verts[which[i]]: depth, how far the skin there has sunk into another part along -normal
     (the first face its inward ray leaves a part through, if that face was far at rest; else 0),
     and trigger, whether the ray met any face that was far at rest (a lens may be near)."""
     for i in prange(which.shape[0]):
         _lens_depth(i, x, normals, verts, which, corners, stamps[get_thread_id()], first_ray, rest, rest_normals,
-                    rest_centroid, reach, margin, across, inv_cell, mask, start, ids, depth, trigger)
+                    rest_centroid, reach, margin, across, inv_cell, mask, start, ids, depth, trigger, hit)
 
 
 @njit(cache=True, nogil=True)
 def lens_depths_serial(x, normals, verts, which, corners, stamps, first_ray, rest, rest_normals, rest_centroid, reach,
-                       margin, across, inv_cell, mask, start, ids, depth, trigger):
+                       margin, across, inv_cell, mask, start, ids, depth, trigger, hit):
     """`lens_depths` on the calling thread: for the flood fill's rings (tens of rays), where
     waking the other threads costs more than the rays (on the CI machine a ring took 3.5 times
     as long in parallel)."""
     for i in range(which.shape[0]):
         _lens_depth(i, x, normals, verts, which, corners, stamps[0], first_ray, rest, rest_normals, rest_centroid,
-                    reach, margin, across, inv_cell, mask, start, ids, depth, trigger)
+                    reach, margin, across, inv_cell, mask, start, ids, depth, trigger, hit)
 
 
 @njit(cache=True, nogil=True)
@@ -293,21 +309,119 @@ def _push_ring(k, ring_start, ring_ids, seen, out, n):
 
 
 @njit(cache=True, nogil=True)
-def meet_halfway(x, normals, verts, depth, ring_start, ring_ids, passes, move, spare, gap=0.0):
+def _exit_through(px, py, pz, dx, dy, dz, x, tris, f, reach):
+    """t where the ray p + t d leaves a part through face f (its outward normal along d), within
+    (0, reach]; inf where it does not."""
+    a, b, c = tris[f, 0], tris[f, 1], tris[f, 2]
+    ax, ay, az = x[a, 0], x[a, 1], x[a, 2]
+    e1x, e1y, e1z = x[b, 0] - ax, x[b, 1] - ay, x[b, 2] - az
+    e2x, e2y, e2z = x[c, 0] - ax, x[c, 1] - ay, x[c, 2] - az
+    qx = dy * e2z - dz * e2y
+    qy = dz * e2x - dx * e2z
+    qz = dx * e2y - dy * e2x
+    det = e1x * qx + e1y * qy + e1z * qz
+    if det > -1e-14:  # (det < 0: the ray leaves through the face)
+        return np.inf
+    adet = -det
+    sx, sy, sz = px - ax, py - ay, pz - az
+    u = -(sx * qx + sy * qy + sz * qz)
+    if u < 0.0 or u > adet:
+        return np.inf
+    rx = sy * e1z - sz * e1y
+    ry = sz * e1x - sx * e1z
+    rz = sx * e1y - sy * e1x
+    w = -(dx * rx + dy * ry + dz * rz)
+    if w < 0.0 or u + w > adet:
+        return np.inf
+    t = -(e2x * rx + e2y * ry + e2z * rz)
+    if not MIN_T * adet < t <= reach * adet:
+        return np.inf
+    return t / adet
+
+
+@njit(cache=True, nogil=True)
+def recast_lenses(x, normals, verts, lens, hit, tris, adj_start, adj_faces, faces, stamp, rest, rest_normals,
+                  rest_centroid, reach, margin, across, depth):
+    """Measure the lenses again after a round moved them (`ContactSettings.rounds`): each vertex of
+    `lens` (positions in verts) casts its ray again, along its normal as the round left it, against
+    the faces around the face it left the other part through (hit; its corners' faces and theirs)
+    rather than every face; depth: 0 elsewhere. stamp (m,) int64: scratch, -1 on entry and on
+    return; faces (m, 3): scratch."""
+    depth[:] = 0.0
+    for q in range(lens.shape[0]):  # the normals there, from the faces around
+        v = verts[lens[q]]
+        for a in range(adj_start[v], adj_start[v + 1]):
+            _face_normal(x, tris, adj_faces[a], faces)
+    for q in range(lens.shape[0]):
+        _vertex_normal(verts[lens[q]], adj_start, adj_faces, faces, normals)
+    for q in range(lens.shape[0]):
+        k = lens[q]
+        v = verts[k]
+        f0 = hit[k]
+        px, py, pz = x[v, 0], x[v, 1], x[v, 2]
+        dx, dy, dz = -normals[v, 0], -normals[v, 1], -normals[v, 2]
+        best, best_f = reach, -1
+        for c in range(3):  # the faces around f0's corners, and around their corners
+            for a in range(adj_start[tris[f0, c]], adj_start[tris[f0, c] + 1]):
+                g = adj_faces[a]
+                for e in range(3):
+                    u = tris[g, e]
+                    for b in range(adj_start[u], adj_start[u + 1]):
+                        f = adj_faces[b]
+                        if stamp[f] == q:
+                            continue
+                        stamp[f] = q
+                        t = _exit_through(px, py, pz, dx, dy, dz, x, tris, f, reach)
+                        if t < best:
+                            best, best_f = t, f
+        for c in range(3):  # (stamp back to -1 for the next call)
+            for a in range(adj_start[tris[f0, c]], adj_start[tris[f0, c] + 1]):
+                g = adj_faces[a]
+                for e in range(3):
+                    u = tris[g, e]
+                    for b in range(adj_start[u], adj_start[u + 1]):
+                        stamp[adj_faces[b]] = -1
+        if best_f >= 0 and far_at_rest(rest, rest_normals, rest_centroid, v, best_f, best, margin, across):
+            depth[k] = best
+            hit[k] = best_f
+
+
+@njit(cache=True, nogil=True)
+def meet_halfway(x, normals, verts, depth, ring_start, ring_ids, passes, move, spare, listed, mark, touched, gap):
     """Each vertex in a lens back into its own part by half the lens and `gap` more, so both
     sheets end on either side of one contact surface, 2 x gap apart; then
     `passes` rounds in which every other vertex takes its ring's mean move: a vertex whose ray
     missed the lens no longer stands out of the moved skin around it, and the moves fade out over
-    the lens's rim. Returns how many vertices moved."""
-    n = verts.shape[0]
-    for k in range(n):
-        h = -(0.5 * depth[k] + gap) if depth[k] > 0.0 else 0.0
-        v = verts[k]
-        move[k, 0] = h * normals[v, 0]
-        move[k, 1] = h * normals[v, 1]
-        move[k, 2] = h * normals[v, 2]
+    the lens's rim. Only the lenses and the `passes` rings around them are visited (nothing
+    farther can move). move, spare (n, 3): zero on entry and on return; listed (n,) int64 and
+    mark (n,) bool: scratch, False on entry and on return; touched (n,) bool: set for each vertex
+    moved. Returns how many vertices moved."""
+    n = 0
+    for k in range(verts.shape[0]):
+        if depth[k] > 0.0:
+            v = verts[k]
+            h = -(0.5 * depth[k] + gap)
+            move[k, 0] = h * normals[v, 0]
+            move[k, 1] = h * normals[v, 1]
+            move[k, 2] = h * normals[v, 2]
+            mark[k] = True
+            listed[n] = k
+            n += 1
+    lo = 0
+    for _ in range(passes):  # the rings the rounds below can reach
+        hi = n
+        for q in range(lo, hi):
+            k = listed[q]
+            for r in range(ring_start[k], ring_start[k + 1]):
+                j = ring_ids[r]
+                if not mark[j]:
+                    mark[j] = True
+                    listed[n] = j
+                    n += 1
+        lo = hi
     for _ in range(passes):
-        for k in range(n):
+        for q in range(n):
+            k = listed[q]
             if depth[k] > 0.0:
                 spare[k, 0] = move[k, 0]
                 spare[k, 1] = move[k, 1]
@@ -316,8 +430,8 @@ def meet_halfway(x, normals, verts, depth, ring_start, ring_ids, passes, move, s
             mx = 0.0
             my = 0.0
             mz = 0.0
-            for q in range(ring_start[k], ring_start[k + 1]):
-                j = ring_ids[q]
+            for r in range(ring_start[k], ring_start[k + 1]):  # (the ring's unlisted vertices' moves are 0)
+                j = ring_ids[r]
                 mx += move[j, 0]
                 my += move[j, 1]
                 mz += move[j, 2]
@@ -325,16 +439,37 @@ def meet_halfway(x, normals, verts, depth, ring_start, ring_ids, passes, move, s
             spare[k, 0] = mx * c
             spare[k, 1] = my * c
             spare[k, 2] = mz * c
-        move[:] = spare
+        for q in range(n):
+            k = listed[q]
+            move[k, 0] = spare[k, 0]
+            move[k, 1] = spare[k, 1]
+            move[k, 2] = spare[k, 2]
     moved = 0
-    for k in range(n):
+    for q in range(n):
+        k = listed[q]
         if move[k, 0] != 0.0 or move[k, 1] != 0.0 or move[k, 2] != 0.0:
             v = verts[k]
             x[v, 0] += move[k, 0]
             x[v, 1] += move[k, 1]
             x[v, 2] += move[k, 2]
             moved += 1
+            touched[k] = True
+        for d in range(3):
+            move[k, d] = 0.0
+            spare[k, d] = 0.0
+        mark[k] = False
     return moved
+
+
+@njit(cache=True, nogil=True)
+def lens_vertices(depth, out):
+    """The positions of the vertices in a lens (depth > 0) into out; returns how many."""
+    n = 0
+    for k in range(depth.shape[0]):
+        if depth[k] > 0.0:
+            out[n] = k
+            n += 1
+    return n
 
 
 def vertex_rings(tris: np.ndarray, verts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -382,6 +517,11 @@ class SkinContact:
         self._spare = np.zeros((len(self.verts), 3))
         self.normals = np.zeros((len(self.rest), 3))
         self.depth = np.zeros(len(self.verts))  # m, last pose's lens depth per vertex of `verts`
+        self._lens = np.zeros(len(self.verts), dtype=np.int64)
+        self._hit = np.full(len(self.verts), -1, dtype=np.int64)
+        self._stamp1 = np.full(len(self.tris), -1, dtype=np.int64)
+        self._mark = np.zeros(len(self.verts), dtype=np.bool_)
+        self._touched = np.zeros(len(self.verts), dtype=np.bool_)
         self._trigger = np.zeros(len(self.verts), dtype=np.bool_)
         self._seen = np.zeros(len(self.verts), dtype=np.bool_)
         self._front = np.empty(len(self.verts), dtype=np.int64)
@@ -408,6 +548,29 @@ class SkinContact:
     def __call__(self, vertices: np.ndarray) -> int:
         """Move the skinned vertices ((>= n, 3) float64, metres) in lenses onto the contact
         surface; returns how many moved."""
+        self._touched[:] = False
+        self.rays = 0
+        self._first_round(vertices)
+        for _ in range(1, self.settings.rounds):
+            n = lens_vertices(self.depth, self._lens)
+            if n == 0:
+                break
+            self._recast(vertices, self._lens[:n])
+        self.moved = int(np.count_nonzero(self._touched))
+        return self.moved
+
+    def _recast(self, x: np.ndarray, lens: np.ndarray) -> None:
+        """A later round: the lens vertices of the round before measured again, and moved."""
+        s = self.settings
+        recast_lenses(x, self.normals, self.verts, lens, self._hit, self.tris, self._adj_start, self._adj_faces,
+                      self._faces, self._stamp1, self.rest, self.rest_normals, self.rest_centroid, s.reach, s.margin,
+                      s.across, self.depth)
+        self.rays += len(lens)
+        meet_halfway(x, self.normals, self.verts, self.depth, self.ring_start, self.ring_ids, s.smooth_passes,
+                     self._move, self._spare, self._lens, self._mark, self._touched, s.gap)
+
+    def _first_round(self, vertices: np.ndarray) -> None:
+        """Rays from the seeds over the whole skin, the lenses flooded, and moved."""
         s = self.settings
         x = vertices
         # the clothed vertices' only, on this thread: 95 µs a pose against 240 in parallel over the whole body
@@ -425,14 +588,15 @@ class SkinContact:
             self._stamps = np.full((get_num_threads(), len(self.tris)), -1, dtype=np.int64)
         rays = (x, self.normals, self.verts)
         at_rest = (self.rest, self.rest_normals, self.rest_centroid)
-        after = (s.margin, s.across, inv_cell, self._mask, self._start, self._ids, self.depth, self._trigger)
+        after = (s.margin, s.across, inv_cell, self._mask, self._start, self._ids, self.depth, self._trigger,
+                 self._hit)
         # rays from the seeds find the lenses (or their rims), then the lenses are flooded ring by
         # ring, as far as the rays meet a lens or a face far at rest
         self._rays += len(self.verts)  # ray ids never seen before in the stamps
         lens_depths(*rays, self.seeds, self._corners, self._stamps, self._rays, *at_rest, s.reach, *after)
         ring = (self.ring_start, self.ring_ids, self._seen)
         n = first_front(self.seeds, self.depth, self._trigger, *ring, self._front)
-        self.rays = len(self.seeds)
+        self.rays += len(self.seeds)
         front, spare = self._front, self._next
         while n:
             self._rays += len(self.verts)
@@ -441,6 +605,5 @@ class SkinContact:
             self.rays += n
             n = next_front(front[:n], self.depth, self._trigger, *ring, spare)
             front, spare = spare, front
-        self.moved = meet_halfway(x, self.normals, self.verts, self.depth, self.ring_start, self.ring_ids,
-                                  s.smooth_passes, self._move, self._spare, s.gap)
-        return self.moved
+        meet_halfway(x, self.normals, self.verts, self.depth, self.ring_start, self.ring_ids, s.smooth_passes,
+                     self._move, self._spare, self._lens, self._mark, self._touched, s.gap)

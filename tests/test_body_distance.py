@@ -14,7 +14,7 @@ from tests.signed_distance import SignedDistance
 from tests.test_cloth_dynamics import box, uv_sphere
 
 
-@njit(cache=True)
+@njit  # not cached: numba's cache would not see a change in the cloth/ functions it calls
 def _walk_all(points, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n, out):
     q = np.zeros(3)
     for i in range(points.shape[0]):
@@ -66,7 +66,7 @@ def test_face_walk_distance_matches_brute_force(shape):
     np.testing.assert_allclose(out, expected, atol=1e-9)
 
 
-@njit(cache=True)
+@njit  # (not cached, as above)
 def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, body_face,
                 face_n, out):
     q = np.zeros(3)
@@ -109,7 +109,7 @@ def test_detailed_particle_walk_starts_from_its_last_face_and_re_anchors_at_the_
         assert (body_face >= 0).all() and (body_face < len(t1)).all()  # faces of the first sphere remembered
 
 
-@njit(cache=True)
+@njit  # (not cached, as above)
 def _ring_all(points, vertices, body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, out, faces):
     q = np.zeros(3)
     for i in range(points.shape[0]):
