@@ -58,7 +58,9 @@ PARALLEL_RAYS = 256  # a flood ring with fewer rays is cast on one thread
 
 @dataclass(frozen=True)
 class ContactSettings:
-    reach: float = 0.06  # m, the thickest lens corrected (deeper: the far side is as likely)
+    # m, the thickest lens corrected: a deep squat presses the calf 6-9 cm into the thigh (a ray that
+    # leaves its own limb's far side is not a lens: `far_at_rest`)
+    reach: float = 0.09
     margin: float = 0.01  # m, how much farther than the ray's length the face must have been at rest
     across: float = 0.3  # ... and at least acos(across) off the vertex's inward normal
     cell: float = 0.02  # m, the face grid's cell

@@ -99,7 +99,7 @@ def test_far_side_of_the_own_part_and_the_rest_pose_are_left_alone():
 def test_settings_are_validated():
     with pytest.raises(ValueError, match="ContactSettings.reach"):
         ContactSettings(reach=0.0)
-    for gap in (-0.001, 0.06):
+    for gap in (-0.001, ContactSettings().reach):
         with pytest.raises(ValueError, match="ContactSettings.gap"):
             ContactSettings(gap=gap)
     assert ContactSettings().gap == 0.003
