@@ -413,13 +413,7 @@ def meet_halfway(x, normals, verts, depth, ring_start, ring_ids, passes, move, s
     for _ in range(passes):  # the rings the rounds below can reach
         hi = n
         for q in range(lo, hi):
-            k = listed[q]
-            for r in range(ring_start[k], ring_start[k + 1]):
-                j = ring_ids[r]
-                if not mark[j]:
-                    mark[j] = True
-                    listed[n] = j
-                    n += 1
+            n = _push_ring(listed[q], ring_start, ring_ids, mark, listed, n)
         lo = hi
     for _ in range(passes):
         for q in range(n):
