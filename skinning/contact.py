@@ -342,13 +342,13 @@ def _exit_through(px, py, pz, dx, dy, dz, x, tris, f, reach):
 
 
 @njit(cache=True, nogil=True)
-def recast_lenses(x, normals, verts, lens, hit, tris, adj_start, adj_faces, faces, stamp, rest, rest_normals,
-                  rest_centroid, reach, margin, across, depth):
+def recast_lenses(x, normals, verts, lens, hit, tris, adj_start, adj_faces, faces, stamp, first_ray, rest,
+                  rest_normals, rest_centroid, reach, margin, across, depth):
     """Measure the lenses again after a round moved them (`ContactSettings.rounds`): each vertex of
     `lens` (positions in verts) casts its ray again, along its normal as the round left it, against
     the faces around the face it left the other part through (hit; its corners' faces and theirs)
-    rather than every face; depth: 0 elsewhere. stamp (m,) int64: scratch, -1 on entry and on
-    return; faces (m, 3): scratch."""
+    rather than every face; depth: 0 elsewhere. stamp (m,) int64: the ray that last tested each
+    face (ray q is first_ray + q: ids never used before); faces (m, 3): scratch."""
     depth[:] = 0.0
     for q in range(lens.shape[0]):  # the normals there, from the faces around
         v = verts[lens[q]]
@@ -370,19 +370,12 @@ def recast_lenses(x, normals, verts, lens, hit, tris, adj_start, adj_faces, face
                     u = tris[g, e]
                     for b in range(adj_start[u], adj_start[u + 1]):
                         f = adj_faces[b]
-                        if stamp[f] == q:
+                        if stamp[f] == first_ray + q:
                             continue
-                        stamp[f] = q
+                        stamp[f] = first_ray + q
                         t = _exit_through(px, py, pz, dx, dy, dz, x, tris, f, reach)
                         if t < best:
                             best, best_f = t, f
-        for c in range(3):  # (stamp back to -1 for the next call)
-            for a in range(adj_start[tris[f0, c]], adj_start[tris[f0, c] + 1]):
-                g = adj_faces[a]
-                for e in range(3):
-                    u = tris[g, e]
-                    for b in range(adj_start[u], adj_start[u + 1]):
-                        stamp[adj_faces[b]] = -1
         if best_f >= 0 and far_at_rest(rest, rest_normals, rest_centroid, v, best_f, best, margin, across):
             depth[k] = best
             hit[k] = best_f
@@ -516,6 +509,7 @@ class SkinContact:
         self._lens = np.zeros(len(self.verts), dtype=np.int64)
         self._hit = np.full(len(self.verts), -1, dtype=np.int64)
         self._stamp1 = np.full(len(self.tris), -1, dtype=np.int64)
+        self._recast_rays = 0  # rays re-cast so far: the next one's id in _stamp1
         self._mark = np.zeros(len(self.verts), dtype=np.bool_)
         self._touched = np.zeros(len(self.verts), dtype=np.bool_)
         self._trigger = np.zeros(len(self.verts), dtype=np.bool_)
@@ -559,8 +553,9 @@ class SkinContact:
         """A later round: the lens vertices of the round before measured again, and moved."""
         s = self.settings
         recast_lenses(x, self.normals, self.verts, lens, self._hit, self.tris, self._adj_start, self._adj_faces,
-                      self._faces, self._stamp1, self.rest, self.rest_normals, self.rest_centroid, s.reach, s.margin,
-                      s.across, self.depth)
+                      self._faces, self._stamp1, self._recast_rays, self.rest, self.rest_normals, self.rest_centroid,
+                      s.reach, s.margin, s.across, self.depth)
+        self._recast_rays += len(lens)
         self.rays += len(lens)
         meet_halfway(x, self.normals, self.verts, self.depth, self.ring_start, self.ring_ids, s.smooth_passes,
                      self._move, self._spare, self._lens, self._mark, self._touched, s.gap)
