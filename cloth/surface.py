@@ -274,11 +274,11 @@ class DetailedSurface:
                     s.no_tips = np.zeros(len(body.triangles))
                 face_tip = s.no_tips
             self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, s.facing, s.other, t.face_ids, t.order,
-                                            t.parents, x, coarse_nearest, find_parts, s.part_seeds, s.seed_reach,
-                                            s.seed_count, s.corners, s.parts, s.reach, s.groups, s.group_reach,
-                                            body_x, body.nbr_start, body.nbr_ids, body.parts, body.triangles,
-                                            body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face, s.part_face,
-                                            face_n, s.q, face_tip, st.tip_share, st.clearance,
+                                            t.parents, s.ctrl, x, coarse_nearest, find_parts, s.part_seeds,
+                                            s.seed_reach, s.seed_count, s.corners, s.parts, s.reach, s.groups,
+                                            s.group_reach, body_x, body.nbr_start, body.nbr_ids, body.parts,
+                                            body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face,
+                                            s.part_face, face_n, s.q, face_tip, st.tip_share, st.clearance,
                                             st.contact_margin, st.face_margin, st.penetration_iterations,
                                             st.max_lift, st.max_height, st.lift_search)
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,

@@ -349,7 +349,7 @@ def _lift_out(p, vid, seed, x, corners, parts, groups, group_reach, n_groups, d,
 
 
 @kernel
-def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, x, coarse_nearest,
+def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, ctrl, x, coarse_nearest,
                       find_parts, part_seeds, seed_reach, seed_count, corners, parts, reach, groups, group_reach,
                       body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face,
                       face_n, q, face_tip, tip_share, clearance, margin, face_margin, max_iterations,
@@ -363,7 +363,12 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     (`order`), and a finer particle is tested only if one of its coarser parents was within
     `margin`, or within `face_margin` for a parent that is a corner (Decision: a coarse face
     whose corners stand a little off a convex body part can cut into it between them, S101
-    testing vertices only, so its first subdivision is tested from further out).
+    testing vertices only, so its first subdivision is tested from further out). Decision (the
+    bulge): a face's corners count as near from `face_margin` plus as far as its PN patch bulges
+    towards the body (`bulge_towards_body`, from its control points ctrl (T, 10, 3) of this
+    frame): where the coarse normals lean towards the body, as on a sleeve whose arm has come
+    through it between coarse particles, the patch dips into the body from corners 1-1.6 cm off
+    it (the walk's blouse at the armpit).
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
     a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
@@ -399,16 +404,22 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
         if find_parts:
             n_groups = part_groups(f, face_ids, order, coarse_nearest, part_seeds, seed_reach, seed_count, regions,
                                    corners, parts, reach, groups, group_reach)
+        corner_margin = face_margin
         for k in range(order.shape[0]):
             loc = order[k]
             vid = face_ids[f, loc]
             if parents[loc, 0] >= 0:
+                if k == 3:  # (the corners come first in order, and are tested whatever their distance)
+                    corner_margin = face_margin + bulge_towards_body(ctrl, f, face_ids, order, normals, facing)
+                    for c in range(3):
+                        if sd[face_ids[f, order[c]]] < corner_margin:
+                            near = True
                 if not near:
-                    break  # no corner near the body: skip the face (corners come first in order)
+                    break  # no corner near the body: skip the face
                 hit = False
                 for m in range(3):
                     par = parents[loc, m]
-                    if par >= 0 and sd[face_ids[f, par]] < (face_margin if parents[par, 0] < 0 else margin):
+                    if par >= 0 and sd[face_ids[f, par]] < (corner_margin if parents[par, 0] < 0 else margin):
                         hit = True
                 if not hit:
                     continue
@@ -433,9 +444,37 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                                         tip_share, clearance, max_iterations, up, down, search)
                 sd[vid] = d
                 facing[vid] = rate
-            if parents[loc, 0] < 0 and sd[vid] < face_margin:
-                near = True
     return tested
+
+
+@helper
+def bulge_towards_body(ctrl, f, face_ids, order, normals, facing):
+    """How far coarse face f's PN patch can stand nearer the body than the plane of its corners
+    (m, >= 0): its control points' largest offset from that plane towards the body (the patch
+    lies in their convex hull). Towards the body is along -n_i where its corners face the body
+    (facing > 0: the body below them), along n_i where the body lies over them (facing < 0);
+    facing, normals: S103's, at the corners (tested)."""
+    ax, ay, az = ctrl[f, 0, 0], ctrl[f, 0, 1], ctrl[f, 0, 2]
+    e1x, e1y, e1z = ctrl[f, 1, 0] - ax, ctrl[f, 1, 1] - ay, ctrl[f, 1, 2] - az
+    e2x, e2y, e2z = ctrl[f, 2, 0] - ax, ctrl[f, 2, 1] - ay, ctrl[f, 2, 2] - az
+    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    length = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if length == 0.0:
+        return 0.0
+    nx, ny, nz = nx / length, ny / length, nz / length
+    # which side of the plane the body lies on: the corners' facing, by how their normals lean on it
+    w = 0.0
+    for c in range(3):
+        v = face_ids[f, order[c]]
+        w += facing[v] * (normals[v, 0] * nx + normals[v, 1] * ny + normals[v, 2] * nz)
+    towards = -1.0 if w > 0.0 else 1.0
+    bulge = 0.0
+    for k in range(3, 10):
+        off = towards * ((ctrl[f, k, 0] - ax) * nx + (ctrl[f, k, 1] - ay) * ny + (ctrl[f, k, 2] - az) * nz)
+        if w == 0.0:
+            off = abs(off)
+        bulge = max(bulge, off)
+    return bulge
 
 
 # ---------------------------------------------------------------- S104 normal force

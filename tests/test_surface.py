@@ -583,6 +583,36 @@ def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(f
         assert inside[over].all() and np.isinf(surf.state.sd[over]).all()  # never tested
 
 
+def test_a_coarse_face_bulging_towards_the_body_is_tested_from_its_corners_bulge_farther():
+    """Decision (S103, the bulge): a coarse dome (a paraboloid of curvature radius 25 mm at its
+    apex, in the middle of the centre quad) under a wide box, like a sleeve's cloth under an arm:
+    the box lies on the cloth's outer side (the corners face it: facing < 0), and its bottom is
+    5.5 mm above the centre quad's corners, farther than face_margin = contact_margin (5 mm). The
+    PN patch bulges 7 mm above those corners, so 9 of its reference particles are inside the box.
+    The corners count as near from face_margin plus that bulge (`bulge_towards_body`): the quad is
+    tested and no particle stays inside. (By face_margin alone it was skipped: all 9 stayed.)"""
+    verts, faces = grid_sheet(4, 4, 0.04)
+    verts[:, 1] = -((verts[:, 0] - 0.06) ** 2 + (verts[:, 2] - 0.06) ** 2) / (2 * 0.025)
+    coarse = CoarseMesh(verts, faces, np.zeros(0, np.int32), np.zeros((0, 3)))
+    cloth = build_cloth_model(Garment("dome", verts, faces, np.arange(len(verts))), fabric("cotton"), SimSettings(),
+                              verts, coarse)
+    m = build_surface_model(cloth, SurfaceSettings(face_margin=0.005))
+    half = 0.03
+    centre = np.array([0.06, -0.0105 + half, 0.06])  # bottom face at y = -10.5 mm, over the centre quad
+    bv, bt = box(half=half, n=6)
+    bv = np.ascontiguousarray(bv + centre)
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
+    p, _ = surf.step(x, nearest, bv, body_mesh_of(bv, bt), face_normals(bv, bt), DT)
+    s = surf.state
+    corners = np.flatnonzero(np.isclose(x[:, 1], -0.016))  # the centre quad's
+    assert len(corners) == 4 and np.all(s.sd[corners] > 0.0054) and np.all(s.facing[corners] < -0.5)
+    assert np.sum(np.all(np.abs(s.p_smoothed - centre) < half, axis=1)) == 9
+    assert s.p_smoothed[:, 1].max() > -0.016 + 0.006  # the bulge
+    assert not np.all(np.abs(p - centre) < half - 1e-9, axis=1).any()
+
+
 @pytest.mark.parametrize("find_parts,arm_bit", [(True, 2), (False, 2), (True, 256)])
 def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(find_parts, arm_bit):
     """Two body parts: a torso box 4 mm under the sheet, whose faces every walk from the coarse
