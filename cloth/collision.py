@@ -43,20 +43,25 @@ class BodyMesh:
     regions: np.ndarray
     tri_nbrs: np.ndarray  # (m, 3) int32: the triangle across each edge (see topology.triangle_neighbours)
     clothed_faces: np.ndarray  # (m,) bool: the faces clothes can touch (see build)
-    winding_faces: np.ndarray  # (k, 3) int32: the clothed faces, their holes capped (`winding.closed_faces`)
+    # (k, 3) int32: the faces the winding number counts (`wound_faces`), their holes capped (`winding.closed_faces`)
+    winding_faces: np.ndarray
     # (n,) int64 or None: internal vertex k is the caller's vertex vertex_order[k] (see build)
     vertex_order: np.ndarray | None = None
     # (n,) REGION_DTYPE: the body parts S103 tells apart (upper arms and forearms too); regions if no limbs
     parts: np.ndarray | None = None
+    # (m,) bool: the body's faces among winding_faces (see build); None: the clothed faces
+    wound_faces: np.ndarray | None = None
 
     def __post_init__(self):
         if self.parts is None:
             object.__setattr__(self, "parts", self.regions)
+        if self.wound_faces is None:
+            object.__setattr__(self, "wound_faces", self.clothed_faces)
 
     @classmethod
     def build(cls, triangles: np.ndarray, n_vertices: int, regions: np.ndarray | None = None,
               clothed_faces: np.ndarray | None = None, rest_vertices: np.ndarray | None = None,
-              limbs: tuple[int, ...] = ()) -> "BodyMesh":
+              limbs: tuple[int, ...] = (), wound_faces: np.ndarray | None = None) -> "BodyMesh":
         """regions: a bit per vertex naming its body part. A particle's nearest-vertex walk stays in
         the parts it lay near at rest, so an arm swinging past the torso cannot carry a shirt's
         side away, nor one leg the other trouser leg. None: one region.
@@ -75,7 +80,15 @@ class BodyMesh:
         along a Morton curve inside (`vertex_order`), so that a particle's lookups touch
         neighbouring memory (S101 1-5 % faster on the MakeHuman body, docs/history.md). Callers
         still pass body vertices in their own order (`BodyPose`, `prepare_cloth`, `ClothSim`
-        convert them with `internal`); the mesh's own arrays and `BodyPose.x` are in the inner one."""
+        convert them with `internal`); the mesh's own arrays and `BodyPose.x` are in the inner one.
+        wound_faces: (m,) bool, the faces of the surface whose winding number tells inside from
+        outside (`winding_faces`: these, their holes capped), a superset of the clothed faces.
+        Decision: the clothed faces and the hands as far as 6 cm from the wrist
+        (`skinning.body.body_hand_faces`, WRIST_REACH). Capped at the wrist, a point inside the
+        hand read as outside the body, and a sleeve's particle inside the hand stayed there (the
+        walk's blouse and skirt: 340 of their 1,715 vertex-frames deeper than 1 mm lay nearest a
+        hand's skin). The whole hands would cost their 6,330 faces' share of the winding grid's
+        rebuild each pose (351 → 597 µs); to 6 cm, 548 faces. None: the clothed faces."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         if regions is None:
             regions = np.ones(n_vertices, dtype=REGION_DTYPE)
@@ -90,6 +103,9 @@ class BodyMesh:
         clothed_faces = np.asarray(clothed_faces, dtype=bool)
         if clothed_faces.shape != (len(triangles),):
             raise ValueError(f"clothed_faces must be ({len(triangles)},) bool")
+        wound_faces = clothed_faces if wound_faces is None else np.asarray(wound_faces, dtype=bool)
+        if wound_faces.shape != (len(triangles),) or np.any(clothed_faces & ~wound_faces):
+            raise ValueError(f"wound_faces must be ({len(triangles)},) bool, true on every clothed face")
         vertex_order = None
         if rest_vertices is not None:
             rest = np.asarray(rest_vertices, dtype=np.float64)[:n_vertices]
@@ -103,6 +119,7 @@ class BodyMesh:
             triangles = np.ascontiguousarray(triangles[face_order])
             regions = np.ascontiguousarray(regions[vertex_order])
             clothed_faces = clothed_faces[face_order]
+            wound_faces = wound_faces[face_order]
         edges, _ = unique_edges(triangles)
         ns, ni = vertex_neighbours(n_vertices, edges)
         ts, ti = vertex_cells(n_vertices, triangles)
@@ -115,7 +132,7 @@ class BodyMesh:
             for limb in limbs:
                 regions[(regions & limb) != 0] = limb & -limb  # the limb's lowest bit
         return cls(triangles, n_vertices, ns, ni, ts, ti, regions, triangle_neighbours(triangles), clothed_faces,
-                   closed_faces(triangles, clothed_faces), vertex_order, parts)
+                   closed_faces(triangles, wound_faces), vertex_order, parts, np.ascontiguousarray(wound_faces))
 
     def internal(self, vertices: np.ndarray) -> np.ndarray:
         """(n, 3) float64: the caller's body vertices (>= n_vertices rows, the first n the body) in

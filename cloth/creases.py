@@ -33,14 +33,16 @@ Its height Δh is unchanged (the next frame starts from the reference surface ag
 drawn position leaves the normal.
 
 Decision (never from outside the body as a whole, fifty-sixth session): a particle the planes read
-as inside is asked the body's winding number first (`cloth.winding`: the clothed faces, their
-holes capped), and where that is 0 it stays. A tangent plane at the closest point of a skin
-buried in another part, or of a fold of the skinned skin, can stand in front of an outside
-particle, and the way out of it led in (the walk's crouch, jeans, frames 150-230: 180 of the 972
-vertex-frames deeper than 1 mm at the end had been outside before such a move; 17 with the
-check). Where a walk ended on an unclothed face (a hand on the hip) the winding number cannot
-tell, the surface being capped at the wrist, and the planes decide alone (checked there too,
-the walk's blouse and skirt went deeper: 1,565 / 311 → 1,753 / 432 vertex-frames).
+as inside is asked the body's winding number first (`cloth.winding`: the faces `BodyMesh.wound_faces`
+names, the clothed ones and the hands, their holes capped), and where that is 0 it stays. A
+tangent plane at the closest point of a skin buried in another part, or of a fold of the skinned
+skin, can stand in front of an outside particle, and the way out of it led in (the walk's crouch,
+jeans, frames 150-230: 180 of the 972 vertex-frames deeper than 1 mm at the end had been outside
+before such a move; 17 with the check). Where a walk ended on a face the winding surface lacks
+(the head) it cannot tell, and the planes decide alone. Until the fifty-ninth session that surface
+was the clothed faces alone, capped at the wrists: a sleeve's particle inside the hand, whose walk
+ended on the forearm by the wrist, read as outside the body and stayed in the hand (the walk's
+blouse, vertex-frames deeper than 1 mm 1,421 → 1,201 with the hands counted).
 """
 
 from __future__ import annotations
@@ -113,11 +115,11 @@ def out_of_two_planes(px, py, pz, a, b, clearance):
 
 @helper
 def _out_of_crease(p, i, fa, fb, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n,
-                   q, plane_a, plane_b, clearance, rounds, clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole):
+                   q, plane_a, plane_b, clearance, rounds, wound, wfaces, wlo, wstart, wids, wspan, wextent, whole):
     """Measure particle i from body faces fa and fb (fb -1: none) and move it out of the body
     if it is inside, up to `rounds` times (`leave_creases`); whole: not if it is outside the
     body as a whole (its winding number over wfaces, the grid wlo ... wextent, is 0) while the
-    faces its walks ended on are clothed (`clothed`, those wfaces has). Returns (moved, fa, fb):
+    faces its walks ended on are among those wfaces has (`wound`). Returns (moved, fa, fb):
     the faces the walks ended on (fb -1 where its walk came back to fa's part)."""
     p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
     for r in range(rounds):
@@ -137,7 +139,7 @@ def _out_of_crease(p, i, fa, fb, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr
                 plane_b[0], plane_b[1], plane_b[2], plane_b[3], plane_b[4], plane_b[5] = qx, qy, qz, nx, ny, nz
         if not (-CREASE_DEPTH < min(da, db) < 0.0):
             break  # outside both (S103's clearance is its own), or too deep to trust
-        if whole and r == 0 and clothed[fa] and (fb < 0 or clothed[fb]) and \
+        if whole and r == 0 and wound[fa] and (fb < 0 or wound[fb]) and \
                 winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) == 0:
             break  # behind a tangent plane but outside the body: the way out would lead in (module)
         mx, my, mz, ok = out_of_two_planes(px, py, pz, plane_a, plane_b, clearance)
@@ -160,7 +162,7 @@ def _list_move(p, i, p0, p1, p2, fa, fb, k, ids, moves, faces):
 @kernel
 def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
                   face_n, q, plane_a, plane_b, clearance, rounds, first, spread, d_edges, edge_start, edge_ids, seen,
-                  ids, moves, faces, clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole):
+                  ids, moves, faces, wound, wfaces, wlo, wstart, wids, wspan, wextent, whole):
     """Move each detailed particle that is inside the body near a crease out of it (module
     docstring). p: final positions, moved in place; sd, body_face, part_face: S103's (its
     signed distances, UNTESTED = inf where it did not test, and the faces its walks ended on);
@@ -172,7 +174,7 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
     and so on from each one moved: S103 did not test many of them, and one left inside beside a
     moved particle left their edge long. seen (N,) uint8: scratch.
     whole: a particle outside the body as a whole is not moved, where its walks ended on faces
-    the winding number counts (clothed: `BodyMesh.clothed_faces`; wfaces: `BodyMesh.winding_faces`;
+    the winding number counts (wound: `BodyMesh.wound_faces`; wfaces: `BodyMesh.winding_faces`;
     wlo ... wextent: the pose's `WindingGrid.arrays()`); False: the planes alone decide.
     Returns the number of particles moved, k; ids[:k] (int32) are they, moves[:k] (k, 3) how
     far each went, faces[:k] (k, 2) int32 the faces its walks ended on."""
@@ -186,7 +188,7 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
         p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
         out, fa, fb = _out_of_crease(p, i, body_face[i], part_face[i], body_x, tris, tri_nbrs, tri_start, tri_ids,
                                      nbr_start, nbr_ids, regions, face_n, q, plane_a, plane_b, clearance, rounds,
-                                     clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole)
+                                     wound, wfaces, wlo, wstart, wids, wspan, wextent, whole)
         if out:
             moved = _list_move(p, i, p0, p1, p2, fa, fb, moved, ids, moves, faces)
     if not spread:
@@ -206,7 +208,7 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
             p0, p1, p2 = p[j, 0], p[j, 1], p[j, 2]
             out, fa, fb = _out_of_crease(p, j, faces[k, 0], faces[k, 1], body_x, tris, tri_nbrs, tri_start, tri_ids,
                                          nbr_start, nbr_ids, regions, face_n, q, plane_a, plane_b, clearance, rounds,
-                                         clothed, wfaces, wlo, wstart, wids, wspan, wextent, whole)
+                                         wound, wfaces, wlo, wstart, wids, wspan, wextent, whole)
             if out:
                 moved = _list_move(p, j, p0, p1, p2, fa, fb, moved, ids, moves, faces)
         k += 1

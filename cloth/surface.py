@@ -324,7 +324,7 @@ class DetailedSurface:
                                          face_n, s.q, s.plane_a, s.plane_b, st.clearance, st.crease_rounds,
                                          t.n_coarse, st.crease_spread, m.d_edges, m.d_edge_start, m.d_edge_ids,
                                          s.crease_seen, s.creased_ids, s.crease_moves, s.crease_faces,
-                                         body.clothed_faces, body.winding_faces,
+                                         body.wound_faces, body.winding_faces,
                                          *(NO_WINDING if winding is None else winding),
                                          winding is not None)
         t5 = time.perf_counter()

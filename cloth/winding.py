@@ -16,10 +16,12 @@ ray from the point, here along +z: +1 where the ray leaves through a face, -1 wh
 The rays run along +z, through the body's thin side: across a standing body's walls, where a
 vertical ray would run along them and meet every face of a leg (a query 4.8 µs up, 0.3-0.9
 along z, on the MakeHuman body). Clothes never reach the head,
-hands and toes (two thirds of the MakeHuman body's faces): `closed_faces` leaves them out and
-caps the holes that leaves at the neck, wrists and toes with a fan of the boundary's own
-vertices. The capped surface is closed, so its winding number is exact everywhere outside the
-capped-off parts, where it differs from the whole body's only inside the head, hands and toes.
+hands and toes (two thirds of the MakeHuman body's faces): `closed_faces` leaves out the faces
+it is not given and caps the holes that leaves (at the neck and toes; at the wrists too
+without the hands) with a fan of the boundary's own vertices. The capped surface is closed, so
+its winding number is exact everywhere outside the capped-off parts, where it differs from the
+whole body's only inside them. The cloth keeps the hands (`BodyMesh.wound_faces`): a sleeve's
+cuff and a skirt under a hand meet them.
 
 The grid is dense over the body's x-y extent: each column of `cell` x `cell` lists the faces
 whose x-y box overlaps it (a counting sort, two passes over the faces) with each face's span
@@ -29,7 +31,8 @@ where less of the column lies (the crossings beyond it, or minus those before it
 faces wholly on the other side by their span; a point near the skin has the body's far wall
 on the other side (the clothed MakeHuman body, 9,574 faces with the caps, ~37 faces a
 column near the skin: 0.22 µs per query near the skin, against 0.51 µs over the whole
-column; ~220-280 µs per pose). A point exactly on an edge or vertex as the
+column; ~220-280 µs per pose; 15,862 faces with the hands, 351 → 597 µs per pose on a slower
+day of the same machine). A point exactly on an edge or vertex as the
 ray sees it is counted by one face of the two by the top-left rule, from the edge's lower
 vertex index, so the two faces get bitwise opposite edge values: no ray slips between faces,
 none counts twice.

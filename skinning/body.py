@@ -164,19 +164,46 @@ _REGION_BONES = {
 
 # bones whose skin no garment covers: the head and face, the hands, the toes (small, many
 # triangles: 17,000 of the body's 26,756)
-UNCLOTHED_BONES = ("Head", "LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb", "RightHand", "RightFingerBase",
-                    "RightHandFinger1", "RThumb", "LeftToeBase", "RightToeBase")
+HAND_BONES = ("LeftHand", "LeftFingerBase", "LeftHandFinger1", "LThumb", "RightHand", "RightFingerBase",
+              "RightHandFinger1", "RThumb")
+UNCLOTHED_BONES = ("Head", *HAND_BONES, "LeftToeBase", "RightToeBase")
 
 
 def body_clothed_faces(body: Body) -> np.ndarray:
     """(n_triangles,) bool: the faces a garment can cover, i.e. not all three corners dominated by
     a bone of the head, the hands or the toes."""
+    return ~_faces_of(body, UNCLOTHED_BONES)
+
+
+# m: how far into the hand from the wrist the cloth's winding surface reaches (BodyMesh.wound_faces)
+WRIST_REACH = 0.06
+
+
+def body_hand_faces(body: Body, reach: float | None = None) -> np.ndarray:
+    """(n_triangles,) bool: the faces of the hands, i.e. all three corners dominated by a bone of
+    a hand (HAND_BONES); given `reach` (m), only those whose corners all lie within it of the
+    wrist (the corners the hand's faces share with the clothed ones) on the body at rest."""
+    hand = _faces_of(body, HAND_BONES)
+    if reach is None:
+        return hand
+    wrist = np.intersect1d(body.triangles[hand], body.triangles[body_clothed_faces(body)])
+    x = np.asarray(body.vertices[: body.n_visible], dtype=np.float64)
+    corners = np.unique(body.triangles[hand])
+    near = np.zeros(body.n_visible, dtype=bool)
+    if len(wrist):
+        d2 = ((x[corners][:, None, :] - x[wrist][None, :, :]) ** 2).sum(axis=2).min(axis=1)
+        near[corners] = d2 < reach * reach
+    return hand & near[body.triangles].all(axis=1)
+
+
+def _faces_of(body: Body, bones: tuple[str, ...]) -> np.ndarray:
+    """(n_triangles,) bool: the faces all three of whose corners are dominated by one of `bones`."""
     names = body.skeleton.names
-    bare = np.zeros(len(names), dtype=bool)
-    bare[[names.index(b) for b in UNCLOTHED_BONES if b in names]] = True
+    wanted = np.zeros(len(names), dtype=bool)
+    wanted[[names.index(b) for b in bones if b in names]] = True
     vis = np.arange(body.n_visible)
     dominant = body.weight_bones[vis, np.argmax(body.weight_values[vis], axis=1)]
-    return ~bare[dominant][body.triangles].all(axis=1)
+    return wanted[dominant][body.triangles].all(axis=1)
 
 
 def body_regions(body: Body) -> np.ndarray:

@@ -85,15 +85,15 @@ def nearest_face(x, tris, p, centre_test):
     return int(ok[np.argmin(np.linalg.norm(c[ok] - p, axis=1))])
 
 
-def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, whole=None, clothed=None):
+def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, whole=None, wound=None):
     """leave_creases on the two boxes (d_edges: the particles' edges, spread along; None: no
     spread; whole: the faces whose winding number tells the body's outside, None: the planes
-    alone decide; clothed: the faces it counts, None: all); returns (count, ids, moves)."""
+    alone decide; wound: the faces it counts, None: all); returns (count, ids, moves)."""
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
     start, edge_ids = vertex_cells(len(p), edges)
     wfaces, grid = np.zeros((0, 3), dtype=np.int32), NO_WINDING
-    clothed = np.ones(len(tris), dtype=bool) if clothed is None else np.asarray(clothed, dtype=bool)
+    wound = np.ones(len(tris), dtype=bool) if wound is None else np.asarray(wound, dtype=bool)
     if whole is not None:
         wfaces = np.ascontiguousarray(whole, dtype=np.int32)
         g = WindingGrid(wfaces, len(x), cell=0.01)
@@ -102,7 +102,7 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
     count = leave_creases(p, sd, body_face, part_face, x, tris, body.tri_nbrs, body.tri_start, body.tri_ids,
                           body.nbr_start, body.nbr_ids, body.regions, face_normals(x, tris), np.zeros(3), np.zeros(6),
                           np.zeros(6), C, 2, first, d_edges is not None, edges, start, edge_ids,
-                          np.zeros(len(p), dtype=np.uint8), ids, moves, np.zeros((len(p), 2), dtype=np.int32), clothed,
+                          np.zeros(len(p), dtype=np.uint8), ids, moves, np.zeros((len(p), 2), dtype=np.int32), wound,
                           wfaces, *grid, whole is not None)
     return count, ids, moves
 
@@ -137,17 +137,17 @@ def test_a_particle_in_a_crease_goes_to_the_nearest_point_outside_both_parts(sta
     assert not inside_boxes(p).any() and inside_boxes(p0[0])
 
 
-@pytest.mark.parametrize("counted, clothed, moves", [
+@pytest.mark.parametrize("counted, wound, moves", [
     ("both", "both", True),    # inside the body as a whole: out of the thigh as without the check
     ("torso", "both", False),  # outside it (the thigh not counted): stays where it is
-    ("torso", "torso", True),  # the thigh's wall unclothed, like a hand: the winding number cannot tell
+    ("torso", "torso", True),  # the thigh's wall not in the winding surface, like the head: it cannot tell
 ])
-def test_a_particle_outside_the_body_as_a_whole_stays(counted, clothed, moves):
+def test_a_particle_outside_the_body_as_a_whole_stays(counted, wound, moves):
     """The planes of the crease read a particle 2 mm into the thigh and 5 mm in front of the
     torso's top as inside (behind the thigh's wall). A crease move never takes what the body as
     a whole has outside (its winding number over the counted faces is 0), where the faces the
-    walks ended on are clothed ones, which the winding number counts; from an unclothed face
-    (a hand: the winding surface is capped at the wrist) the planes decide alone."""
+    walks ended on are faces the winding number counts (`BodyMesh.wound_faces`); from another
+    face (the head: the winding surface is capped at the neck) the planes decide alone."""
     x, tris, regions, body = two_boxes()
     p = np.array([(-0.012, 0.005, 0.0)])
     top = nearest_face(x, tris, p[0], lambda c: (np.abs(c[:, 1]) < 1e-9) & (c[:, 0] > -0.01))
@@ -156,7 +156,7 @@ def test_a_particle_outside_the_body_as_a_whole_stays(counted, clothed, moves):
     p0 = p.copy()
     torso = np.arange(len(tris)) < len(tris) // 2  # (the torso's faces come first)
     moved = leave(x, tris, body, p, np.array([0.002]), body_face, part_face, whole=tris[torso] if counted == "torso"
-                  else tris, clothed=torso if clothed == "torso" else None)[0]
+                  else tris, wound=torso if wound == "torso" else None)[0]
     if moves:
         assert moved == 1
         np.testing.assert_allclose(p[0], (-0.009, 0.005, 0.0), atol=1e-9)

@@ -260,3 +260,31 @@ def test_leave_body_union_goes_straight_out_through_the_nearest_face():
     np.testing.assert_allclose(x[0], q + 0.005 * out, atol=1e-9)
     np.testing.assert_allclose(vel[0], 0.0, atol=1e-12)
     assert windings(sphere.vertices, faces, x, cell=0.05)[0] == 0
+
+
+def test_the_cloth_winding_number_counts_the_hands_by_the_wrist(body):
+    """The collision body's winding surface keeps the hands to WRIST_REACH from the wrist
+    (`BodyMesh.wound_faces`): within 3 cm of the wrist it says inside exactly where the
+    independent test does (tests/signed_distance.py, over the whole skin), where the clothed
+    faces alone, capped at the wrists, said outside inside the hand."""
+    from services.cloth_job import collision_body
+    from skinning.body import WRIST_REACH, body_clothed_faces, body_hand_faces
+    from tests.signed_distance import SignedDistance
+
+    mesh = collision_body(body)
+    skin = np.asarray(body.vertices[: body.n_visible], dtype=np.float64)
+    x = mesh.internal(body.vertices)
+    hand, clothed = body_hand_faces(body), body_clothed_faces(body)
+    wrist = skin[np.intersect1d(body.triangles[hand], body.triangles[clothed])]
+    rng = np.random.default_rng(7)
+    points = rng.uniform(wrist.min(axis=0) - 0.03, wrist.max(axis=0) + 0.03, size=(200000, 3))
+    by_wrist = ((points[:, None, :] - wrist[None, :, :]) ** 2).sum(axis=2).min(axis=1) < 0.03**2
+    points = points[by_wrist]
+    expected = SignedDistance(body.triangles, body.n_visible).winding_numbers(skin, points) >= 1
+    got = windings(x, mesh.winding_faces, points) >= 1
+    clothed_only = windings(x, closed_faces(mesh.triangles, mesh.clothed_faces), points) >= 1
+    in_hand = expected & ~clothed_only  # inside the hand (the clothed skin's cap is flat at the wrist)
+    assert in_hand.sum() > 100
+    np.testing.assert_array_equal(got, expected)
+    assert mesh.wound_faces.sum() == clothed.sum() + body_hand_faces(body, WRIST_REACH).sum()
+    assert 0 < body_hand_faces(body, WRIST_REACH).sum() < 0.2 * hand.sum()
