@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import BodyMesh, VertexGrid, part_scratch
-from .creases import leave_creases
+from .creases import EXIT_FACING, EXIT_NEAR, EXIT_REACH, leave_creases, out_along_normals
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -78,6 +78,9 @@ class SurfaceSettings:
     # and the neighbours of a particle moved out of a crease are measured from its two faces, moved if
     # inside, and so on
     crease_spread: bool = True
+    # then a particle near another body part (or found inside by S103) that the body's winding number
+    # puts inside goes out along ±n_i, where the body ends nearest (Decision, `creases.out_along_normals`)
+    exit_normals: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -222,6 +225,8 @@ class SurfaceState:
         self.creased_ids = np.zeros(N, dtype=np.int32)  # leave_creases: the particles it moved (first
         self.crease_moves = np.zeros((N, 3))  # DetailedSurface.creased of them) and their moves, m
         self.crease_faces = np.zeros((N, 2), dtype=np.int32)  # leave_creases: the faces their walks ended on
+        self.exit_ids = np.zeros(N, dtype=np.int32)  # out_along_normals: the particles it moved (first
+        self.exit_moves = np.zeros((N, 3))  # DetailedSurface.exited of them) and their moves, m
         self.crease_seen = np.zeros(N, dtype=np.uint8)
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
@@ -233,6 +238,7 @@ class DetailedSurface:
         self.stage_seconds = np.zeros(3)  # PN, collision (S103), deformation (S104-S106)
         self.tested = 0  # particles S103 tested in the last frame
         self.creased = 0  # particles moved out of a crease in the last frame (`creases.leave_creases`)
+        self.exited = 0  # particles moved out along ±n_i in the last frame (`creases.out_along_normals`)
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
              body: BodyMesh | None, face_n: np.ndarray | None, dt: float,
@@ -316,7 +322,7 @@ class DetailedSurface:
                         s.height, s.p)
         else:
             s.height[:] = s.dh
-        self.creased = 0
+        self.creased = self.exited = 0
         t4 = time.perf_counter()
         if body is not None and st.creases:  # (S103's Decision, counted with its time)
             self.creased = leave_creases(s.p, s.sd, s.body_face, s.part_face, body_x, body.triangles, body.tri_nbrs,
@@ -327,6 +333,10 @@ class DetailedSurface:
                                          body.wound_faces, body.winding_faces,
                                          *(NO_WINDING if winding is None else winding),
                                          winding is not None)
+            if winding is not None and st.exit_normals:
+                self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, t.n_coarse, EXIT_NEAR,
+                                                EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces,
+                                                *winding, s.exit_ids, s.exit_moves)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -2,12 +2,13 @@
 bounds, unit shading normals, the coarse vertices on the surface, the folds across the
 compression drawn only outwards over the quad-dominant coarse faces, and the layering (the top
 lifted over the bottom along the top's normals, outward and bounded; the bottom pressed under
-the top along its reference normals, no lower than the body allows)."""
+the top along its reference normals, no lower than the body allows), and the moves out of the
+body (along the normal, and out of creases) bounded and each from inside the body as a whole."""
 
 import numpy as np
 import pytest
 
-from cloth.creases import CREASE_MOVE
+from cloth.creases import CREASE_MOVE, EXIT_REACH
 from cloth.surface import SurfaceSettings
 from cloth.winding import winding_numbers
 from services.cloth_job import OUTFITS, run_cloth_clip
@@ -15,7 +16,7 @@ from services.cloth_job import OUTFITS, run_cloth_clip
 
 @pytest.mark.parametrize("outfit", OUTFITS)
 def test_surface_through_the_run_clip(body, data, outfit):
-    checked, lifted, pressed, creased, from_outside = [], [], [], [], []
+    checked, lifted, pressed, creased, from_outside, exited = [], [], [], [], [], []
 
     def on_frame(index, session, body_frame, positions):
         layered = [p.copy() for p, _ in session.detailed]
@@ -36,6 +37,20 @@ def test_surface_through_the_run_clip(body, data, outfit):
         for surf, (_, n), p, x in zip(session.surfaces, session.detailed, layered, positions):
             s, st, m = surf.state, surf.model.settings, surf.model
             # and the moves out of creases (cloth.creases: off the normal, never a coarse vertex, bounded)
+            # first the moves out along ±n_i (cloth.creases.out_along_normals: along the normal, never a
+            # coarse vertex, bounded, each from inside the body as a whole)
+            k = surf.exited
+            ids, moves = s.exit_ids[:k], s.exit_moves[:k]
+            assert np.all(ids >= len(x)) and len(np.unique(ids)) == k
+            along = np.sum(moves * s.n_pn[ids], axis=1)
+            np.testing.assert_allclose(np.abs(along), np.linalg.norm(moves, axis=1), rtol=1e-9)
+            assert np.all(np.abs(along) <= EXIT_REACH + st.clearance + 1e-12)
+            p[ids] -= moves
+            wind = np.zeros(k, dtype=np.int64)
+            winding_numbers(p[ids], session.pose.x, session.body_mesh.winding_faces, *session.pose.winding.arrays(),
+                            wind)
+            assert np.all(wind > 0)
+            exited.append(k)
             k = surf.creased
             assert np.all(s.creased_ids[:k] >= len(x)) and len(np.unique(s.creased_ids[:k])) == k
             assert np.all(np.linalg.norm(s.crease_moves[:k], axis=1) <= 2 * CREASE_MOVE)
@@ -70,5 +85,5 @@ def test_surface_through_the_run_clip(body, data, outfit):
     layers = outfit != "female_sportsuit01"  # the sport suit's top and bottom do not meet
     assert (len(report.layer_ms) == report.frames) == layers and (sum(lifted) > 0) == layers
     assert (sum(pressed) > 0) == layers
-    assert sum(creased) > 0 and sum(from_outside) == 0
+    assert sum(creased) > 0 and sum(from_outside) == 0 and sum(exited) > 0
     assert all(len(v) == report.frames for v in report.surface_ms.values())
