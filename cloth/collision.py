@@ -84,7 +84,7 @@ class BodyMesh:
         wound_faces: (m,) bool, the faces of the surface whose winding number tells inside from
         outside (`winding_faces`: these, their holes capped), a superset of the clothed faces.
         Decision: the clothed faces and the hands as far as 6 cm from the wrist
-        (`skinning.body.body_hand_faces`, WRIST_REACH). Capped at the wrist, a point inside the
+        (the cloth service's `collision_body`, WRIST_REACH). Capped at the wrist, a point inside the
         hand read as outside the body, and a sleeve's particle inside the hand stayed there (the
         walk's blouse and skirt: 340 of their 1,715 vertex-frames deeper than 1 mm lay nearest a
         hand's skin). The whole hands would cost their 6,330 faces' share of the winding grid's

@@ -26,7 +26,7 @@ from cloth.sim import ClothSim, prepare_cloth
 from cloth.snapshot import StateSnapshot
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
-from skinning.body import ARM_LIMBS, WRIST_REACH, Body, body_clothed_faces, body_hand_faces, body_regions
+from skinning.body import ARM_LIMBS, Body, body_clothed_faces, body_hand_faces, body_regions
 from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings
 from skinning.source import BVHSource
@@ -67,6 +67,10 @@ def outfit_checker(data: Path) -> Callable[[dict], None]:
         if change.get("fabric") is not None:
             fabric_preset(change["fabric"])
     return check
+
+
+# m: how far into the hand from the wrist the cloth's winding surface reaches (BodyMesh.build's wound_faces)
+WRIST_REACH = 0.06
 
 
 def collision_body(body: Body) -> BodyMesh:

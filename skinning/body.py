@@ -175,10 +175,6 @@ def body_clothed_faces(body: Body) -> np.ndarray:
     return ~_faces_of(body, UNCLOTHED_BONES)
 
 
-# m: how far into the hand from the wrist the cloth's winding surface reaches (BodyMesh.wound_faces)
-WRIST_REACH = 0.06
-
-
 def body_hand_faces(body: Body, reach: float | None = None) -> np.ndarray:
     """(n_triangles,) bool: the faces of the hands, i.e. all three corners dominated by a bone of
     a hand (HAND_BONES); given `reach` (m), only those whose corners all lie within it of the

@@ -267,8 +267,8 @@ def test_the_cloth_winding_number_counts_the_hands_by_the_wrist(body):
     (`BodyMesh.wound_faces`): within 3 cm of the wrist it says inside exactly where the
     independent test does (tests/signed_distance.py, over the whole skin), where the clothed
     faces alone, capped at the wrists, said outside inside the hand."""
-    from services.cloth_job import collision_body
-    from skinning.body import WRIST_REACH, body_clothed_faces, body_hand_faces
+    from services.cloth_job import WRIST_REACH, collision_body
+    from skinning.body import body_clothed_faces, body_hand_faces
     from tests.signed_distance import SignedDistance
 
     mesh = collision_body(body)
