@@ -333,10 +333,10 @@ class DetailedSurface:
                                          body.wound_faces, body.winding_faces,
                                          *(NO_WINDING if winding is None else winding),
                                          winding is not None)
-            if winding is not None and st.exit_normals:
-                self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, t.n_coarse, EXIT_NEAR,
-                                                EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces,
-                                                *winding, s.exit_ids, s.exit_moves)
+        if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
+            self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, t.n_coarse, EXIT_NEAR, EXIT_FACING,
+                                            EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
+                                            s.exit_ids, s.exit_moves)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()
