@@ -153,6 +153,37 @@ def build_face_grid(lo, hi, mask, start, ids, counts):
     return n
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ray_face(px, py, pz, dx, dy, dz, ax, ay, az, bx, by, bz, cx, cy, cz, reach):
+    """Where the ray p + t d crosses triangle abc within (MIN_T, reach] (Moller-Trumbore): (t, det),
+    t inf where it does not; det < 0 <=> d . (e1 x e2) > 0: the ray leaves a part through the face
+    there. The barycentric tests are scaled by |det|: no division for the faces the ray misses."""
+    e1x, e1y, e1z = bx - ax, by - ay, bz - az
+    e2x, e2y, e2z = cx - ax, cy - ay, cz - az
+    qx = dy * e2z - dz * e2y
+    qy = dz * e2x - dx * e2z
+    qz = dx * e2y - dy * e2x
+    det = e1x * qx + e1y * qy + e1z * qz
+    sign = 1.0 if det > 0.0 else -1.0
+    adet = det * sign
+    if adet < 1e-14:
+        return np.inf, det
+    sx, sy, sz = px - ax, py - ay, pz - az
+    u = (sx * qx + sy * qy + sz * qz) * sign
+    if u < 0.0 or u > adet:
+        return np.inf, det
+    rx = sy * e1z - sz * e1y
+    ry = sz * e1x - sx * e1z
+    rz = sx * e1y - sy * e1x
+    w = (dx * rx + dy * ry + dz * rz) * sign
+    if w < 0.0 or u + w > adet:
+        return np.inf, det
+    t = (e2x * rx + e2y * ry + e2z * rz) * sign
+    if not MIN_T * adet < t <= reach * adet:  # (a ray from a skin vertex meets the faces around it at t = 0)
+        return np.inf, det
+    return t / adet, det
+
+
 @njit(cache=True, nogil=True)
 def first_exit(px, py, pz, dx, dy, dz, reach, v, corners, stamp, ray, inv_cell, mask, start, ids, rest, rest_normals,
                rest_centroid, margin, across):
@@ -187,41 +218,10 @@ def first_exit(px, py, pz, dx, dy, dz, reach, v, corners, stamp, ray, inv_cell, 
             if stamp[f] == ray:  # in an earlier cell of this ray too
                 continue
             stamp[f] = ray
-            # Moller-Trumbore; det < 0 <=> d . (e1 x e2) > 0: the ray leaves through the face
-            ax = corners[f, 0]
-            ay = corners[f, 1]
-            az = corners[f, 2]
-            e1x = corners[f, 3] - ax
-            e1y = corners[f, 4] - ay
-            e1z = corners[f, 5] - az
-            e2x = corners[f, 6] - ax
-            e2y = corners[f, 7] - ay
-            e2z = corners[f, 8] - az
-            qx = dy * e2z - dz * e2y
-            qy = dz * e2x - dx * e2z
-            qz = dx * e2y - dy * e2x
-            det = e1x * qx + e1y * qy + e1z * qz
-            # the barycentric tests scaled by |det|: no division for the faces the ray misses
-            sign = 1.0 if det > 0.0 else -1.0
-            adet = det * sign
-            if adet < 1e-14:
+            t, det = _ray_face(px, py, pz, dx, dy, dz, corners[f, 0], corners[f, 1], corners[f, 2], corners[f, 3],
+                               corners[f, 4], corners[f, 5], corners[f, 6], corners[f, 7], corners[f, 8], reach)
+            if t == np.inf:
                 continue
-            sx = px - ax
-            sy = py - ay
-            sz = pz - az
-            u = (sx * qx + sy * qy + sz * qz) * sign
-            if u < 0.0 or u > adet:
-                continue
-            rx = sy * e1z - sz * e1y
-            ry = sz * e1x - sx * e1z
-            rz = sx * e1y - sy * e1x
-            w = (dx * rx + dy * ry + dz * rz) * sign
-            if w < 0.0 or u + w > adet:
-                continue
-            t = (e2x * rx + e2y * ry + e2z * rz) * sign
-            if not MIN_T * adet < t <= reach * adet:  # the faces around v, which the ray starts on, give t = 0
-                continue
-            t /= adet
             if t < far_t and far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across):
                 far_t = t
             if det < 0.0 and t < best_t:
@@ -315,30 +315,9 @@ def _exit_through(px, py, pz, dx, dy, dz, x, tris, f, reach):
     """t where the ray p + t d leaves a part through face f (its outward normal along d), within
     (0, reach]; inf where it does not."""
     a, b, c = tris[f, 0], tris[f, 1], tris[f, 2]
-    ax, ay, az = x[a, 0], x[a, 1], x[a, 2]
-    e1x, e1y, e1z = x[b, 0] - ax, x[b, 1] - ay, x[b, 2] - az
-    e2x, e2y, e2z = x[c, 0] - ax, x[c, 1] - ay, x[c, 2] - az
-    qx = dy * e2z - dz * e2y
-    qy = dz * e2x - dx * e2z
-    qz = dx * e2y - dy * e2x
-    det = e1x * qx + e1y * qy + e1z * qz
-    if det > -1e-14:  # (det < 0: the ray leaves through the face)
-        return np.inf
-    adet = -det
-    sx, sy, sz = px - ax, py - ay, pz - az
-    u = -(sx * qx + sy * qy + sz * qz)
-    if u < 0.0 or u > adet:
-        return np.inf
-    rx = sy * e1z - sz * e1y
-    ry = sz * e1x - sx * e1z
-    rz = sx * e1y - sy * e1x
-    w = -(dx * rx + dy * ry + dz * rz)
-    if w < 0.0 or u + w > adet:
-        return np.inf
-    t = -(e2x * rx + e2y * ry + e2z * rz)
-    if not MIN_T * adet < t <= reach * adet:
-        return np.inf
-    return t / adet
+    t, det = _ray_face(px, py, pz, dx, dy, dz, x[a, 0], x[a, 1], x[a, 2], x[b, 0], x[b, 1], x[b, 2], x[c, 0], x[c, 1],
+                       x[c, 2], reach)
+    return t if det < 0.0 else np.inf
 
 
 @njit(cache=True, nogil=True)
