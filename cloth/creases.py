@@ -231,18 +231,20 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
 
 
 @kernel
-def out_along_normals(p, n, sd, other, facing, first, near, lean, reach, clearance, body_x, wfaces, wlo, wstart, wids,
-                      wspan, wextent, ids, moves):
+def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach, clearance, body_x, wfaces, wlo,
+                      wstart, wids, wspan, wextent, ids, moves):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
-    its normal leaning off the body's (`facing` below `lean`), or found inside, that the body's
-    winding number puts inside at its final position goes out along ±n_i to where the body ends
+    its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
+    session) found behind another part's surface by its walk there (`behind`, though a nearer
+    surface called it outside), that the body's winding number puts inside at its final
+    position goes out along ±n_i to where the body ends
     nearest, `clearance` beyond it (found by winding numbers, `collision.march_exit`, within
     `reach`; where the point `clearance` beyond is inside again, the exit itself). In a crease
     S103's walks read the nearer sheet, a skin buried in the other part, and call the particle
     outside (the walk's casual outfit: 1,508 of its 1,656 vertex-frames deeper than 1 mm), and
     the crease planes read it the same way; the winding number is not misled (module).
-    p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing: S103's
+    p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
     (sd UNTESTED = inf where it did not test); particles before `first` (the coarse vertices)
     are left alone.
     wfaces, wlo ... wextent: the pose's winding grid. Returns the number of particles moved, k;
@@ -252,7 +254,7 @@ def out_along_normals(p, n, sd, other, facing, first, near, lean, reach, clearan
         # (a winding number for every particle near another part was 0.7 ms a garment-frame on the walk's
         # casual outfit, 2,000 particles; those leaning off the body are 250 of them, and two thirds of the
         # ones inside)
-        if sd[i] == np.inf or not ((other[i] < near and facing[i] < lean) or sd[i] < 0.0):
+        if sd[i] == np.inf or not ((other[i] < near and facing[i] < lean) or sd[i] < 0.0 or behind[i]):
             continue
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
         if winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) <= 0:

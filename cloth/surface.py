@@ -78,8 +78,9 @@ class SurfaceSettings:
     # and the neighbours of a particle moved out of a crease are measured from its two faces, moved if
     # inside, and so on
     crease_spread: bool = True
-    # then a particle near another body part (or found inside by S103) that the body's winding number
-    # puts inside goes out along ±n_i, where the body ends nearest (Decision, `creases.out_along_normals`)
+    # then a particle near another body part (or found inside by S103, or behind another part's surface by
+    # its walk there) that the body's winding number puts inside goes out along ±n_i, where the body ends
+    # nearest (Decision, `creases.out_along_normals`)
     exit_normals: bool = True
 
     def __post_init__(self):
@@ -174,6 +175,7 @@ class SurfaceState:
         self.sd = np.zeros(N)  # S103 signed distance of tested particles (inf: untested)
         self.facing = np.zeros(N)  # S103: n_i . n_body at each tested particle's closest body point
         self.other = np.zeros(N)  # S103: distance to the nearest other body part walked to (inf: none)
+        self.behind = np.zeros(N, dtype=np.uint8)  # S103: 1 where a walk in another part found it behind that part
         self.body_face = np.full(N, -1, dtype=np.int32)  # S103: body face each particle's last walk ended on,
         self.part_face = np.full(N, -1, dtype=np.int32)  # and its last walk in another body part
         self.part_seeds = np.zeros((n, MAX_PART_SEEDS), dtype=np.int32)  # S103: other body parts near each
@@ -267,6 +269,7 @@ class DetailedSurface:
         if body is None:
             s.sd[:] = np.inf
             s.dh_pen[:] = 0.0
+            s.behind[:] = 0
             self.tested = 0
         else:
             find_parts = grid is not None and st.other_parts
@@ -279,9 +282,10 @@ class DetailedSurface:
                 if len(s.no_tips) != len(body.triangles):
                     s.no_tips = np.zeros(len(body.triangles))
                 face_tip = s.no_tips
-            self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, s.facing, s.other, t.face_ids, t.order,
-                                            t.parents, s.ctrl, x, coarse_nearest, find_parts, s.part_seeds,
-                                            s.seed_reach, s.seed_count, s.corners, s.parts, s.reach, s.groups,
+            self.tested = avoid_penetration(s.p, s.n_pn, s.dh, s.dh_pen, s.sd, s.facing, s.other, s.behind,
+                                            t.face_ids, t.order, t.parents, s.ctrl, x, coarse_nearest, find_parts,
+                                            s.part_seeds, s.seed_reach, s.seed_count, s.corners, s.parts, s.reach,
+                                            s.groups,
                                             s.group_reach, body_x, body.nbr_start, body.nbr_ids, body.parts,
                                             body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face,
                                             s.part_face, face_n, s.q, face_tip, st.tip_share, st.clearance,
@@ -334,8 +338,8 @@ class DetailedSurface:
                                          *(NO_WINDING if winding is None else winding),
                                          winding is not None)
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
-            self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, t.n_coarse, EXIT_NEAR, EXIT_FACING,
-                                            EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
+            self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, t.n_coarse, EXIT_NEAR,
+                                            EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
                                             s.exit_ids, s.exit_moves)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)

@@ -60,15 +60,18 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
     from `face` (face >= 0: where such a walk ended the frame before), else from the face
     around the nearest vertex to p of the part of vertex `start` (a vertex walk within the
     part) whose plane p is least behind; there d is inf when that vertex is farther than
-    bound + PART_SLACK (the part cannot be the nearest; checked before the faces are looked at:
-    most walks in another part end so, 78 % of the walk's blouse's). Returns (d, n_body,
-    closest point, the face to start from next time: -1 if none)."""
+    bound + PART_SLACK (the part cannot be the nearest: most walks in another part end so, 78 %
+    of the walk's blouse's), or -inf there when p is behind every face around that vertex, as
+    it is deep inside a limb (sixtieth session: `creases.out_along_normals` asks the winding
+    number there). Returns (d, n_body, closest point, the face to start from next time: -1 if
+    none)."""
     if face < 0:
         vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, regions[start])
         d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
+        behind, face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
         if d2 > (bound + PART_SLACK) ** 2:
-            return np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
-        face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
+            # -inf: p is behind every face around the part's nearest vertex, as deep in a limb
+            return -np.inf if behind < 0.0 else np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
         if face < 0:
             return np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
     return face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
@@ -104,7 +107,8 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
     was measured in a neighbouring coarse face, against that face's parts, and its distance
     ruled out a part of this face that it never looked at; fifty-fifth session.)
     Returns (d, n_body, closest point, p's distance to the other parts as far as it is known:
-    the nearest walked to, else the bounds that ruled them out; inf if none)."""
+    the nearest walked to, else the bounds that ruled them out; inf if none; whether a walk in
+    another part found p behind that part's surface, inside it, whichever surface is nearest)."""
     px, py, pz = p[i, 0], p[i, 1], p[i, 2]
     f = body_face[i]
     fresh = f < 0
@@ -114,7 +118,7 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
             f = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
             if f < 0:  # no usable face around the vertex
                 body_face[i] = -1
-                return np.inf, 0.0, 0.0, 0.0, px, py, pz, np.inf
+                return np.inf, 0.0, 0.0, 0.0, px, py, pz, np.inf, False
         d, nx, ny, nz, qx, qy, qz, last = face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
                                                              nbr_start, nbr_ids, regions, f, face_n, q)
         d_seed = (body_x[seed, 0] - px) ** 2 + (body_x[seed, 1] - py) ** 2 + (body_x[seed, 2] - pz) ** 2
@@ -132,7 +136,7 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
             part_face[i] = last if abs(dk) < PART_NEAR else -1
             if abs(dk) < abs(d):
                 d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
-            return d, nx, ny, nz, qx, qy, qz, abs(dk)
+            return d, nx, ny, nz, qx, qy, qz, abs(dk), dk < 0.0
         part_face[i] = -1  # it came back to the first walk's part: look again
     # one walk per other part, where it is not ruled out by a lower bound on p's distance to it:
     # no vertex of it was nearer than group_reach[g, c] to corner c (and a face is nearer than
@@ -141,6 +145,7 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
     # going over the seeds per particle, fifty-sixth session)
     dc0 = -1.0  # p's distances to the face's corners, once a bound needs them
     dc1 = dc2 = 0.0
+    behind = False
     for g in range(n_groups):
         r = groups[g, 0]
         if r == walked:
@@ -167,12 +172,15 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
         dk, mx, my, mz, ax, ay, az, last = other_part_distance(px, py, pz, sk, -1, abs(d), body_x, nbr_start,
                                                                nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                                                                face_n, q)
-        other = min(other, abs(dk) if dk < np.inf else abs(d))
-        if last >= 0 and abs(dk) < PART_NEAR and regions[tris[last, 0]] != walked:
-            part_face[i] = last  # next frame's walk in another part starts there
+        other = min(other, abs(dk) if abs(dk) < np.inf else abs(d))
+        if last >= 0 and regions[tris[last, 0]] != walked:
+            if abs(dk) < PART_NEAR:
+                part_face[i] = last  # next frame's walk in another part starts there
+            behind = behind or dk < 0.0
+        behind = behind or dk == -np.inf  # (a walk cut short deep inside the part)
         if abs(dk) < abs(d):
             d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
-    return d, nx, ny, nz, qx, qy, qz, other
+    return d, nx, ny, nz, qx, qy, qz, other, behind
 
 
 @helper
@@ -245,10 +253,10 @@ def detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, n
     """`_detail_signed_distance` compiled once as a function, for the lifts (a few hundred
     particles a frame), where the call costs little and more inlined copies would cost
     compilation time; less `tip_allowance`, as in `avoid_penetration`."""
-    d, nx, ny, nz, qx, qy, qz, other = _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach,
-                                                               n_groups, start_face, body_x, nbr_start, nbr_ids,
-                                                               regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
-                                                               part_face, face_n, q)
+    d, nx, ny, nz, qx, qy, qz, other, _ = _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach,
+                                                                  n_groups, start_face, body_x, nbr_start, nbr_ids,
+                                                                  regions, tris, tri_start, tri_ids, tri_nbrs,
+                                                                  body_face, part_face, face_n, q)
     rate = normals[i, 0] * nx + normals[i, 1] * ny + normals[i, 2] * nz
     d -= tip_allowance(body_face, i, face_tip, tip_share, rate, other)
     return d, nx, ny, nz, qx, qy, qz, other
@@ -349,10 +357,10 @@ def _lift_out(p, vid, seed, x, corners, parts, groups, group_reach, n_groups, d,
 
 
 @kernel
-def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order, parents, ctrl, x, coarse_nearest,
-                      find_parts, part_seeds, seed_reach, seed_count, corners, parts, reach, groups, group_reach,
-                      body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face,
-                      face_n, q, face_tip, tip_share, clearance, margin, face_margin, max_iterations,
+def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_ids, order, parents, ctrl, x,
+                      coarse_nearest, find_parts, part_seeds, seed_reach, seed_count, corners, parts, reach, groups,
+                      group_reach, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
+                      part_face, face_n, q, face_tip, tip_share, clearance, margin, face_margin, max_iterations,
                       max_lift, max_height, search):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
@@ -374,6 +382,10 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
     at its closest body point (< 0: the body lies above it, along n_i); other: each tested
     particle's distance to the other body parts as far as S103 knows it (inf: none near; out);
+    behind (N,) uint8: 1 where a walk of its first test in another body part found the particle
+    behind that part's surface (out; its distance is the nearer surface's, which may be its own
+    part's, outside: a skin buried in the other part; `creases.out_along_normals` asks the
+    winding number there);
     part_seeds, seed_reach, seed_count: each coarse particle's other body parts
     (`other_part_seeds`), whose walks the particles of its faces take too (x: the coarse
     positions; find_parts False: none are); corners (3,) int32, parts (K, 2) int32, reach (K,),
@@ -397,6 +409,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
         sd[i] = UNTESTED
         dh_pen[i] = 0.0
         other[i] = np.inf
+        behind[i] = 0
     tested = 0
     for f in range(face_ids.shape[0]):
         near = False
@@ -427,11 +440,10 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, face_ids, order
                 tested += 1
                 seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
                 # (a walk in another part starts where its own ended the frame before, if it ended near)
-                d, bx, by, bz, qx, qy, qz, other[vid] = _detail_signed_distance(p, vid, seed, x, corners, parts, groups,
-                                                                                group_reach, n_groups, part_face[vid],
-                                                                                body_x, nbr_start, nbr_ids, regions,
-                                                                                tris, tri_start, tri_ids, tri_nbrs,
-                                                                                body_face, part_face, face_n, q)
+                d, bx, by, bz, qx, qy, qz, other[vid], inside_part = _detail_signed_distance(
+                    p, vid, seed, x, corners, parts, groups, group_reach, n_groups, part_face[vid], body_x, nbr_start,
+                    nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face, face_n, q)
+                behind[vid] = inside_part
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
                 d -= tip_allowance(body_face, vid, face_tip, tip_share, rate, other[vid])
                 if d < clearance - LIFT_TOLERANCE:

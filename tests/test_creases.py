@@ -228,35 +228,42 @@ def test_no_spread_from_a_particle_with_one_surface():
 def test_a_particle_inside_by_the_winding_number_goes_out_along_its_normal(sense):
     """`out_along_normals` on the two boxes: a particle S103 read as outside near another part,
     its normal leaning off the body's, that the winding number puts inside goes out along ±n_i
-    to where the body ends nearest, the clearance beyond; the others stay: one whose normal faces
-    the body (S103's lifts are right there), one outside, one untested, one with no way out
-    within reach, and a coarse vertex (before `first`)."""
+    to where the body ends nearest, the clearance beyond, and so does one S103 read as outside,
+    not near another part and its normal facing the body's, but behind another part's surface
+    by its walk there (`behind`); the others stay: one whose normal faces the body (S103's lifts
+    are right there), the same not behind another part, one outside, one untested, one with no
+    way out within reach, and a coarse vertex (before `first`)."""
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
     g.update(x)
     side = np.array([sense, 0.0, 0.0])  # across the thigh's inner wall (x = -1 cm), either way round
     up = (0.0, 1.0, 0.0)
-    cases = [  # (position, normal, S103's sd, other, facing)
-        ((-0.012, 0.005, 0.02), side, 0.002, 0.004, 0.0),    # 0: as 1, but a coarse vertex: stays
-        ((-0.012, 0.005, 0.0), side, 0.002, 0.004, 0.0),     # 1: in the thigh, 2 mm from its inner wall: out
-        ((-0.030, 0.047, 0.0), up, -0.003, np.inf, 1.0),     # 2: found inside by S103, 3 mm under the top: out
-        ((-0.012, 0.005, 0.01), side, 0.002, 0.004, 0.95),   # 3: as 1, its normal facing the body's: stays
-        ((0.005, 0.005, 0.0), side, 0.01, 0.004, 0.0),       # 4: outside: stays
-        ((-0.012, 0.005, -0.01), side, np.inf, 0.004, 0.0),  # 5: as 1, untested by S103: stays
-        ((-0.040, 0.020, 0.0), up, 0.002, 0.004, 0.0),       # 6: 3 cm from a way out along ±n: stays
+    cases = [  # (position, normal, S103's sd, other, facing, behind)
+        ((-0.012, 0.005, 0.02), side, 0.002, 0.004, 0.0, 0),    # 0: as 1, but a coarse vertex: stays
+        ((-0.012, 0.005, 0.0), side, 0.002, 0.004, 0.0, 0),     # 1: in the thigh, 2 mm from its inner wall: out
+        ((-0.030, 0.047, 0.0), up, -0.003, np.inf, 1.0, 0),     # 2: found inside by S103, 3 mm under the top: out
+        ((-0.012, 0.005, 0.01), side, 0.002, 0.004, 0.95, 0),   # 3: as 1, its normal facing the body's: stays
+        ((0.005, 0.005, 0.0), side, 0.01, 0.004, 0.0, 0),       # 4: outside: stays
+        ((-0.012, 0.005, -0.01), side, np.inf, 0.004, 0.0, 0),  # 5: as 1, untested by S103: stays
+        ((-0.040, 0.020, 0.0), up, 0.002, 0.004, 0.0, 0),       # 6: 3 cm from a way out along ±n: stays
+        ((-0.012, 0.005, -0.02), side, 0.002, 0.02, 0.95, 0),   # 7: as 3, no other part near: stays
+        ((-0.012, 0.005, 0.015), side, 0.002, 0.02, 0.95, 1),   # 8: as 7, but behind another part's surface: out
     ]
     p = np.array([c[0] for c in cases])
     n = np.array([c[1] for c in cases])
     sd, other, facing = (np.array([c[k] for c in cases]) for k in (2, 3, 4))
+    behind = np.array([c[5] for c in cases], dtype=np.uint8)
     assert EXIT_FACING < 0.95 and EXIT_NEAR > 0.004 and 0.003 < EXIT_REACH < 0.03
     p0 = p.copy()
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
-    moved = out_along_normals(p, n, sd, other, facing, 1, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris, *g.arrays(),
-                              ids, moves)
-    assert moved == 2 and list(ids[:2]) == [1, 2]
-    np.testing.assert_allclose(moves[:2], p[1:3] - p0[1:3], atol=1e-15)
+    moved = out_along_normals(p, n, sd, other, facing, behind, 1, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
+                              *g.arrays(), ids, moves)
+    assert moved == 3 and list(ids[:3]) == [1, 2, 8]
+    out = [1, 2, 8]
+    np.testing.assert_allclose(moves[:3], p[out] - p0[out], atol=1e-15)
     np.testing.assert_allclose(p[1], (-0.01 + C, 0.005, 0.0), atol=1e-5)  # (the exit to 10 bisections of 4 mm)
     np.testing.assert_allclose(p[2], (-0.03, 0.05 + C, 0.0), atol=1e-5)
-    np.testing.assert_array_equal(p[3:], p0[3:])
+    np.testing.assert_allclose(p[8], (-0.01 + C, 0.005, 0.015), atol=1e-5)
+    np.testing.assert_array_equal(p[3:8], p0[3:8])
     np.testing.assert_array_equal(p[0], p0[0])
-    assert inside_boxes(p0[1:3]).all() and not inside_boxes(p[1:3]).any()
+    assert inside_boxes(p0[out]).all() and not inside_boxes(p[out]).any() and inside_boxes(p[[3, 7]]).all()

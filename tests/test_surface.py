@@ -14,6 +14,7 @@ from cloth.model import SimSettings, build_cloth_model
 from cloth.geometry import vertex_normals
 from cloth.pn import build_tessellation, pn_control_points, pn_evaluate, pn_surface
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
+from cloth.winding import WindingGrid
 from tests.test_cloth_dynamics import box, uv_sphere
 
 DT = 1.0 / 60.0
@@ -647,6 +648,48 @@ def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(fin
         assert not inside_arm.any()
     else:
         np.testing.assert_allclose(p[over, 1], 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("arm_quads", [8, 2])
+def test_a_particle_behind_another_body_parts_surface_goes_out_along_its_normal(arm_quads):
+    """Decision (`creases.out_along_normals`, sixtieth session): a torso box whose top face, 4 mm
+    under the sheet, is buried in an arm box the sheet runs through (its bottom 12 mm under the
+    sheet, its top 8 mm over it). The nearest surface to the particles over the arm's middle is
+    the torso's buried top, 4 mm below them, facing them: S103 reads them outside. Its walk in
+    the arm finds them behind the arm's surface (`behind`), so the winding number is asked, and
+    they go up along n_i, out of the arm's top, the clearance beyond it; no detailed particle
+    but the coarse vertex in the arm's middle is left inside the arm. With the arm's sides in 2
+    x 2 quads (vertices 3 cm apart) most of those walks end at a vertex farther than the part
+    could be nearest from (`other_part_distance`), and p behind every face around it marks them
+    the same. (The moves out of creases are off here: they take the particles the arm's walk
+    ended within 1 cm of out through the nearest wall, and not those it ended farther from.)"""
+    tv, tt = box(half=0.05, n=8)
+    tv = tv + [0.08, -0.054, 0.04]  # torso: top face at y = -4 mm
+    av, at = box(half=0.03, n=arm_quads)
+    av = av * [1.0, 1.0 / 3.0, 1.0] + [0.08, -0.002, 0.04]  # arm: y -12..8 mm, x 0.05-0.11, z 0.01-0.07
+    bv = np.ascontiguousarray(np.vstack([tv, av]))
+    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
+    body = BodyMesh.build(bt, len(bv), regions)
+    grid = VertexGrid(len(bv))
+    grid.update(bv, regions)
+    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
+    winding.update(bv)
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(creases=False))
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(tv - q, axis=1))) for q in x], dtype=np.int32)
+    p = surf.step(x, nearest, bv, body, face_normals(bv, bt), DT, grid, winding=winding.arrays())[0]
+    s = surf.state
+    fine = np.arange(len(p)) >= m.tess.n_coarse
+    middle = fine & np.all(np.abs(s.p_smoothed - [0.08, 0.0, 0.04])[:, [0, 2]] < 0.022, axis=1)  # 8 mm+ off the walls
+    assert middle.sum() > 20
+    assert np.all(s.behind[middle] == 1)
+    np.testing.assert_allclose(s.sd[middle], 0.004, atol=1e-9)  # S103: outside, over the torso's buried top
+    np.testing.assert_allclose(p[middle, 1], 0.008 + SurfaceSettings().clearance, atol=1e-5)
+    assert surf.exited >= middle.sum() and surf.creased == 0
+    inside_arm = np.all(np.abs(p - [0.08, -0.002, 0.04]) < [0.03 - 1e-6, 0.01 - 1e-6, 0.03 - 1e-6], axis=1)
+    assert not inside_arm[fine].any() and inside_arm[~fine].sum() == 1
 
 
 def test_a_small_body_part_anywhere_under_the_sheet_is_left_by_every_detailed_particle():
