@@ -26,7 +26,7 @@ from cloth.sim import ClothSim, prepare_cloth
 from cloth.snapshot import StateSnapshot
 from cloth.surface import DetailedSurface, SurfaceSettings, build_surface_model
 from skinning.animate import BodyAnimator
-from skinning.body import ARM_LIMBS, Body, body_clothed_faces, body_hand_faces, body_regions
+from skinning.body import ARM_LIMBS, LEG_LIMBS, Body, body_clothed_faces, body_hand_faces, body_regions
 from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings
 from skinning.source import BVHSource
@@ -75,11 +75,12 @@ WRIST_REACH = 0.06
 
 def collision_body(body: Body) -> BodyMesh:
     """The body as the cloth collides with it: its parts (upper arms and forearms apart, one
-    sleeve over both), the faces clothes can touch, numbered along a Morton curve; its winding
-    number counts the hands too, as far as WRIST_REACH from the wrist (BodyMesh.build's wound_faces)."""
+    sleeve over both; lower legs and feet apart, one trouser leg over both), the faces clothes
+    can touch, numbered along a Morton curve; its winding number counts the hands too, as far as
+    WRIST_REACH from the wrist (BodyMesh.build's wound_faces)."""
     clothed = body_clothed_faces(body)
     return BodyMesh.build(body.triangles, body.n_visible, body_regions(body), clothed, body.vertices,
-                          limbs=ARM_LIMBS, wound_faces=clothed | body_hand_faces(body, WRIST_REACH))
+                          limbs=ARM_LIMBS + LEG_LIMBS, wound_faces=clothed | body_hand_faces(body, WRIST_REACH))
 
 
 def smoothstep(t: float) -> float:

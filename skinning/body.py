@@ -132,6 +132,8 @@ def load_body(data: str | Path | None = None) -> Body:
 # is inside the calf (walk, jeans: detailed vertex-frames deeper than 1 mm 29,563 -> 22,940).
 # The arms are split at the elbow for the same reason: in the walk's crouch, a hand at the face,
 # the forearm folds onto the upper arm inside the sleeve (see the README, "Detailed surface").
+# And the feet at the ankle: in a squat the flexed ankle folds the top of the foot into the
+# shin, under a trouser leg's hem, where a walk over the shin stops outside it.
 # One bit each, in 16-bit masks (REGION_DTYPE).
 BODY_REGIONS = {
     "torso": 1,
@@ -143,6 +145,8 @@ BODY_REGIONS = {
     "right_lower_leg": 64,
     "left_forearm": 128,  # with the hand
     "right_forearm": 256,
+    "left_foot": 512,  # with the toes
+    "right_foot": 1024,
 }
 REGION_DTYPE = np.uint16
 # each arm's regions, upper arm and forearm (with the hand): one sleeve covers both
@@ -150,6 +154,9 @@ REGION_DTYPE = np.uint16
 ARM_LIMBS = (BODY_REGIONS["left_upper_arm"] | BODY_REGIONS["left_forearm"],
              BODY_REGIONS["right_upper_arm"] | BODY_REGIONS["right_forearm"])
 ARM_REGIONS = ARM_LIMBS[0] | ARM_LIMBS[1]
+# each leg's lower leg and foot: one trouser leg covers both, and S101 walks them as one region
+LEG_LIMBS = (BODY_REGIONS["left_lower_leg"] | BODY_REGIONS["left_foot"],
+             BODY_REGIONS["right_lower_leg"] | BODY_REGIONS["right_foot"])
 _REGION_BONES = {
     "left_upper_arm": ("LeftArm",),
     "right_upper_arm": ("RightArm",),
@@ -157,8 +164,10 @@ _REGION_BONES = {
     "right_forearm": ("RightForeArm", "RightHand", "RightFingerBase", "RightHandFinger1", "RThumb"),
     "left_thigh": ("LeftUpLeg",),
     "right_thigh": ("RightUpLeg",),
-    "left_lower_leg": ("LeftLeg", "LeftFoot", "LeftToeBase"),
-    "right_lower_leg": ("RightLeg", "RightFoot", "RightToeBase"),
+    "left_lower_leg": ("LeftLeg",),
+    "right_lower_leg": ("RightLeg",),
+    "left_foot": ("LeftFoot", "LeftToeBase"),
+    "right_foot": ("RightFoot", "RightToeBase"),
 }
 
 

@@ -115,3 +115,8 @@ def test_body_regions_and_clothed_faces_follow_the_dominant_bones(body):
     assert (regions[dominant == "LeftArm"] == BODY_REGIONS["left_upper_arm"]).all()
     assert (regions[np.isin(dominant, ["RightForeArm", "RightHand"])] == BODY_REGIONS["right_forearm"]).all()
     assert regions.dtype == np.uint16 and BODY_REGIONS["right_forearm"] > 255
+    # the legs split at the ankle too, the toes with the foot
+    assert (regions[np.isin(dominant, ["LeftFoot", "LeftToeBase"])] == BODY_REGIONS["left_foot"]).all()
+    assert (regions[dominant == "RightFoot"] == BODY_REGIONS["right_foot"]).all()
+    assert np.count_nonzero(dominant == "RightFoot") > 100
+    assert (regions[dominant == "LeftLeg"] == BODY_REGIONS["left_lower_leg"]).all()

@@ -262,6 +262,28 @@ def test_leave_body_union_goes_straight_out_through_the_nearest_face():
     assert windings(sphere.vertices, faces, x, cell=0.05)[0] == 0
 
 
+def test_the_collision_body_keeps_each_foot_with_its_lower_leg_for_the_coarse_cloth_only(body):
+    """The cloth service's collision body: S101 walks a lower leg and its foot as one region (a
+    trouser leg covers both: the regions of the coarse cloth are the lower leg's bit there), while
+    S103 tells them apart (`BodyMesh.parts`), as the upper arm and the forearm: in a squat the
+    flexed ankle folds the top of the foot into the shin under the hem, where a walk over the shin
+    stops outside it."""
+    from services.cloth_job import collision_body
+    from skinning.body import BODY_REGIONS, body_regions
+
+    mesh = collision_body(body)
+    regions = body_regions(body)[mesh.vertex_order]
+    for side in ("left", "right"):
+        foot, leg = BODY_REGIONS[f"{side}_foot"], BODY_REGIONS[f"{side}_lower_leg"]
+        on_foot = regions == foot
+        assert on_foot.sum() > 500
+        assert (mesh.parts[on_foot] == foot).all() and (mesh.regions[on_foot] == leg).all()
+        assert (mesh.parts[regions == leg] == leg).all() and (mesh.regions[regions == leg] == leg).all()
+    # the coarse cloth's regions: the lower legs', the thighs', the torso's and the upper arms' bits only
+    assert set(np.unique(mesh.regions).tolist()) == {1, 2, 4, 8, 16, 32, 64}
+    assert set(np.unique(mesh.parts).tolist()) == set(BODY_REGIONS.values())
+
+
 def test_the_cloth_winding_number_counts_the_hands_by_the_wrist(body):
     """The collision body's winding surface keeps the hands to WRIST_REACH from the wrist
     (`BodyMesh.wound_faces`): within 3 cm of the wrist it says inside exactly where the
