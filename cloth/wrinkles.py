@@ -53,23 +53,6 @@ def other_part_seeds(x, coarse_nearest, body_x, regions, cell, grid_start, grid_
         seed_count[i] = n
 
 
-@helper
-def behind_every_face(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
-    """Whether p is behind the plane of every usable face around `vertex` (`deepest_plane` < 0),
-    stopping at the first face it is in front of (most points asked are outside)."""
-    seen = False
-    for k in range(tri_start[vertex], tri_start[vertex + 1]):
-        t = tri_ids[k]
-        if face_n[t, 3] == 0.0:
-            continue
-        a = tris[t, 0]
-        if ((px - body_x[a, 0]) * face_n[t, 0] + (py - body_x[a, 1]) * face_n[t, 1]
-                + (pz - body_x[a, 2]) * face_n[t, 2]) >= 0.0:
-            return False
-        seen = True
-    return seen
-
-
 @kernel
 def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids,
                         tri_nbrs, face_n, q):
@@ -85,11 +68,10 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
     if face < 0:
         vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, regions[start])
         d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
+        plane, face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
         if d2 > (bound + PART_SLACK) ** 2:
             # -inf: p is behind every face around the part's nearest vertex, as deep in a limb
-            deep = behind_every_face(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
-            return -np.inf if deep else np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
-        face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
+            return -np.inf if face >= 0 and plane < 0.0 else np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
         if face < 0:
             return np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
     return face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
