@@ -13,6 +13,13 @@ topology. The fitting and pre-roll (about a second) run on a setup thread, so th
 already running keep their frame rate while a new one joins; body frames of a session still
 being set up wait for it, in order. A session that starts without an announcement (its first
 body frame comes first) reads the latched description and settles into that frame's pose.
+
+Announcements, body frames and control messages come on three subscribers, each with a thread
+of its own (zenoh-python's callbacks): each key's messages keep their order, the three keys'
+do not among each other. A session announced again (an outfit change, a looped clip starting
+over) names the last frame its ingest published before (`after_frame`); the announcement waits
+until that frame is in (DEFER_SECONDS at most), so those frames are stepped with the garments
+they were meant for, and whatever came for the session meanwhile waits behind it.
 """
 
 from __future__ import annotations
@@ -106,6 +113,7 @@ class GarmentSession:
         self._compact = None if service.float32_meshes else [CompactMesh(n) for n in n_out]
         self.body_x = np.empty((service.body.n_visible, 3))
         self.last_frame = -1
+        self.seen_frame = -1  # the newest body frame that reached it, stepped or rejected
         self.started = False
         self.skin_contact = True
         self.announced_ns = 0  # stamp of the announcement it was set up from (0: none)
@@ -309,6 +317,8 @@ class ClothService:
     """Serves every session seen on tryon/*/body (see the module docstring)."""
 
     SERVICE = "cloth"
+    # how long an announcement waits for the frames its ingest published before it (`handle`)
+    DEFER_SECONDS = 2.0
 
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
                  queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
@@ -362,6 +372,12 @@ class ClothService:
         # were and the new announcement's stamp, kept until the new ones are ready, and kept on if
         # they cannot be
         self._replaced: dict[str, tuple[GarmentSession, int]] = {}
+        # a session announced again ahead of frames published before the announcement (each key's
+        # samples come in order, on a thread of their own, not the keys' among each other): the
+        # last of those frames, until when they are waited for, the announcement's stamp, and the
+        # messages held meanwhile (the announcement first)
+        self._deferred: dict[str, tuple[int, float, int, list[tuple[str, bytes, bool]]]] = {}
+        self._undeferred: set[tuple[str, int]] = set()  # (session, stamp): announcements no longer waiting
         self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
         self._subs = [bus.declare_subscriber(key(sessions, k), self._queue.put) for k in ("session", "body", "control")]
         self._stop = threading.Event()
@@ -445,8 +461,9 @@ class ClothService:
             self._finish_setups()
             try:
                 spin = max(0.0, self.spin - (time.monotonic() - self._last_work))
-                batch = [spin_get(self._queue, spin, 0.01 if self._preparing else 0.2)]
+                batch = [spin_get(self._queue, spin, 0.01 if self._preparing or self._deferred else 0.2)]
             except queue.Empty:
+                self._release_deferred()
                 self._drop_idle()
                 continue
             if self.catch_up:  # everything already waiting: only each session's newest frame is published
@@ -463,6 +480,8 @@ class ClothService:
             for i, sample in enumerate(batch):
                 k = str(sample.key_expr)
                 self._handle_counted(k, sample.payload.to_bytes(), newest.get(k, i) == i)
+                if self._deferred:
+                    self._release_deferred()
             self._last_work = time.monotonic()
 
     def _handle_counted(self, key_expr: str, payload: bytes, publish: bool) -> None:
@@ -554,10 +573,12 @@ class ClothService:
             gs = self.sessions.get(parse_key(key_expr)[0]) if key_expr.startswith("tryon/") else None
             (gs.stats if gs else self.stats).reject(err)
             return False
-        if session in self._preparing:
-            if msg.kind == "session":
-                return False  # announced again while being set up
+        if session in self._preparing:  # (announced again while being set up: handled after it, in order)
             self._preparing[session][1].append((key_expr, payload, publish))
+            return True
+        deferred = self._deferred.get(session)
+        if deferred is not None and not (msg.kind == "body" and msg.frame <= deferred[0]):
+            deferred[3].append((key_expr, payload, publish))  # after the announcement waiting for those frames
             return True
         if msg.kind == "control":
             if msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
@@ -575,6 +596,15 @@ class ClothService:
             if old is not None:
                 if msg.stamp_ns <= old.announced_ns:
                     return False  # the announcement it was set up from
+                after = msg.meta.get("after_frame")
+                if (isinstance(after, int) and after > old.seen_frame
+                        and (session, msg.stamp_ns) not in self._undeferred):
+                    # frames its ingest published before this are still on their way (the body key's
+                    # samples come on another thread): they are stepped first, with these garments
+                    self._deferred[session] = (after, time.monotonic() + self.DEFER_SECONDS, msg.stamp_ns,
+                                               [(key_expr, payload, publish)])
+                    return True
+                self._undeferred.discard((session, msg.stamp_ns))
                 if "restart_frame" in msg.meta and old.starts_again_as_before(msg.meta):
                     # a looped clip back at its first pose: the garments as they were settled there
                     log.info("cloth: session %s starts its garments again (%s) from frame %s, as settled at its "
@@ -617,6 +647,7 @@ class ClothService:
                 self._fail(session, key_expr, err)
                 return False
         gs.last_seen = time.monotonic()
+        gs.seen_frame = max(gs.seen_frame, msg.frame)
         try:
             gs.on_body(msg, key_expr, publish)
         except MessageError as err:
@@ -626,6 +657,23 @@ class ClothService:
             freeze_heap()  # set up and settled into this frame: alive until the session ends
         self._close_if_done(session)
         return False
+
+    def _release_deferred(self) -> None:
+        """Handle the announcements that waited for the frames published before them, with the
+        messages held behind them, once those frames are in (or, lost, after DEFER_SECONDS)."""
+        now = time.monotonic()
+        for session, (after, deadline, stamp, held) in list(self._deferred.items()):
+            gs = self.sessions.get(session)
+            if gs is not None and gs.seen_frame < after and now < deadline:
+                continue
+            del self._deferred[session]
+            if gs is not None and gs.seen_frame < after:
+                log.warning("cloth: session %s: frames up to %d, published before its announcement, did not come in "
+                            "%.0f s; announced again without them", session, after, self.DEFER_SECONDS)
+                gs.stats.add("missed_frames")
+                self._undeferred.add((session, stamp))
+            for k, payload, publish in held:
+                self._handle_counted(k, payload, publish)
 
     def _close_if_done(self, session: str) -> None:
         gs = self.sessions.get(session)

@@ -15,8 +15,8 @@ with meta {"outfit": name, "fabric": preset or null, "level": 1-16 or null} (fab
 optional: the session's stay) is answered at once, {"accepted": true} or {"accepted": false,
 "reason": ...}. An accepted change takes effect at the next frame: the ingest announces the
 session again with the new outfit and that frame's pose (`first_q`; `restart_frame`,
-`restart_reason`), and waits, as at the start, until a cloth service has fitted the new outfit and
-settled it into that pose; the cloth service replaces the session's garments from that frame on.
+`restart_reason`; `after_frame`, the last frame published before it), and waits, as at the
+start, until a cloth service has fitted the new outfit and settled it into that pose; the cloth service replaces the session's garments from that frame on.
 If it cannot (its data lacks the outfit), it keeps the garments the session wore and says so, and
 the ingest latches the description as it was. How it went is put on tryon/<s>/status/ingest
 ({"event": "outfit", "worn": bool, "frame", "reason", "kept"}), which `request_outfit(wait=)` waits for.
@@ -307,8 +307,12 @@ class IngestService:
         with self._change_lock:
             change, self._change = self._change, None
         before, before_payload = dict(self.description), self._description_payload
+        # after_frame: the last frame published before it, which a cloth service steps first (the
+        # body frames come on another key, and zenoh keeps each key's order, not the keys' among
+        # each other: an announcement can reach it ahead of the frames before it)
         self.description.update(change or {}, first_q=[float(v) for v in q], restart_frame=index,
-                                restart_reason="outfit change" if change else "motion jump")
+                                restart_reason="outfit change" if change else "motion jump",
+                                after_frame=self.last_index)
         # a looped source comes back to its first pose: the cloth service settles the new garments
         # into that one too, now (in the pause of the change), to put them back there at each loop
         self.description.pop("loop_q", None)
