@@ -16,7 +16,8 @@ optional: the session's stay) is answered at once, {"accepted": true} or {"accep
 "reason": ...}. An accepted change takes effect at the next frame: the ingest announces the
 session again with the new outfit and that frame's pose (`first_q`; `restart_frame`,
 `restart_reason`; `after_frame`, the last frame published before it), and waits, as at the
-start, until a cloth service has fitted the new outfit and settled it into that pose; the cloth service replaces the session's garments from that frame on.
+start, until a cloth service has fitted the new outfit and settled it into that pose; the cloth
+service replaces the session's garments from that frame on.
 If it cannot (its data lacks the outfit), it keeps the garments the session wore and says so, and
 the ingest latches the description as it was. How it went is put on tryon/<s>/status/ingest
 ({"event": "outfit", "worn": bool, "frame", "reason", "kept"}), which `request_outfit(wait=)` waits for.
