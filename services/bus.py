@@ -178,8 +178,16 @@ class Stats:
         bus.put(key(self.session, "stats", self.service), encode(msg))
 
 
+def put_reliably(bus: zenoh.Session, key_expr: str, payload: bytes) -> None:
+    """Put a message that must not be lost (an announcement, a status, a session's end): where
+    the transmission queue is full, zenoh waits for it rather than drop the message (its default
+    for a put, DROP, suits stats, and garment frames a lagging display may miss)."""
+    bus.put(key_expr, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
 class Latched:
-    """Messages put once and answered to later `get`s (topology, session description, skeleton)."""
+    """Messages put once and answered to later `get`s (topology, session description, skeleton);
+    each put as it is latched, never dropped (`put_reliably`)."""
 
     def __init__(self, bus: zenoh.Session):
         self.bus = bus
@@ -192,7 +200,7 @@ class Latched:
         if first:  # a query may name the key or a wildcard over it: answer with the key itself
             self._queryables.append(self.bus.declare_queryable(
                 key_expr, lambda query, k=key_expr: query.reply(k, self._payloads[k])))
-        self.bus.put(key_expr, payload)
+        put_reliably(self.bus, key_expr, payload)
 
     def close(self) -> None:
         """Stop answering (a later `publish` answers again)."""

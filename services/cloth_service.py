@@ -43,7 +43,7 @@ from cloth.surface import SurfaceSettings
 from skinning.animate import BodyAnimator
 from skinning.body import Body
 
-from .bus import Latched, Stats, fetch_latched, key, parse_key
+from .bus import Latched, Stats, fetch_latched, key, parse_key, put_reliably
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, build_outfit, collision_body, find_outfit
 from .heap import freeze_heap, reclaim_heap
 from .model_cache import ModelCache, object_digest
@@ -536,7 +536,7 @@ class ClothService:
         self.failed[session] = f"session cannot be served: {err}"
         self.stats.reject(MessageError(key_expr, self.failed[session]))
         msg = Message("control", session, meta={"event": "failed", "from": "cloth", "reason": self.failed[session]})
-        self.bus.put(key(session, "status", "cloth"), encode(msg))
+        put_reliably(self.bus, key(session, "status", "cloth"), encode(msg))
 
     def _keep(self, session: str, old: "GarmentSession", announced_ns: int, err: BaseException) -> None:
         """The garments an announcement asked for cannot be served (an outfit this machine's data
@@ -550,7 +550,7 @@ class ClothService:
         old.latch()
         msg = Message("control", session, meta={"event": "failed", "from": "cloth", "reason": reason,
                                                 "kept": old.spec.outfit, "announced_ns": announced_ns})
-        self.bus.put(key(session, "status", "cloth"), encode(msg))
+        put_reliably(self.bus, key(session, "status", "cloth"), encode(msg))
 
     def _set_up(self, session: str, key_expr: str, desc: dict, stamp_ns: int) -> "GarmentSession":
         """On the setup thread: fit the outfit and settle it into the announced first pose."""

@@ -44,7 +44,7 @@ from skinning.retarget import IKSettings
 from skinning.skeleton import Skeleton
 from skinning.source import PoseFrame
 
-from .bus import Latched, Stats, fetch_latched, key, wait_matching
+from .bus import Latched, Stats, fetch_latched, key, put_reliably, wait_matching
 from .heap import freeze_heap
 from .protocol import Message, MessageError, decode, encode
 from .wire import CompactPositions
@@ -360,8 +360,8 @@ class IngestService:
             meta["reason"] = reason
         if kept is not None:
             meta["kept"] = kept
-        self.bus.put(key(self.session, "status", self.SERVICE), encode(Message("control", self.session, index,
-                                                                                meta=meta)))
+        put_reliably(self.bus, key(self.session, "status", self.SERVICE),
+                     encode(Message("control", self.session, index, meta=meta)))
 
     def publish(self, frame: PoseFrame, origin_ns: int = 0, out=None) -> None:
         """Retarget + skin one pose (unless `out`, its BodyFrame, is given) and publish the body."""
@@ -487,10 +487,10 @@ class IngestService:
         return self.frames
 
     def end(self) -> None:
-        self.bus.put(key(self.session, "control"), encode(Message("control", self.session, self.frames,
-                                                                  meta={"event": "end", "from": "ingest",
-                                                                        "frames": self.frames,
-                                                                        "last_frame": self.last_index})))
+        put_reliably(self.bus, key(self.session, "control"),
+                     encode(Message("control", self.session, self.frames,
+                                    meta={"event": "end", "from": "ingest", "frames": self.frames,
+                                          "last_frame": self.last_index})))
         self.stats.publish(self.bus, force=True)
 
     def close(self) -> None:
@@ -579,8 +579,9 @@ def publish_capture(bus: zenoh.Session, session: str, source, start_frame: int =
             pub.put(encode(msg))
             n += 1
     finally:
-        bus.put(key(session, "control"), encode(Message("control", session, n, meta={"event": "end", "from": "capture",
-                                                                      "last_frame": last})))
+        put_reliably(bus, key(session, "control"),
+                     encode(Message("control", session, n, meta={"event": "end", "from": "capture",
+                                                                 "last_frame": last})))
         pub.undeclare()
         time.sleep(0.2)  # let late skeleton queries be answered before the queryable goes
         latched.close()

@@ -554,6 +554,38 @@ def test_a_joining_session_does_not_stall_the_running_ones(hub, body, data, monk
             b.close()
 
 
+def test_what_must_not_be_lost_is_never_dropped_under_congestion(hub, body, data):
+    """Zenoh's put drops a message where the transmission queue is full (its default, DROP): right
+    for stats and for garment frames a lagging display may miss, not for a session's
+    announcement, its "ready" or its end. Those come with congestion control BLOCK, which
+    each sample carries to its subscriber."""
+    port, _ = hub
+    bus, watch = peer(port), peer(port)
+    seen: list[tuple[str, str]] = []
+    subs = [watch.declare_subscriber(key("unlost", k),
+                                     lambda s: seen.append((str(s.key_expr), str(s.congestion_control))))
+            for k in ("session", "control", "status/*", "stats/*", "garment/*")]
+    try:
+        source = BVHSource(mocap_clip(data), every=2, max_frames=4)
+        svc = IngestService(bus, "unlost", body, source, {"outfit": OUTFIT, "level": LEVEL})
+        assert svc.run(start_frame=START_FRAME, wait_subscribers=10, wait_ready=20) == 3
+        wait_until(lambda: any(k.endswith("/control") for k, _ in seen)
+                   and sum("/garment/" in k for k, _ in seen) == 2 * 3 and any("/stats/" in k for k, _ in seen), 30,
+                   "the session's end, garments and stats")
+        svc.close()
+        got = {parse_key(k)[1][0]: set() for k, _ in seen}
+        for k, cc in seen:
+            got[parse_key(k)[1][0]].add(cc)
+        for what in ("session", "status", "control"):
+            assert got[what] == {str(zenoh.CongestionControl.BLOCK)}, what
+        assert got["garment"] == got["stats"] == {str(zenoh.CongestionControl.DROP)}
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        bus.close()
+        watch.close()
+
+
 def test_a_session_announced_again_starts_a_new_run(hub, body, data):
     """An ingest that stopped without its end message (a crash) and starts again under the
     same session name: the cloth service closes the unfinished run and serves the new one
