@@ -19,7 +19,9 @@ of its own (zenoh-python's callbacks): each key's messages keep their order, the
 do not among each other. A session announced again (an outfit change, a looped clip starting
 over) names the last frame its ingest published before (`after_frame`); the announcement waits
 until that frame is in (DEFER_SECONDS at most), so those frames are stepped with the garments
-they were meant for, and whatever came for the session meanwhile waits behind it.
+they were meant for, and whatever came for the session meanwhile waits behind it. The other
+way round, each body frame names the announcement it follows (`run`; a replay sends frames
+without waiting for "ready"): a frame of an announcement not yet here waits for it.
 """
 
 from __future__ import annotations
@@ -52,6 +54,12 @@ from .spin import SpinPool, check_cpus, pin_to_cpu, spin_get
 from .wire import CompactMesh, body_vertices, vertex_count
 
 log = logging.getLogger("tryon.cloth")
+
+
+def run_of(desc: dict) -> int:
+    """Which of its session's announcements a description is (`run`; 0 if it does not say)."""
+    run = desc.get("run", 0)
+    return run if isinstance(run, int) and not isinstance(run, bool) else 0
 
 
 def _yielding_thread() -> None:
@@ -114,6 +122,7 @@ class GarmentSession:
         self.body_x = np.empty((service.body.n_visible, 3))
         self.last_frame = -1
         self.seen_frame = -1  # the newest body frame that reached it, stepped or rejected
+        self.run = 0  # which of the session's announcements its garments are from (`run` in the description)
         self.started = False
         self.skin_contact = True
         self.announced_ns = 0  # stamp of the announcement it was set up from (0: none)
@@ -206,12 +215,12 @@ class GarmentSession:
                 and len(q) == len(self.start_q) and all(isinstance(v, (int, float)) for v in q)
                 and np.array_equal(np.array(q, dtype=np.float64), self.start_q))
 
-    def restart(self, announced_ns: int) -> None:
+    def restart(self, announced_ns: int, run: int) -> None:
         """The garments back as they were settled at the session's start (`starts_again_as_before`),
         at once: what fitting and settling them again would give, bit for bit, without the
         second's pause."""
         self._start_state().restore()
-        self.announced_ns = announced_ns
+        self.announced_ns, self.run = announced_ns, run
         self.skipped_since = 0
         self.stats.add("restarts")
         self._report_ready()
@@ -378,6 +387,10 @@ class ClothService:
         # messages held meanwhile (the announcement first)
         self._deferred: dict[str, tuple[int, float, int, list[tuple[str, bytes, bool]]]] = {}
         self._undeferred: set[tuple[str, int]] = set()  # (session, stamp): announcements no longer waiting
+        # the other way round: body frames of an announcement not yet here (their `run` is ahead of
+        # the session's), held until it is (DEFER_SECONDS at most), with what came after them
+        self._awaiting: dict[str, tuple[int, float, list[tuple[str, bytes, bool]]]] = {}
+        self._join_anyway: set[str] = set()  # sessions joined from their latched description after such a wait
         self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
         self._subs = [bus.declare_subscriber(key(sessions, k), self._queue.put) for k in ("session", "body", "control")]
         self._stop = threading.Event()
@@ -461,9 +474,10 @@ class ClothService:
             self._finish_setups()
             try:
                 spin = max(0.0, self.spin - (time.monotonic() - self._last_work))
-                batch = [spin_get(self._queue, spin, 0.01 if self._preparing or self._deferred else 0.2)]
+                batch = [spin_get(self._queue, spin,
+                                  0.01 if self._preparing or self._deferred or self._awaiting else 0.2)]
             except queue.Empty:
-                self._release_deferred()
+                self._release_held()
                 self._drop_idle()
                 continue
             if self.catch_up:  # everything already waiting: only each session's newest frame is published
@@ -480,8 +494,8 @@ class ClothService:
             for i, sample in enumerate(batch):
                 k = str(sample.key_expr)
                 self._handle_counted(k, sample.payload.to_bytes(), newest.get(k, i) == i)
-                if self._deferred:
-                    self._release_deferred()
+                if self._deferred or self._awaiting:
+                    self._release_held()
             self._last_work = time.monotonic()
 
     def _handle_counted(self, key_expr: str, payload: bytes, publish: bool) -> None:
@@ -555,7 +569,7 @@ class ClothService:
     def _set_up(self, session: str, key_expr: str, desc: dict, stamp_ns: int) -> "GarmentSession":
         """On the setup thread: fit the outfit and settle it into the announced first pose."""
         gs = self._new_session(session, key_expr, desc)
-        gs.announced_ns = stamp_ns
+        gs.announced_ns, gs.run = stamp_ns, run_of(desc)
         try:
             gs.start_from_description(desc, key_expr)
         except BaseException:
@@ -579,6 +593,10 @@ class ClothService:
         deferred = self._deferred.get(session)
         if deferred is not None and not (msg.kind == "body" and msg.frame <= deferred[0]):
             deferred[3].append((key_expr, payload, publish))  # after the announcement waiting for those frames
+            return True
+        awaiting = self._awaiting.get(session)
+        if awaiting is not None and msg.kind != "session":
+            awaiting[2].append((key_expr, payload, publish))  # behind the frames waiting for their announcement
             return True
         if msg.kind == "control":
             if msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
@@ -609,7 +627,7 @@ class ClothService:
                     # a looped clip back at its first pose: the garments as they were settled there
                     log.info("cloth: session %s starts its garments again (%s) from frame %s, as settled at its "
                              "start", session, msg.meta.get("restart_reason"), msg.meta["restart_frame"])
-                    old.restart(msg.stamp_ns)
+                    old.restart(msg.stamp_ns, run_of(msg.meta))
                     return False
                 # announced anew: its ingest changed the outfit or its motion jumped (a looped clip
                 # starting again; services.ingest), or its last run
@@ -636,16 +654,31 @@ class ClothService:
         if gs is None and msg.stamp_ns <= self.ended.get(session, -1):
             self.stats.reject(MessageError(key_expr, f"frame {msg.frame} arrives after the session's end"))
             return False
+        run = msg.meta.get("run")
+        if gs is not None and isinstance(run, int) and run > gs.run:
+            # a frame of an announcement still on its way (the session key's samples come on another
+            # thread): it waits for it, and so does what comes after it
+            self._awaiting[session] = (run, time.monotonic() + self.DEFER_SECONDS, [(key_expr, payload, publish)])
+            return True
         joined = gs is None
         if joined:
             if session in self.failed:
                 self.stats.reject(MessageError(key_expr, self.failed[session]))
                 return False
             try:
-                gs = self._open(session, key_expr)
+                gs = self._new_session(session, key_expr)
             except (MessageError, FileNotFoundError, ValueError) as err:
                 self._fail(session, key_expr, err)
                 return False
+            if isinstance(run, int) and run != gs.run and session not in self._join_anyway:
+                # the latched description is another announcement's than this frame's (a replay
+                # ahead of the frames, or the frame ahead of its announcement): it waits for its own
+                gs.close()
+                self._awaiting[session] = (run, time.monotonic() + self.DEFER_SECONDS,
+                                           [(key_expr, payload, publish)])
+                return True
+            self._join_anyway.discard(session)
+            self.sessions[session] = gs
         gs.last_seen = time.monotonic()
         gs.seen_frame = max(gs.seen_frame, msg.frame)
         try:
@@ -658,10 +691,27 @@ class ClothService:
         self._close_if_done(session)
         return False
 
-    def _release_deferred(self) -> None:
+    def _release_held(self) -> None:
         """Handle the announcements that waited for the frames published before them, with the
-        messages held behind them, once those frames are in (or, lost, after DEFER_SECONDS)."""
+        messages held behind them, once those frames are in (or, lost, after DEFER_SECONDS); and
+        the frames that waited for their announcement, once it is in (or after DEFER_SECONDS)."""
         now = time.monotonic()
+        for session, (run, deadline, held) in list(self._awaiting.items()):
+            gs = self.sessions.get(session)
+            came = session in self._preparing or (gs is not None and gs.run >= run)
+            if not came and now < deadline:
+                continue
+            del self._awaiting[session]
+            if not came:
+                log.warning("cloth: session %s: frames of its announcement %d came, the announcement did not in "
+                            "%.0f s; they are stepped with the garments it has", session, run, self.DEFER_SECONDS)
+                if gs is not None:
+                    gs.stats.add("unannounced_frames")
+                    gs.run = run
+                else:
+                    self._join_anyway.add(session)  # from the latched description, whichever it is
+            for k, payload, publish in held:
+                self._handle_counted(k, payload, publish)
         for session, (after, deadline, stamp, held) in list(self._deferred.items()):
             gs = self.sessions.get(session)
             if gs is not None and gs.seen_frame < after and now < deadline:
@@ -683,15 +733,11 @@ class ClothService:
             self.sessions.pop(session).close()
             self._reclaim_if_idle()
 
-    def _open(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
-        gs = self._new_session(session, key_expr, desc)
-        self.sessions[session] = gs
-        return gs
-
     def _new_session(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
         found = {} if desc is not None else fetch_latched(self.bus, key(session, "session"), timeout=2.0,
                                                          stats=self.stats)
-        desc = desc if desc is not None else (next(iter(found.values())).meta if found else {})
+        latched = next(iter(found.values()), None)
+        desc = desc if desc is not None else (latched.meta if latched is not None else {})
         if not desc:
             log.warning("cloth: session %s has no description on %s; using the defaults", session,
                         key(session, "session"))
@@ -701,7 +747,14 @@ class ClothService:
             raise MessageError(key(session, "session"), f"'frame_time' must be seconds in (0, 1), got {ft!r}")
         log.info("cloth: session %s: outfit %s, fabric %s, level %s, dt %.4f s", session, spec.outfit,
                  spec.fabric or "presets", spec.level, ft)
-        return GarmentSession(self, session, spec, float(ft))
+        gs = GarmentSession(self, session, spec, float(ft))
+        if latched is not None:
+            # joined from a body frame, set up from the latched announcement: that announcement,
+            # arriving after the frame (another key, another thread), is the one it was set up from
+            gs.announced_ns, gs.run = latched.stamp_ns, run_of(desc)
+            contact = desc.get("skin_contact", True)
+            gs.skin_contact = contact if isinstance(contact, bool) else True
+        return gs
 
     def _drop_idle(self) -> None:
         now = time.monotonic()

@@ -15,7 +15,8 @@ with meta {"outfit": name, "fabric": preset or null, "level": 1-16 or null} (fab
 optional: the session's stay) is answered at once, {"accepted": true} or {"accepted": false,
 "reason": ...}. An accepted change takes effect at the next frame: the ingest announces the
 session again with the new outfit and that frame's pose (`first_q`; `restart_frame`,
-`restart_reason`; `after_frame`, the last frame published before it), and waits, as at the
+`restart_reason`; `after_frame`, the last frame published before it; `run`, one more than the
+announcement's before, which each body frame names), and waits, as at the
 start, until a cloth service has fitted the new outfit and settled it into that pose; the cloth
 service replaces the session's garments from that frame on.
 If it cannot (its data lacks the outfit), it keeps the garments the session wore and says so, and
@@ -234,6 +235,7 @@ class IngestService:
         self.description = dict(description, frame_time=source.frame_time, body_vertices=body.n_visible,
                                 arm_clearance_deg=self.animator.retargeter.ik.arm_clearance_deg,
                                 hand_clearance=self.animator.retargeter.ik.hand_clearance is not None,
+                                run=0,  # which announcement: 0, then one more at each announcement again
                                 skin_contact=contact is not None)
         self.publisher = bus.declare_publisher(key(session, "body"), congestion_control=zenoh.CongestionControl.BLOCK,
                                                reliability=zenoh.Reliability.RELIABLE)
@@ -313,7 +315,7 @@ class IngestService:
         # each other: an announcement can reach it ahead of the frames before it)
         self.description.update(change or {}, first_q=[float(v) for v in q], restart_frame=index,
                                 restart_reason="outfit change" if change else "motion jump",
-                                after_frame=self.last_index)
+                                after_frame=self.last_index, run=self.description.get("run", 0) + 1)
         # a looped source comes back to its first pose: the cloth service settles the new garments
         # into that one too, now (in the pause of the change), to put them back there at each loop
         self.description.pop("loop_q", None)
@@ -379,6 +381,7 @@ class IngestService:
         st = self.animator.stage_seconds
         meta = {f"{s}_ms": round(float(st[i]) * 1000, 4) for i, s in enumerate(STAGES) if s != "normals"}
         meta["ankle_error_mm"] = round(float(out.retarget.ankle_position_error.max()) * 1000, 4)
+        meta["run"] = self.description["run"]  # the announcement it follows (a cloth service waits for one it lacks)
         msg = Message("body", self.session, frame.index, frame.time, arrays, meta, origin_ns=origin_ns)
         self.publisher.put(encode(msg))
         self.frames += 1

@@ -168,8 +168,10 @@ def replay(bus: zenoh.Session, path: str | Path, session: str | None = None, spe
     speed: 1 = original pace, 2 = twice as fast, 0 = as fast as possible.
     kinds: only these key kinds (e.g. {"session", "topology", "body"} to feed a fresh cloth service).
     Latched kinds (session, topology, skeleton) are also answered to queries while the replay runs,
-    and for `linger` seconds after it. wait_subscribers: wait up to this long for a subscriber on each
-    key before its first message (a service that has just connected)."""
+    and for `linger` seconds after it: those recorded before the first frame at once, a later
+    one (the session announced again, a new garment's topology) where it was recorded.
+    wait_subscribers: wait up to this long for a subscriber on each key before its first message
+    (a service that has just connected)."""
     if session is not None:
         check_session_name(session)
     latched = Latched(bus)
@@ -187,17 +189,18 @@ def replay(bus: zenoh.Session, path: str | Path, session: str | None = None, spe
             skipped += 1
             return None
 
-    # latched messages first, so a service that starts on the first frame can query them
-    for k, payload, _ in read_recording(path, set(LATCHED) if kinds is None else set(LATCHED) & kinds):
-        if (renamed := rename(k, payload)) is not None:
-            latched.publish(*renamed)
     publishers: dict[str, zenoh.Publisher] = {}
     n, t0, start = 0, None, time.perf_counter()
     try:
         for k, payload, log_time in read_recording(path, kinds):
             if stop is not None and stop.is_set():
                 break
-            if parse_key(k)[1][0] in LATCHED:
+            is_latched = parse_key(k)[1][0] in LATCHED
+            if is_latched and t0 is None:
+                # the latched messages before the first frame, at once: a service that starts on
+                # the first frame can query them
+                if (renamed := rename(k, payload)) is not None:
+                    latched.publish(*renamed)
                 continue
             t0 = log_time if t0 is None else t0
             if speed > 0:
@@ -208,6 +211,9 @@ def replay(bus: zenoh.Session, path: str | Path, session: str | None = None, spe
             if renamed is None:
                 continue
             k2, p2 = renamed
+            if is_latched:  # a later one (the session announced again, a new garment's topology): at its time
+                latched.publish(k2, p2)
+                continue
             pub = publishers.get(k2)
             if pub is None:
                 pub = publishers[k2] = bus.declare_publisher(k2, congestion_control=zenoh.CongestionControl.BLOCK)

@@ -377,6 +377,67 @@ def test_replay_reproduces_garment_meshes_exactly(hub, body, data, tmp_path):
             bus2.close()
 
 
+def test_replay_of_a_looped_session_reproduces_its_garments_and_its_restart(hub, body, data, tmp_path):
+    """A recorded session that was announced again mid-stream (a looped clip starting over):
+    replayed as fast as it goes into a fresh cloth service, its garments are the recorded ones
+    bit for bit, the loop's too. The later announcement is published where it was recorded (not
+    with the first one before the frames, which restarted the garments at once or, coming while
+    the first was being set up, was lost), and the cloth service steps the frames before it
+    first; a first frame that overtakes the first announcement joins the session from the
+    latched announcement, which then is not taken for a new run."""
+    port, _ = hub
+    bus = peer(port)
+    new = "female_elegantsuit01"
+    try:
+        recorder = Recorder(bus, "loopy", tmp_path / "loopy.mcap")
+        recorded_garments = set()
+        write = recorder.write
+
+        def counting_write(key_expr, payload):
+            write(key_expr, payload)
+            m = decode(payload)
+            if m.kind == "garment":
+                recorded_garments.add((key_expr, m.frame))
+
+        recorder.write = counting_write
+        garments = Collector(bus, key("loopy", "garment", "*"))
+        source = BVHSource(mocap_clip(data), every=2, loop=True, loop_from=START_FRAME, max_frames=38 + 8)
+        svc = IngestService(bus, "loopy", body, source, {"outfit": new, "level": LEVEL},
+                            check_outfit=outfit_checker(data))
+        svc.run(start_frame=START_FRAME, wait_subscribers=10, wait_ready=30)
+        assert svc.restarts == 1
+        frames = 38 + 8 - START_FRAME
+        wait_until(lambda: len(garments.messages) == 2 * frames, 60, "the original garments")
+        wait_until(lambda: len(recorded_garments) == 2 * frames, 30, "the recorder to have every garment frame")
+        path = recorder.close()
+        svc.close()
+        garments.close()
+    finally:
+        bus.close()
+    recorded = {(k.split("/", 2)[2], decode(p).frame): decode(p) for k, p, _ in read_recording(path, {"garment"})}
+    assert len(recorded) == 2 * frames
+    port2 = free_port()
+    bus2 = BusConfig(listen=[f"tcp/127.0.0.1:{port2}"]).open()
+    fresh = ClothService(bus2, body, data, OutfitSpec(OUTFIT, None, LEVEL)).start()
+    player = peer(port2)
+    try:
+        out = Collector(bus2, key("loopy2", "garment", "*"))
+        replay(player, path, session="loopy2", speed=0, kinds={"session", "topology", "body", "control"},
+               wait_subscribers=10, linger=3)
+        wait_until(lambda: len(out.messages) == len(recorded), 120, "the replayed garments")
+        wait_until(lambda: "loopy2" in fresh.closed_stats, 30, "the replayed session's end")
+        assert fresh.closed_stats["loopy2"]["counts"]["restarts"] == 1
+        for k, m in out.messages:
+            ref = recorded[(k.split("/", 2)[2], m.frame)]
+            for name, a in m.arrays.items():
+                assert a.tobytes() == ref.arrays[name].tobytes(), f"{k} frame {m.frame} {name}"
+        out.close()
+    finally:
+        fresh.stop()
+        player.close()
+        bus2.close()
+
+
 def test_malformed_messages_are_rejected_counted_and_the_session_goes_on(hub, body, data, caplog):
     port, cloth = hub
     bus = peer(port)
@@ -830,17 +891,20 @@ class _Sample:
         self.key_expr, self.payload = key_expr, zenoh.ZBytes(payload)
 
 
-@pytest.mark.parametrize("set_up_first, lost", [(True, False), (False, False), (True, True)],
-                         ids=["after-setup", "during-setup", "frame-lost"])
-def test_an_announcement_ahead_of_the_frames_before_it_waits_for_them(body, data, set_up_first, lost):
+@pytest.mark.parametrize("case", ["after-setup", "during-setup", "frame-lost", "announcement-late",
+                                  "first-frame-first"])
+def test_messages_of_three_keys_in_any_order_give_the_same_garments(body, data, case):
     """Zenoh keeps the order of one key's samples, not of two keys' (each subscriber's callback
-    runs on a thread of its own): a looped clip's announcement can reach the cloth service ahead
-    of the last body frame before the jump. That frame, stepped after the garments were put back,
+    runs on a thread of its own). A looped clip's announcement can reach the cloth service ahead
+    of the last body frame before the jump: that frame, stepped after the garments were put back,
     dragged them 3.5 m (seen in CI). The announcement names the last frame published before it
-    (`after_frame`): the cloth service steps the frames up to it first, then puts the garments
-    back, and the loop's garments are the first pass's, bit for bit. One that comes while the
-    session is still being set up is handled after the setup, in order, not dropped. A frame
-    that never comes is waited for DEFER_SECONDS, and counted."""
+    (`after_frame`), and the cloth service steps the frames up to it first; one that comes while
+    the session is still being set up is handled after the setup, in order, not dropped; a frame
+    that never comes is waited for DEFER_SECONDS, and counted. The other way round (a replay:
+    no ingest waits there for "ready"), frames can come ahead of their announcement: each names
+    the announcement it follows (`run`), and waits for it; a first frame ahead of the first
+    announcement does not join the session from a latched description that is another run's.
+    In every order the loop's garments are the first pass's, bit for bit."""
     # a looped session's messages as its ingest puts them, taken off a bus of their own
     port = free_port()
     capture = BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open()
@@ -864,26 +928,38 @@ def test_an_announcement_ahead_of_the_frames_before_it_waits_for_them(body, data
     msgs = [(k, p, decode(p, k)) for k, p in sent]
     first, again = sorted((m for m in msgs if m[2].kind == "session"), key=lambda m: m[2].stamp_ns)
     assert again[2].meta["restart_frame"] == 38 and again[2].meta["after_frame"] == 37
+    assert (first[2].meta["run"], again[2].meta["run"]) == (0, 1)
     bodies = {m.frame: (k, p) for k, p, m in msgs if m.kind == "body"}
+    assert [decode(bodies[f][1]).meta["run"] for f in (37, 38)] == [0, 1]
     end = next((k, p) for k, p, m in msgs if m.kind == "control")
 
     bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
     cloth = ClothService(bus, body, data, OutfitSpec(OUTFIT, None, LEVEL)).start()
     worn = Collector(bus, key("replayed", "garment", "*"))
+    # the latched description a cloth service joining from a body frame reads: the loop's, ahead
+    # of the frames (as a replay as fast as it goes has it)
+    latched = bus.declare_queryable(again[0], lambda q: q.reply(again[0], again[1]))
+    lost = case == "frame-lost"
     try:
         def feed(items):
             for k, p in items:
                 cloth._queue.put(_Sample(k, p))  # in this order, as zenoh's threads might
 
-        feed([first[:2]] + [bodies[f] for f in range(START_FRAME, 37)])
-        if set_up_first:
+        if case == "first-frame-first":
+            feed([bodies[START_FRAME], first[:2]] + [bodies[f] for f in range(START_FRAME + 1, 37)])
+        else:
+            feed([first[:2]] + [bodies[f] for f in range(START_FRAME, 37)])
+        if case != "during-setup":
             wait_until(lambda: {m.frame for _, m in worn.messages} >= {36}, 60, "the frames before the loop")
-        # the announcement of the loop ahead of frame 37, the last frame before it
-        feed([again[:2]] + ([] if lost else [bodies[37]]) + [bodies[f] for f in range(38, 38 + 8)] + [end])
+        if case == "announcement-late":  # the loop's frames ahead of its announcement
+            feed([bodies[f] for f in range(37, 38 + 8)] + [end, again[:2]])
+        else:  # the announcement of the loop ahead of frame 37, the last frame before it
+            feed([again[:2]] + ([] if lost else [bodies[37]]) + [bodies[f] for f in range(38, 38 + 8)] + [end])
         wait_until(lambda: "replayed" in cloth.closed_stats and len(worn.messages) == 2 * (len(bodies) - lost), 60,
                    "the session's end")
         counts = cloth.closed_stats["replayed"]["counts"]
         assert counts["restarts"] == 1 and counts.get("missed_frames", 0) == lost
+        assert "unannounced_frames" not in counts
         got = {(m.frame, k): m.arrays for k, m in worn.messages}
         for f in range(38, 38 + 8):
             for g in ("female_elegantsuit01.bottom", "female_elegantsuit01.top"):
@@ -891,6 +967,7 @@ def test_an_announcement_ahead_of_the_frames_before_it_waits_for_them(body, data
                 for name, a in got[(f, k)].items():
                     np.testing.assert_array_equal(a, got[(f - 38 + START_FRAME, k)][name], err_msg=f"{g} {name} {f}")
     finally:
+        latched.undeclare()
         worn.close()
         cloth.stop()
         bus.close()
