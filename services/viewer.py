@@ -312,6 +312,12 @@ class ViewerBridge:
                 raise MessageError(key_expr, "no topology latched for this mesh yet")
         topo = self.topology[ent]
         n = vertex_count(msg.arrays)
+        if n != topo["n_vertices"] and msg.kind == "garment":
+            # the garment's new topology (another level), its frame ahead of the cloth service's
+            # "ready" (another key, another thread): read it again rather than lose the frame
+            old = self.topology.pop(ent)
+            self.fetch_topology()
+            topo = self.topology.setdefault(ent, old)
         if n != topo["n_vertices"]:
             raise MessageError(key_expr, f"{n} vertices, the topology has {topo['n_vertices']}")
         if msg.kind == "body":  # (compact: decoded into a fresh array, as the garments)

@@ -24,7 +24,7 @@ from services.cloth_job import START_FRAME, outfit_checker
 from services.cloth_service import ClothService, OutfitSpec
 from services.bus import Stats
 from services.ingest import BusPoseSource, IngestService, publish_capture, request_outfit
-from services.protocol import Message, decode, encode
+from services.protocol import Message, MessageError, decode, encode
 from services.recorder import Recorder, read_recording, replay
 from services.viewer import RecordingSink, ViewerBridge
 from services.wire import body_vertices, garment_mesh
@@ -261,6 +261,46 @@ def test_late_joining_display_gets_topology_and_frames(hub, body, data, tmp_path
     finally:
         stop.set()
         t.join(30)
+        bus.close()
+
+
+def test_a_display_reads_a_garments_new_topology_when_its_frame_comes_first(tmp_path):
+    """A garment worn again at another level keeps its name and gets another topology; its first
+    frame can reach a display ahead of the cloth service's "ready" (another key, another thread).
+    The viewer bridge reads the latched topology again rather than reject the frame; a frame that
+    matches neither (a stale one of the old topology) is still rejected, and counted."""
+    from services.bus import Latched
+    from services.wire import CompactMesh
+
+    bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
+    latched = Latched(bus)
+    sink = RecordingSink("relevel", rrd=tmp_path / "relevel.rrd")
+    try:
+        k = key("relevel", "topology", "garment", "g")
+
+        def topology(n_quads):  # a strip of n_quads quads: 2 n_quads + 2 vertices
+            tris = np.array([(2 * i + a, 2 * i + b, 2 * i + c) for i in range(n_quads) for a, b, c in
+                             ((0, 1, 2), (1, 3, 2))], np.int32)
+            latched.publish(k, encode(Message("topology", "relevel", arrays={"triangles": tris},
+                                              meta={"what": "garment", "garment": "g", "n_vertices": 2 * n_quads + 2})))
+
+        def frame(f, n):
+            p = np.random.default_rng(f).random((n, 3))
+            nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
+            return encode(Message("garment", "relevel", f, f / 60, CompactMesh(n).encode(p, nrm), {"garment": "g"}))
+
+        topology(1)
+        bridge = ViewerBridge(bus, "relevel", sink)
+        garment = key("relevel", "garment", "g")
+        bridge.show(garment, frame(0, 4))
+        topology(3)  # the garment at a finer level: 8 vertices
+        bridge.show(garment, frame(1, 8))
+        assert bridge.frames_shown["world/garment/g"] == 1 and bridge.topology["world/garment/g"]["n_vertices"] == 8
+        with pytest.raises(MessageError, match="4 vertices, the topology has 8"):
+            bridge.show(garment, frame(2, 4))
+    finally:
+        latched.close()
+        sink.close()
         bus.close()
 
 
