@@ -56,6 +56,23 @@ from .wire import CompactMesh, body_vertices, vertex_count
 log = logging.getLogger("tryon.cloth")
 
 
+@dataclass
+class Hold:
+    """A session's messages held until what they wait for is in (`ClothService.DEFER_SECONDS` at
+    most): an announcement that came ahead of the body frames before it waits for frame `frame`
+    (its `after_frame`; -1: none), body frames that came ahead of their announcement wait for
+    announcement `run` (-1: none); what comes for the session meanwhile waits behind them."""
+
+    frame: int
+    run: int
+    deadline: float
+    messages: list[tuple[str, bytes, bool]]
+
+    def lets_through(self, msg: Message) -> bool:
+        """Whether msg is what the hold waits for (not held behind it)."""
+        return (msg.kind == "body" and msg.frame <= self.frame) or (msg.kind == "session" and self.run >= 0)
+
+
 def run_of(desc: dict) -> int:
     """Which of its session's announcements a description is (`run`; 0 if it does not say)."""
     run = desc.get("run", 0)
@@ -381,16 +398,9 @@ class ClothService:
         # were and the new announcement's stamp, kept until the new ones are ready, and kept on if
         # they cannot be
         self._replaced: dict[str, tuple[GarmentSession, int]] = {}
-        # a session announced again ahead of frames published before the announcement (each key's
-        # samples come in order, on a thread of their own, not the keys' among each other): the
-        # last of those frames, until when they are waited for, the announcement's stamp, and the
-        # messages held meanwhile (the announcement first)
-        self._deferred: dict[str, tuple[int, float, int, list[tuple[str, bytes, bool]]]] = {}
-        self._undeferred: set[tuple[str, int]] = set()  # (session, stamp): announcements no longer waiting
-        # the other way round: body frames of an announcement not yet here (their `run` is ahead of
-        # the session's), held until it is (DEFER_SECONDS at most), with what came after them
-        self._awaiting: dict[str, tuple[int, float, list[tuple[str, bytes, bool]]]] = {}
-        self._join_anyway: set[str] = set()  # sessions joined from their latched description after such a wait
+        # each key's samples come in order, on a thread of their own, not the keys' among each
+        # other: a session's messages that came ahead of what they follow, held until it is in
+        self._held: dict[str, Hold] = {}
         self._queue: queue.Queue = queue.Queue(maxsize=queue_frames)
         self._subs = [bus.declare_subscriber(key(sessions, k), self._queue.put) for k in ("session", "body", "control")]
         self._stop = threading.Event()
@@ -474,8 +484,7 @@ class ClothService:
             self._finish_setups()
             try:
                 spin = max(0.0, self.spin - (time.monotonic() - self._last_work))
-                batch = [spin_get(self._queue, spin,
-                                  0.01 if self._preparing or self._deferred or self._awaiting else 0.2)]
+                batch = [spin_get(self._queue, spin, 0.01 if self._preparing or self._held else 0.2)]
             except queue.Empty:
                 self._release_held()
                 self._drop_idle()
@@ -494,14 +503,14 @@ class ClothService:
             for i, sample in enumerate(batch):
                 k = str(sample.key_expr)
                 self._handle_counted(k, sample.payload.to_bytes(), newest.get(k, i) == i)
-                if self._deferred or self._awaiting:
+                if self._held:
                     self._release_held()
             self._last_work = time.monotonic()
 
-    def _handle_counted(self, key_expr: str, payload: bytes, publish: bool) -> None:
+    def _handle_counted(self, key_expr: str, payload: bytes, publish: bool, wait: bool = True) -> None:
         """handle() one message and count it done, unless it waits for its session's setup."""
         try:
-            held = self.handle(key_expr, payload, publish=publish)
+            held = self.handle(key_expr, payload, publish=publish, wait=wait)
         except Exception:  # noqa: BLE001 - a bug in one session must not stop the others
             log.exception("cloth: failed on %s", key_expr)
             self.stats.add("errors")
@@ -577,9 +586,10 @@ class ClothService:
             raise
         return gs
 
-    def handle(self, key_expr: str, payload: bytes, publish: bool = True) -> bool:
-        """Act on one message. Returns True when it is held until its session's setup finishes
-        (it is handled again then)."""
+    def handle(self, key_expr: str, payload: bytes, publish: bool = True, wait: bool = True) -> bool:
+        """Act on one message. Returns True when it is held until its session's setup finishes,
+        or until what it follows is in (`Hold`; it is handled again then). wait=False: it waited
+        already, as long as a Hold waits, and goes on without."""
         try:
             session, rest = parse_key(key_expr)
             msg = decode(payload, key_expr, session, rest[0] if rest[0] in ("session", "body", "control") else None)
@@ -590,13 +600,9 @@ class ClothService:
         if session in self._preparing:  # (announced again while being set up: handled after it, in order)
             self._preparing[session][1].append((key_expr, payload, publish))
             return True
-        deferred = self._deferred.get(session)
-        if deferred is not None and not (msg.kind == "body" and msg.frame <= deferred[0]):
-            deferred[3].append((key_expr, payload, publish))  # after the announcement waiting for those frames
-            return True
-        awaiting = self._awaiting.get(session)
-        if awaiting is not None and msg.kind != "session":
-            awaiting[2].append((key_expr, payload, publish))  # behind the frames waiting for their announcement
+        hold = self._held.get(session)
+        if hold is not None and not hold.lets_through(msg):
+            hold.messages.append((key_expr, payload, publish))
             return True
         if msg.kind == "control":
             if msg.meta.get("event") == "end" and msg.meta.get("from") == "ingest":
@@ -615,14 +621,10 @@ class ClothService:
                 if msg.stamp_ns <= old.announced_ns:
                     return False  # the announcement it was set up from
                 after = msg.meta.get("after_frame")
-                if (isinstance(after, int) and after > old.seen_frame
-                        and (session, msg.stamp_ns) not in self._undeferred):
+                if wait and isinstance(after, int) and after > old.seen_frame:
                     # frames its ingest published before this are still on their way (the body key's
                     # samples come on another thread): they are stepped first, with these garments
-                    self._deferred[session] = (after, time.monotonic() + self.DEFER_SECONDS, msg.stamp_ns,
-                                               [(key_expr, payload, publish)])
-                    return True
-                self._undeferred.discard((session, msg.stamp_ns))
+                    return self._hold(session, after, -1, key_expr, payload, publish)
                 if "restart_frame" in msg.meta and old.starts_again_as_before(msg.meta):
                     # a looped clip back at its first pose: the garments as they were settled there
                     log.info("cloth: session %s starts its garments again (%s) from frame %s, as settled at its "
@@ -655,29 +657,30 @@ class ClothService:
             self.stats.reject(MessageError(key_expr, f"frame {msg.frame} arrives after the session's end"))
             return False
         run = msg.meta.get("run")
-        if gs is not None and isinstance(run, int) and run > gs.run:
+        run = run if isinstance(run, int) and not isinstance(run, bool) else None
+        if wait and gs is not None and run is not None and run > gs.run:
             # a frame of an announcement still on its way (the session key's samples come on another
             # thread): it waits for it, and so does what comes after it
-            self._awaiting[session] = (run, time.monotonic() + self.DEFER_SECONDS, [(key_expr, payload, publish)])
-            return True
+            return self._hold(session, -1, run, key_expr, payload, publish)
         joined = gs is None
         if joined:
             if session in self.failed:
                 self.stats.reject(MessageError(key_expr, self.failed[session]))
                 return False
+            latched = next(iter(fetch_latched(self.bus, key(session, "session"), timeout=2.0,
+                                              stats=self.stats).values()), None)
+            desc = latched.meta if latched is not None else {}
+            if wait and run is not None and run != run_of(desc):
+                # the latched description is another announcement's than this frame's (a replay
+                # ahead of the frames, or the frame ahead of its announcement): it waits for its own
+                return self._hold(session, -1, run, key_expr, payload, publish)
             try:
-                gs = self._new_session(session, key_expr)
+                gs = self._new_session(session, key_expr, desc, latched)
             except (MessageError, FileNotFoundError, ValueError) as err:
                 self._fail(session, key_expr, err)
                 return False
-            if isinstance(run, int) and run != gs.run and session not in self._join_anyway:
-                # the latched description is another announcement's than this frame's (a replay
-                # ahead of the frames, or the frame ahead of its announcement): it waits for its own
-                gs.close()
-                self._awaiting[session] = (run, time.monotonic() + self.DEFER_SECONDS,
-                                           [(key_expr, payload, publish)])
-                return True
-            self._join_anyway.discard(session)
+            if run is not None:  # (joined after waiting for its announcement: its frames go on)
+                gs.run = max(gs.run, run)
             self.sessions[session] = gs
         gs.last_seen = time.monotonic()
         gs.seen_frame = max(gs.seen_frame, msg.frame)
@@ -691,39 +694,37 @@ class ClothService:
         self._close_if_done(session)
         return False
 
+    def _hold(self, session: str, frame: int, run: int, key_expr: str, payload: bytes, publish: bool) -> bool:
+        """Hold this message of the session until `frame` or announcement `run` is in (`Hold`),
+        with the messages another hold of it held (the frames that came for this announcement)."""
+        before = self._held.pop(session, None)
+        self._held[session] = Hold(frame, run, time.monotonic() + self.DEFER_SECONDS,
+                                   [(key_expr, payload, publish)] + (before.messages if before else []))
+        return True
+
     def _release_held(self) -> None:
-        """Handle the announcements that waited for the frames published before them, with the
-        messages held behind them, once those frames are in (or, lost, after DEFER_SECONDS); and
-        the frames that waited for their announcement, once it is in (or after DEFER_SECONDS)."""
+        """Handle the messages of each `Hold` whose frame or announcement is in (or after
+        DEFER_SECONDS: then the first, which waited, goes on without, and it is counted)."""
         now = time.monotonic()
-        for session, (run, deadline, held) in list(self._awaiting.items()):
+        for session, hold in list(self._held.items()):
             gs = self.sessions.get(session)
-            came = session in self._preparing or (gs is not None and gs.run >= run)
-            if not came and now < deadline:
+            if hold.frame >= 0:
+                came = gs is None or gs.seen_frame >= hold.frame
+            else:
+                came = session in self._preparing or (gs is not None and gs.run >= hold.run)
+            if not came and now < hold.deadline:
                 continue
-            del self._awaiting[session]
+            del self._held[session]
             if not came:
-                log.warning("cloth: session %s: frames of its announcement %d came, the announcement did not in "
-                            "%.0f s; they are stepped with the garments it has", session, run, self.DEFER_SECONDS)
+                what = (f"frames up to {hold.frame}, published before its announcement" if hold.frame >= 0 else
+                        f"its announcement {hold.run}, which frames came for")
+                log.warning("cloth: session %s: %s, did not come in %.0f s; going on without", session, what,
+                            self.DEFER_SECONDS)
                 if gs is not None:
-                    gs.stats.add("unannounced_frames")
-                    gs.run = run
-                else:
-                    self._join_anyway.add(session)  # from the latched description, whichever it is
-            for k, payload, publish in held:
-                self._handle_counted(k, payload, publish)
-        for session, (after, deadline, stamp, held) in list(self._deferred.items()):
-            gs = self.sessions.get(session)
-            if gs is not None and gs.seen_frame < after and now < deadline:
-                continue
-            del self._deferred[session]
-            if gs is not None and gs.seen_frame < after:
-                log.warning("cloth: session %s: frames up to %d, published before its announcement, did not come in "
-                            "%.0f s; announced again without them", session, after, self.DEFER_SECONDS)
-                gs.stats.add("missed_frames")
-                self._undeferred.add((session, stamp))
-            for k, payload, publish in held:
-                self._handle_counted(k, payload, publish)
+                    gs.stats.add("missed_frames" if hold.frame >= 0 else "unannounced_frames")
+                    gs.run = max(gs.run, hold.run)
+            for i, (k, payload, publish) in enumerate(hold.messages):
+                self._handle_counted(k, payload, publish, wait=came or i > 0)
 
     def _close_if_done(self, session: str) -> None:
         gs = self.sessions.get(session)
@@ -733,11 +734,9 @@ class ClothService:
             self.sessions.pop(session).close()
             self._reclaim_if_idle()
 
-    def _new_session(self, session: str, key_expr: str, desc: dict | None = None) -> GarmentSession:
-        found = {} if desc is not None else fetch_latched(self.bus, key(session, "session"), timeout=2.0,
-                                                         stats=self.stats)
-        latched = next(iter(found.values()), None)
-        desc = desc if desc is not None else (latched.meta if latched is not None else {})
+    def _new_session(self, session: str, key_expr: str, desc: dict,
+                     latched: Message | None = None) -> GarmentSession:
+        """The session's garments for description desc (announced, or latched: its message)."""
         if not desc:
             log.warning("cloth: session %s has no description on %s; using the defaults", session,
                         key(session, "session"))

@@ -354,24 +354,30 @@ def test_an_rrd_on_a_disk_running_low_is_finished_while_the_served_viewers_go_on
     assert "/world/p" in printed
 
 
+def garment_frames_written(recorder: Recorder) -> set[tuple[str, int]]:
+    """The (key, frame) of every garment message the recorder writes, filled as it writes them.
+    The recorder is a subscriber of its own: it may lag a collector. Garment frames are counted
+    by their kind: the garments' topology keys (.../topology/garment/<name>) are recorded too,
+    and counting them let the recording close one garment frame early under load."""
+    written: set[tuple[str, int]] = set()
+    write = recorder.write
+
+    def counting_write(key_expr, payload):
+        write(key_expr, payload)
+        m = decode(payload)
+        if m.kind == "garment":
+            written.add((key_expr, m.frame))
+
+    recorder.write = counting_write
+    return written
+
+
 def test_replay_reproduces_garment_meshes_exactly(hub, body, data, tmp_path):
     port, _ = hub
     bus = peer(port)
     try:
         recorder = Recorder(bus, "orig", tmp_path / "orig.mcap")
-        # the recorder is a subscriber of its own: it may lag the collector. Count garment frames
-        # by their kind: the garments' topology keys (.../topology/garment/<name>) are recorded too,
-        # and counting them let the recording close one garment frame early under load
-        recorded_garments = set()
-        write = recorder.write
-
-        def counting_write(key_expr, payload):
-            write(key_expr, payload)
-            m = decode(payload)
-            if m.kind == "garment":
-                recorded_garments.add((key_expr, m.frame))
-
-        recorder.write = counting_write
+        recorded_garments = garment_frames_written(recorder)
         garments = Collector(bus, key("orig", "garment", "*"))
         t, svc = run_ingest(bus, "orig", body, data, max_frames=10)
         t.join(120)
@@ -430,16 +436,7 @@ def test_replay_of_a_looped_session_reproduces_its_garments_and_its_restart(hub,
     new = "female_elegantsuit01"
     try:
         recorder = Recorder(bus, "loopy", tmp_path / "loopy.mcap")
-        recorded_garments = set()
-        write = recorder.write
-
-        def counting_write(key_expr, payload):
-            write(key_expr, payload)
-            m = decode(payload)
-            if m.kind == "garment":
-                recorded_garments.add((key_expr, m.frame))
-
-        recorder.write = counting_write
+        recorded_garments = garment_frames_written(recorder)
         garments = Collector(bus, key("loopy", "garment", "*"))
         source = BVHSource(mocap_clip(data), every=2, loop=True, loop_from=START_FRAME, max_frames=38 + 8)
         svc = IngestService(bus, "loopy", body, source, {"outfit": new, "level": LEVEL},
