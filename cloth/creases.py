@@ -56,9 +56,11 @@ Its Δh is unchanged, as above.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from .collision import face_walk_distance, march_exit, outside_at
+from .collision import face_walk_distance, march_exit, outside_at, tree_nearest_face
 from .jit import helper, kernel
 from .winding import winding_number
 
@@ -75,6 +77,9 @@ CREASE_MOVE = 0.03
 EXIT_NEAR = 0.01
 EXIT_FACING = 0.9
 EXIT_REACH = 0.01
+# m: where no way out along ±n_i lies within EXIT_REACH, `out_along_normals` takes the way out through the
+# nearest body face, or on along the line to it, within this (as far as `leave_creases` moves: CREASE_MOVE)
+EXIT_FACE_REACH = 0.03
 
 
 @helper
@@ -230,9 +235,39 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
     return moved
 
 
+@helper
+def _out_through_nearest_face(px, py, pz, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent, tris,
+                              face_n, box, child, tfirst, count, order, parent, leaf, stack, q):
+    """`out_along_normals`' way out through the nearest face p is behind (or less than the
+    clearance in front of), within reach: (how far, unit direction); inf where there is none.
+    To the face's closest point and the clearance beyond if that is outside the body as a
+    whole; else (a face buried in another part) on along the same line to where the body ends,
+    by winding numbers, the clearance beyond if that is outside too."""
+    f, d2, _, _ = tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, tfirst, count, order, parent, leaf,
+                                    -1, -1, stack, reach * reach, clearance, q)
+    if f < 0:
+        return np.inf, 0.0, 0.0, 0.0
+    d = math.sqrt(d2)
+    if d > 1e-9:
+        ux, uy, uz = (q[0] - px) / d, (q[1] - py) / d, (q[2] - pz) / d
+    else:  # on the face: out along its normal
+        ux, uy, uz = face_n[f, 0], face_n[f, 1], face_n[f, 2]
+    if d + clearance <= reach and outside_at(px, py, pz, ux, uy, uz, d + clearance, body_x, wfaces, wlo, wstart, wids,
+                                             wspan, wextent):
+        return d + clearance, ux, uy, uz
+    t = march_exit(px, py, pz, ux, uy, uz, reach, body_x, wfaces, wlo, wstart, wids, wspan, wextent)
+    if t == np.inf:
+        return np.inf, 0.0, 0.0, 0.0
+    if t + clearance <= reach and outside_at(px, py, pz, ux, uy, uz, t + clearance, body_x, wfaces, wlo, wstart, wids,
+                                             wspan, wextent):
+        t += clearance
+    return t, ux, uy, uz
+
+
 @kernel
 def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach, clearance, body_x, wfaces, wlo,
-                      wstart, wids, wspan, wextent, ids, moves):
+                      wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst, count,
+                      order, parent, leaf, stack, q):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
@@ -244,10 +279,20 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
     S103's walks read the nearer sheet, a skin buried in the other part, and call the particle
     outside (the walk's casual outfit: 1,508 of its 1,656 vertex-frames deeper than 1 mm), and
     the crease planes read it the same way; the winding number is not misled (module).
+    Decision (through the nearest face, sixty-third session): where neither way along ±n_i ends
+    within `reach` (n_i runs along the skin, or the particle lies deep in a limb that its coarse
+    face cuts across, as under the arm of a loose sleeve), the particle goes out through the
+    nearest body face it is behind (the face tree's, among the clothed faces), to that face's
+    closest point and `clearance` beyond, if that is outside the body as a whole; else on along
+    the line to it, to where the body ends (a face buried in another part); either within
+    `face_reach` (0: not at all). Of the walk's vertex-frames deeper than 1 mm that this rule
+    asked and left inside, most had no way out along ±n_i within reach (sixty-third session).
     p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
     (sd UNTESTED = inf where it did not test); particles before `first` (the coarse vertices)
     are left alone.
-    wfaces, wlo ... wextent: the pose's winding grid. Returns the number of particles moved, k;
+    wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
+    pose's face normals; box ... leaf: the pose's `FaceTree.arrays()` (tfirst its `first`),
+    stack (FACE_TREE_STACK,) int32 and q (3,): scratch. Returns the number of particles moved, k;
     ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
     moved = 0
     for i in range(first, p.shape[0]):
@@ -265,18 +310,25 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
                            wlo, wstart, wids, wspan, wextent)
             if t < best:
                 best, sense = t, sgn
-        if best == np.inf:
+        ux, uy, uz = sense * n[i, 0], sense * n[i, 1], sense * n[i, 2]
+        t = np.inf
+        if best < np.inf:
+            t = best + clearance  # the clearance beyond the exit, if that is outside too (else the exit)
+            if not outside_at(px, py, pz, ux, uy, uz, t, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
+                t = best
+        elif face_reach > 0.0:
+            t, ux, uy, uz = _out_through_nearest_face(px, py, pz, face_reach, clearance, body_x, wfaces, wlo, wstart,
+                                                      wids, wspan, wextent, tris, face_n, box, child, tfirst, count,
+                                                      order, parent, leaf, stack, q)
+        if t == np.inf:
             continue
-        t = best + clearance  # the clearance beyond the exit, if that is outside too (else the exit)
-        if not outside_at(px, py, pz, sense * n[i, 0], sense * n[i, 1], sense * n[i, 2], t, body_x, wfaces, wlo,
-                          wstart, wids, wspan, wextent):
-            t = best
+        moves[moved, 0], moves[moved, 1], moves[moved, 2] = t * ux, t * uy, t * uz
         for a in range(3):
-            moves[moved, a] = sense * t * n[i, a]
             p[i, a] += moves[moved, a]
         ids[moved] = i
         moved += 1
     return moved
 
 
-__all__ = ["EXIT_FACING", "EXIT_NEAR", "EXIT_REACH", "leave_creases", "out_along_normals", "out_of_two_planes"]
+__all__ = ["EXIT_FACE_REACH", "EXIT_FACING", "EXIT_NEAR", "EXIT_REACH", "leave_creases", "out_along_normals",
+           "out_of_two_planes"]

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .collision import BodyMesh, VertexGrid, part_scratch
-from .creases import EXIT_FACING, EXIT_NEAR, EXIT_REACH, leave_creases, out_along_normals
+from .collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, VertexGrid, part_scratch
+from .creases import EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, leave_creases, out_along_normals
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -230,6 +230,7 @@ class SurfaceState:
         self.exit_ids = np.zeros(N, dtype=np.int32)  # out_along_normals: the particles it moved (first
         self.exit_moves = np.zeros((N, 3))  # DetailedSurface.exited of them) and their moves, m
         self.crease_seen = np.zeros(N, dtype=np.uint8)
+        self.tree_stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # out_along_normals' face-tree query scratch
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
 
@@ -245,7 +246,7 @@ class DetailedSurface:
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
              body: BodyMesh | None, face_n: np.ndarray | None, dt: float,
              grid: VertexGrid | None = None, face_tip: np.ndarray | None = None,
-             winding: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+             winding: tuple | None = None, tree: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
         """One frame of S102-S106 from the coarse positions x (n, 3); returns (positions, normals)
         of the detailed mesh (views of the state arrays, valid until the next step).
 
@@ -257,7 +258,9 @@ class DetailedSurface:
         face_tip: how far each body face's corners stand out of their rings (`BodyPose.face_tip`;
         None: not at all); winding: the pose's winding grid (`WindingGrid.arrays()` over
         body.winding_faces), through which the moves out of creases leave a particle outside the
-        body as a whole where it is (None: the tangent planes alone decide)."""
+        body as a whole where it is (None: the tangent planes alone decide); tree: the pose's face
+        tree (`FaceTree.arrays()` over the clothed faces), through whose nearest face a particle
+        inside goes out where no way along ±n_i is near (None: it stays)."""
         m, s, t, st = self.model, self.state, self.model.tess, self.model.settings
         c = m.cloth
         t0 = time.perf_counter()
@@ -339,7 +342,9 @@ class DetailedSurface:
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
             self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, t.n_coarse, EXIT_NEAR,
                                             EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
-                                            s.exit_ids, s.exit_moves)
+                                            s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,
+                                            body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),
+                                            s.tree_stack, s.q)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

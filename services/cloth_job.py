@@ -307,7 +307,8 @@ class OutfitSession:
             st, surf = sim.state, self.surfaces[k]
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
                                           surface_dt, self.pose.grid, self.pose.face_tips(),
-                                          self.pose.winding.arrays() if self.pose.winding is not None else None)
+                                          self.pose.winding.arrays() if self.pose.winding is not None else None,
+                                          self.pose.faces.arrays() if self.pose.faces is not None else None)
             self.surface_seconds[k] = surf.stage_seconds
         spent = time.perf_counter() - t0
         avg = self.garment_seconds[k]

@@ -4,8 +4,9 @@ overlapping boxes."""
 import numpy as np
 import pytest
 
-from cloth.collision import BodyMesh, face_normals
-from cloth.creases import EXIT_FACING, EXIT_NEAR, EXIT_REACH, leave_creases, out_along_normals, out_of_two_planes
+from cloth.collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, FaceTree, face_normals
+from cloth.creases import (EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, leave_creases, out_along_normals,
+                           out_of_two_planes)
 from cloth.topology import vertex_cells
 from cloth.winding import NO_WINDING, WindingGrid
 from tests.test_cloth_dynamics import box
@@ -257,7 +258,8 @@ def test_a_particle_inside_by_the_winding_number_goes_out_along_its_normal(sense
     p0 = p.copy()
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     moved = out_along_normals(p, n, sd, other, facing, behind, 1, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
-                              *g.arrays(), ids, moves)
+                              *g.arrays(), ids, moves, 0.0, tris, face_normals(x, tris), *NO_FACE_TREE,
+                              np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3))
     assert moved == 3 and list(ids[:3]) == [1, 2, 8]
     out = [1, 2, 8]
     np.testing.assert_allclose(moves[:3], p[out] - p0[out], atol=1e-15)
@@ -267,3 +269,50 @@ def test_a_particle_inside_by_the_winding_number_goes_out_along_its_normal(sense
     np.testing.assert_array_equal(p[3:8], p0[3:8])
     np.testing.assert_array_equal(p[0], p0[0])
     assert inside_boxes(p0[out]).all() and not inside_boxes(p[out]).any() and inside_boxes(p[[3, 7]]).all()
+
+
+def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_nearest_face():
+    """`out_along_normals`' way out through the nearest face (Decision): on the two boxes, a
+    particle inside the thigh whose normal runs along it, so that neither way along ±n_i ends
+    within EXIT_REACH, goes out through the face nearest to it, to its closest point and the
+    clearance beyond; one whose nearest face is the thigh's bottom, buried in the torso, goes on
+    along the same line through the torso to where the body ends; one with no face within
+    EXIT_FACE_REACH stays, and with no face tree every one stays."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    tree = FaceTree(tris, np.arange(len(tris)), body.regions)
+    tree.update(x)
+    along = (0.0, 0.0, 1.0)  # along the thigh (its ends at z = ±3 cm): no way out within 1 cm either way
+    cases = [  # positions, each found inside by S103 (sd < 0)
+        (-0.060, 0.020, 0.0),  # 0: 1 cm inside the thigh's outer wall (x = -7 cm): out through it, along -x
+        (-0.040, 0.043, 0.0),  # 1: 7 mm under the thigh's top (y = 5 cm): out along +y
+        (-0.048, -0.004, 0.0),  # 2: in both, 2 mm inside the torso's side (x = -5 cm), buried in the thigh:
+        #                        on along -x through the thigh to its outer wall, 2.2 cm
+        (0.000, -0.050, 0.0),  # 3: the torso's middle, every face more than 3 cm away: stays
+    ]
+    p = np.array(cases)
+    n = np.array([along] * len(cases))
+    sd, other, facing = np.full(len(p), -0.005), np.full(len(p), np.inf), np.ones(len(p))
+    behind = np.zeros(len(p), dtype=np.uint8)
+    assert inside_boxes(p).all() and EXIT_REACH < 0.02 and 0.022 + C < EXIT_FACE_REACH < 0.04
+
+    def run(face_reach, arrays):
+        q, ids, moves = p.copy(), np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
+        moved = out_along_normals(q, n, sd, other, facing, behind, 0, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
+                                  *g.arrays(), ids, moves, face_reach, tris, face_normals(x, tris), *arrays,
+                                  np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3))
+        np.testing.assert_allclose(moves[:moved], q[ids[:moved]] - p[ids[:moved]], atol=1e-15)
+        return q, list(ids[:moved])
+
+    q, ids = run(EXIT_FACE_REACH, tree.arrays())
+    assert ids == [0, 1, 2]
+    np.testing.assert_allclose(q[0], (-0.07 - C, 0.02, 0.0), atol=1e-12)
+    np.testing.assert_allclose(q[1], (-0.04, 0.05 + C, 0.0), atol=1e-12)
+    np.testing.assert_allclose(q[2], (-0.07 - C, -0.004, 0.0), atol=2e-5)  # (the march's bisections of 15 mm)
+    np.testing.assert_array_equal(q[3], p[3])
+    assert not inside_boxes(q[:3]).any()
+    q_off, ids_off = run(0.0, tree.arrays())  # off, and with no tree: every one stays
+    assert ids_off == [] and (q_off == p).all()
+    q_off, ids_off = run(EXIT_FACE_REACH, NO_FACE_TREE)
+    assert ids_off == [] and (q_off == p).all()
