@@ -236,15 +236,16 @@ def leave_creases(p, sd, body_face, part_face, body_x, tris, tri_nbrs, tri_start
 
 
 @helper
-def _out_through_nearest_face(px, py, pz, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent, tris,
-                              face_n, box, child, tfirst, count, order, parent, leaf, stack, q):
+def _out_through_nearest_face(px, py, pz, start, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
+                              tris, face_n, box, child, tfirst, count, order, parent, leaf, stack, q):
     """`out_along_normals`' way out through the nearest face p is behind (or less than the
     clearance in front of), within reach: (how far, unit direction); inf where there is none.
     To the face's closest point and the clearance beyond if that is outside the body as a
     whole; else (a face buried in another part) on along the same line to where the body ends,
-    by winding numbers, the clearance beyond if that is outside too."""
+    by winding numbers, the clearance beyond if that is outside too. start: a body face near p,
+    where the tree's search starts (-1: at its root; the same answer)."""
     f, d2, _, _ = tree_nearest_face(px, py, pz, body_x, tris, face_n, box, child, tfirst, count, order, parent, leaf,
-                                    -1, -1, stack, reach * reach, clearance, q)
+                                    start, -1, stack, reach * reach, clearance, q)
     if f < 0:
         return np.inf, 0.0, 0.0, 0.0
     d = math.sqrt(d2)
@@ -267,7 +268,7 @@ def _out_through_nearest_face(px, py, pz, reach, clearance, body_x, wfaces, wlo,
 @kernel
 def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach, clearance, body_x, wfaces, wlo,
                       wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst, count,
-                      order, parent, leaf, stack, q):
+                      order, parent, leaf, stack, q, body_face):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
@@ -292,7 +293,8 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
     are left alone.
     wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
     pose's face normals; box ... leaf: the pose's `FaceTree.arrays()` (tfirst its `first`),
-    stack (FACE_TREE_STACK,) int32 and q (3,): scratch. Returns the number of particles moved, k;
+    stack (FACE_TREE_STACK,) int32 and q (3,): scratch; body_face: the face each particle's S103
+    walk ended on (-1: none), where the tree's search for the nearest face starts. Returns the number of particles moved, k;
     ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
     moved = 0
     for i in range(first, p.shape[0]):
@@ -317,9 +319,9 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
             if not outside_at(px, py, pz, ux, uy, uz, t, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
                 t = best
         elif face_reach > 0.0:
-            t, ux, uy, uz = _out_through_nearest_face(px, py, pz, face_reach, clearance, body_x, wfaces, wlo, wstart,
-                                                      wids, wspan, wextent, tris, face_n, box, child, tfirst, count,
-                                                      order, parent, leaf, stack, q)
+            t, ux, uy, uz = _out_through_nearest_face(px, py, pz, body_face[i], face_reach, clearance, body_x, wfaces,
+                                                      wlo, wstart, wids, wspan, wextent, tris, face_n, box, child,
+                                                      tfirst, count, order, parent, leaf, stack, q)
         if t == np.inf:
             continue
         moves[moved, 0], moves[moved, 1], moves[moved, 2] = t * ux, t * uy, t * uz

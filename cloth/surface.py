@@ -344,7 +344,7 @@ class DetailedSurface:
                                             EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
                                             s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,
                                             body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),
-                                            s.tree_stack, s.q)
+                                            s.tree_stack, s.q, s.body_face)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

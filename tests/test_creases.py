@@ -259,7 +259,7 @@ def test_a_particle_inside_by_the_winding_number_goes_out_along_its_normal(sense
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     moved = out_along_normals(p, n, sd, other, facing, behind, 1, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
                               *g.arrays(), ids, moves, 0.0, tris, face_normals(x, tris), *NO_FACE_TREE,
-                              np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3))
+                              np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), np.full(len(p), -1, np.int32))
     assert moved == 3 and list(ids[:3]) == [1, 2, 8]
     out = [1, 2, 8]
     np.testing.assert_allclose(moves[:3], p[out] - p0[out], atol=1e-15)
@@ -297,22 +297,27 @@ def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_neares
     behind = np.zeros(len(p), dtype=np.uint8)
     assert inside_boxes(p).all() and EXIT_REACH < 0.02 and 0.022 + C < EXIT_FACE_REACH < 0.04
 
-    def run(face_reach, arrays):
+    def run(face_reach, arrays, start):
         q, ids, moves = p.copy(), np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
         moved = out_along_normals(q, n, sd, other, facing, behind, 0, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
                                   *g.arrays(), ids, moves, face_reach, tris, face_normals(x, tris), *arrays,
-                                  np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3))
+                                  np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start)
         np.testing.assert_allclose(moves[:moved], q[ids[:moved]] - p[ids[:moved]], atol=1e-15)
         return q, list(ids[:moved])
 
-    q, ids = run(EXIT_FACE_REACH, tree.arrays())
+    anywhere = np.full(len(p), -1, dtype=np.int32)
+    q, ids = run(EXIT_FACE_REACH, tree.arrays(), anywhere)
+    # the search for the nearest face gives the same from a face near the particle (S103's walk's)
+    near = np.array([nearest_face(x, tris, c, lambda m: np.ones(len(m), bool)) for c in p], dtype=np.int32)
+    q_near, ids_near = run(EXIT_FACE_REACH, tree.arrays(), near)
+    assert ids_near == ids and (q_near == q).all()
     assert ids == [0, 1, 2]
     np.testing.assert_allclose(q[0], (-0.07 - C, 0.02, 0.0), atol=1e-12)
     np.testing.assert_allclose(q[1], (-0.04, 0.05 + C, 0.0), atol=1e-12)
     np.testing.assert_allclose(q[2], (-0.07 - C, -0.004, 0.0), atol=2e-5)  # (the march's bisections of 15 mm)
     np.testing.assert_array_equal(q[3], p[3])
     assert not inside_boxes(q[:3]).any()
-    q_off, ids_off = run(0.0, tree.arrays())  # off, and with no tree: every one stays
+    q_off, ids_off = run(0.0, tree.arrays(), anywhere)  # off, and with no tree: every one stays
     assert ids_off == [] and (q_off == p).all()
-    q_off, ids_off = run(EXIT_FACE_REACH, NO_FACE_TREE)
+    q_off, ids_off = run(EXIT_FACE_REACH, NO_FACE_TREE, anywhere)
     assert ids_off == [] and (q_off == p).all()
