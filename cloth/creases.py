@@ -51,7 +51,9 @@ particle outside that the body as a whole has inside (the walk's casual outfit: 
 planes above read it the same way. So a particle near another body part whose normal leans off
 the body's, or one S103 found inside, is asked the winding number at its final position, and
 one inside goes along ±n_i to where the body ends nearest (within 1 cm), the clearance beyond.
-Its Δh is unchanged, as above.
+Where neither way ends within 1 cm (n_i along the skin, or deep in a limb that the coarse face
+cuts across), it goes out through the nearest body face instead, or on along the line to it,
+within 3 cm (Decision, sixty-third session). Its Δh is unchanged, as above.
 """
 
 from __future__ import annotations
