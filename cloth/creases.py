@@ -296,8 +296,8 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
     wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
     pose's face normals; box ... leaf: the pose's `FaceTree.arrays()` (tfirst its `first`),
     stack (FACE_TREE_STACK,) int32 and q (3,): scratch; body_face: the face each particle's S103
-    walk ended on (-1: none), where the tree's search for the nearest face starts. Returns the number of particles moved, k;
-    ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
+    walk ended on (-1: none), where the tree's search for the nearest face starts. Returns the
+    number of particles moved, k; ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
     moved = 0
     for i in range(first, p.shape[0]):
         # (a winding number for every particle near another part was 0.7 ms a garment-frame on the walk's
