@@ -21,7 +21,9 @@ over) names the last frame its ingest published before (`after_frame`); the anno
 until that frame is in (DEFER_SECONDS at most), so those frames are stepped with the garments
 they were meant for, and whatever came for the session meanwhile waits behind it. The other
 way round, each body frame names the announcement it follows (`run`; a replay sends frames
-without waiting for "ready"): a frame of an announcement not yet here waits for it.
+without waiting for "ready"): a frame of an announcement not yet here waits for it
+(ANNOUNCEMENT_SECONDS at most: an announcement is sent so that it is never dropped, so it is
+late, never lost).
 """
 
 from __future__ import annotations
@@ -58,8 +60,8 @@ log = logging.getLogger("tryon.cloth")
 
 @dataclass
 class Hold:
-    """A session's messages held until what they wait for is in (`ClothService.DEFER_SECONDS` at
-    most): an announcement that came ahead of the body frames before it waits for frame `frame`
+    """A session's messages held until what they wait for is in (`ClothService.DEFER_SECONDS` or
+    `ANNOUNCEMENT_SECONDS` at most): an announcement that came ahead of the body frames before it waits for frame `frame`
     (its `after_frame`; -1: none), body frames that came ahead of their announcement wait for
     announcement `run` (-1: none); what comes for the session meanwhile waits behind them."""
 
@@ -343,8 +345,14 @@ class ClothService:
     """Serves every session seen on tryon/*/body (see the module docstring)."""
 
     SERVICE = "cloth"
-    # how long an announcement waits for the frames its ingest published before it (`handle`)
+    # how long an announcement waits for the frames its ingest published before it (`handle`): a
+    # body frame may have been dropped on the way (congestion control DROP)
     DEFER_SECONDS = 2.0
+    # how long frames wait for the announcement they follow: announcements go with congestion
+    # control BLOCK, so one not here yet is late (its key's samples come on another thread,
+    # which a machine starved for CPU can leave behind by more than DEFER_SECONDS: seen once,
+    # a looped replay's test beside two acceptance runs; docs/history.md, sixty-third session)
+    ANNOUNCEMENT_SECONDS = 5.0
 
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
                  queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
@@ -698,13 +706,15 @@ class ClothService:
         """Hold this message of the session until `frame` or announcement `run` is in (`Hold`),
         with the messages another hold of it held (the frames that came for this announcement)."""
         before = self._held.pop(session, None)
-        self._held[session] = Hold(frame, run, time.monotonic() + self.DEFER_SECONDS,
+        wait = self.DEFER_SECONDS if frame >= 0 else self.ANNOUNCEMENT_SECONDS
+        self._held[session] = Hold(frame, run, time.monotonic() + wait,
                                    [(key_expr, payload, publish)] + (before.messages if before else []))
         return True
 
     def _release_held(self) -> None:
         """Handle the messages of each `Hold` whose frame or announcement is in (or after
-        DEFER_SECONDS: then the first, which waited, goes on without, and it is counted)."""
+        DEFER_SECONDS, ANNOUNCEMENT_SECONDS for an announcement: then the first, which waited, goes
+        on without, and it is counted)."""
         now = time.monotonic()
         for session, hold in list(self._held.items()):
             gs = self.sessions.get(session)
@@ -719,7 +729,7 @@ class ClothService:
                 what = (f"frames up to {hold.frame}, published before its announcement" if hold.frame >= 0 else
                         f"its announcement {hold.run}, which frames came for")
                 log.warning("cloth: session %s: %s, did not come in %.0f s; going on without", session, what,
-                            self.DEFER_SECONDS)
+                            self.DEFER_SECONDS if hold.frame >= 0 else self.ANNOUNCEMENT_SECONDS)
                 if gs is not None:
                     gs.stats.add("missed_frames" if hold.frame >= 0 else "unannounced_frames")
                     gs.run = max(gs.run, hold.run)
