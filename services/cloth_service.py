@@ -61,9 +61,10 @@ log = logging.getLogger("tryon.cloth")
 @dataclass
 class Hold:
     """A session's messages held until what they wait for is in (`ClothService.DEFER_SECONDS` or
-    `ANNOUNCEMENT_SECONDS` at most): an announcement that came ahead of the body frames before it waits for frame `frame`
-    (its `after_frame`; -1: none), body frames that came ahead of their announcement wait for
-    announcement `run` (-1: none); what comes for the session meanwhile waits behind them."""
+    `ANNOUNCEMENT_SECONDS` at most): an announcement that came ahead of the body frames before it
+    waits for frame `frame` (its `after_frame`; -1: none), body frames that came ahead of their
+    announcement wait for announcement `run` (-1: none); what comes for the session meanwhile
+    waits behind them."""
 
     frame: int
     run: int
