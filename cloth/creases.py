@@ -261,10 +261,18 @@ def _out_through_nearest_face(px, py, pz, start, reach, clearance, body_x, wface
     t = march_exit(px, py, pz, ux, uy, uz, reach, body_x, wfaces, wlo, wstart, wids, wspan, wextent)
     if t == np.inf:
         return np.inf, 0.0, 0.0, 0.0
-    if t + clearance <= reach and outside_at(px, py, pz, ux, uy, uz, t + clearance, body_x, wfaces, wlo, wstart, wids,
+    return _beyond_exit(px, py, pz, ux, uy, uz, t, clearance, reach, body_x, wfaces, wlo, wstart, wids, wspan,
+                        wextent), ux, uy, uz
+
+
+@helper
+def _beyond_exit(px, py, pz, ux, uy, uz, t, clearance, limit, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
+    """How far along u a particle whose way out along u ends t from p goes: the clearance beyond
+    the exit, if that is outside too and within limit, else the exit itself."""
+    if t + clearance <= limit and outside_at(px, py, pz, ux, uy, uz, t + clearance, body_x, wfaces, wlo, wstart, wids,
                                              wspan, wextent):
-        t += clearance
-    return t, ux, uy, uz
+        return t + clearance
+    return t
 
 
 @kernel
@@ -317,9 +325,8 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
         ux, uy, uz = sense * n[i, 0], sense * n[i, 1], sense * n[i, 2]
         t = np.inf
         if best < np.inf:
-            t = best + clearance  # the clearance beyond the exit, if that is outside too (else the exit)
-            if not outside_at(px, py, pz, ux, uy, uz, t, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
-                t = best
+            t = _beyond_exit(px, py, pz, ux, uy, uz, best, clearance, np.inf, body_x, wfaces, wlo, wstart, wids, wspan,
+                             wextent)
         elif face_reach > 0.0:
             t, ux, uy, uz = _out_through_nearest_face(px, py, pz, body_face[i], face_reach, clearance, body_x, wfaces,
                                                       wlo, wstart, wids, wspan, wextent, tris, face_n, box, child,

@@ -707,10 +707,14 @@ class ClothService:
         """Hold this message of the session until `frame` or announcement `run` is in (`Hold`),
         with the messages another hold of it held (the frames that came for this announcement)."""
         before = self._held.pop(session, None)
-        wait = self.DEFER_SECONDS if frame >= 0 else self.ANNOUNCEMENT_SECONDS
-        self._held[session] = Hold(frame, run, time.monotonic() + wait,
+        self._held[session] = Hold(frame, run, time.monotonic() + self._wait_seconds(frame),
                                    [(key_expr, payload, publish)] + (before.messages if before else []))
         return True
+
+    def _wait_seconds(self, frame: int) -> float:
+        """How long a `Hold` waits: for frame `frame` (>= 0) DEFER_SECONDS, for an announcement
+        ANNOUNCEMENT_SECONDS."""
+        return self.DEFER_SECONDS if frame >= 0 else self.ANNOUNCEMENT_SECONDS
 
     def _release_held(self) -> None:
         """Handle the messages of each `Hold` whose frame or announcement is in (or after
@@ -730,7 +734,7 @@ class ClothService:
                 what = (f"frames up to {hold.frame}, published before its announcement" if hold.frame >= 0 else
                         f"its announcement {hold.run}, which frames came for")
                 log.warning("cloth: session %s: %s, did not come in %.0f s; going on without", session, what,
-                            self.DEFER_SECONDS if hold.frame >= 0 else self.ANNOUNCEMENT_SECONDS)
+                            self._wait_seconds(hold.frame))
                 if gs is not None:
                     gs.stats.add("missed_frames" if hold.frame >= 0 else "unannounced_frames")
                     gs.run = max(gs.run, hold.run)

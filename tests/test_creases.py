@@ -108,6 +108,18 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
     return count, ids, moves
 
 
+def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None):
+    """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
+    (none: no way out through the nearest face); start: S103's walks' faces (None: none).
+    Returns (count, ids, moves)."""
+    ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
+    start = np.full(len(p), -1, dtype=np.int32) if start is None else start
+    count = out_along_normals(p, n, sd, other, facing, behind, first, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
+                              *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
+                              np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start)
+    return count, ids, moves
+
+
 def inside_boxes(p):
     torso = np.all(np.abs(p - [0, -0.05, 0]) < 0.05 - 1e-9, axis=-1)
     thigh = np.all(np.abs(p - [-0.04, 0.02, 0]) < 0.03 - 1e-9, axis=-1)
@@ -256,10 +268,7 @@ def test_a_particle_inside_by_the_winding_number_goes_out_along_its_normal(sense
     behind = np.array([c[5] for c in cases], dtype=np.uint8)
     assert EXIT_FACING < 0.95 and EXIT_NEAR > 0.004 and 0.003 < EXIT_REACH < 0.03
     p0 = p.copy()
-    ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
-    moved = out_along_normals(p, n, sd, other, facing, behind, 1, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
-                              *g.arrays(), ids, moves, 0.0, tris, face_normals(x, tris), *NO_FACE_TREE,
-                              np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), np.full(len(p), -1, np.int32))
+    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 1, x, tris, g.arrays())
     assert moved == 3 and list(ids[:3]) == [1, 2, 8]
     out = [1, 2, 8]
     np.testing.assert_allclose(moves[:3], p[out] - p0[out], atol=1e-15)
@@ -298,10 +307,9 @@ def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_neares
     assert inside_boxes(p).all() and EXIT_REACH < 0.02 and 0.022 + C < EXIT_FACE_REACH < 0.04
 
     def run(face_reach, arrays, start):
-        q, ids, moves = p.copy(), np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
-        moved = out_along_normals(q, n, sd, other, facing, behind, 0, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
-                                  *g.arrays(), ids, moves, face_reach, tris, face_normals(x, tris), *arrays,
-                                  np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start)
+        q = p.copy()
+        moved, ids, moves = out_along(q, n, sd, other, facing, behind, 0, x, tris, g.arrays(), face_reach, arrays,
+                                      start)
         np.testing.assert_allclose(moves[:moved], q[ids[:moved]] - p[ids[:moved]], atol=1e-15)
         return q, list(ids[:moved])
 
