@@ -275,10 +275,43 @@ def _beyond_exit(px, py, pz, ux, uy, uz, t, clearance, limit, body_x, wfaces, wl
     return t
 
 
+@helper
+def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent, face_reach, tris, face_n,
+               box, child, tfirst, count, order, parent, leaf, stack, q, start_face, ids, moves, moved):
+    """`out_along_normals` for particle i: if the body's winding number puts it inside, out along
+    ±n_i, else through the nearest face (within reach, face_reach). Returns (inside, the new
+    length of the moved list ids, moves)."""
+    px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+    if winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) <= 0:
+        return False, moved
+    best, sense = np.inf, 0.0
+    for sgn in (1.0, -1.0):
+        t = march_exit(px, py, pz, sgn * n[i, 0], sgn * n[i, 1], sgn * n[i, 2], min(best, reach), body_x, wfaces,
+                       wlo, wstart, wids, wspan, wextent)
+        if t < best:
+            best, sense = t, sgn
+    ux, uy, uz = sense * n[i, 0], sense * n[i, 1], sense * n[i, 2]
+    t = np.inf
+    if best < np.inf:
+        t = _beyond_exit(px, py, pz, ux, uy, uz, best, clearance, np.inf, body_x, wfaces, wlo, wstart, wids, wspan,
+                         wextent)
+    elif face_reach > 0.0:
+        t, ux, uy, uz = _out_through_nearest_face(px, py, pz, start_face, face_reach, clearance, body_x, wfaces, wlo,
+                                                  wstart, wids, wspan, wextent, tris, face_n, box, child, tfirst,
+                                                  count, order, parent, leaf, stack, q)
+    if t == np.inf:
+        return True, moved
+    moves[moved, 0], moves[moved, 1], moves[moved, 2] = t * ux, t * uy, t * uz
+    for a in range(3):
+        p[i, a] += moves[moved, a]
+    ids[moved] = i
+    return True, moved + 1
+
+
 @kernel
 def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach, clearance, body_x, wfaces, wlo,
                       wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst, count,
-                      order, parent, leaf, stack, q, body_face):
+                      order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen, inside):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
@@ -298,46 +331,56 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
     the line to it, to where the body ends (a face buried in another part); either within
     `face_reach` (0: not at all). Of the walk's vertex-frames deeper than 1 mm that this rule
     asked and left inside, most had no way out along ±n_i within reach (sixty-third session).
+    Decision (spread, sixty-fourth session): the detailed neighbours of each particle found
+    inside are asked too, and theirs in turn while they are inside (spread; d_edges, edge_start,
+    edge_ids: the detailed edges and each particle's, CSR): of the walk's vertex-frames left
+    deeper than 1 mm, most had been read outside by S103 near another part with the normal
+    along the body's, and were never asked, in a patch around particles that were.
     p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
     (sd UNTESTED = inf where it did not test); particles before `first` (the coarse vertices)
     are left alone.
     wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
     pose's face normals; box ... leaf: the pose's `FaceTree.arrays()` (tfirst its `first`),
     stack (FACE_TREE_STACK,) int32 and q (3,): scratch; body_face: the face each particle's S103
-    walk ended on (-1: none), where the tree's search for the nearest face starts. Returns the
-    number of particles moved, k; ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
+    walk ended on (-1: none), where the tree's search for the nearest face starts; seen (N,) uint8,
+    inside (N,) int32: scratch (the particles asked, and those found inside). Returns the number
+    of particles moved, k; ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
     moved = 0
+    n_inside = 0
+    if spread:
+        for i in range(p.shape[0]):
+            seen[i] = 0
     for i in range(first, p.shape[0]):
         # (a winding number for every particle near another part was 0.7 ms a garment-frame on the walk's
         # casual outfit, 2,000 particles; those leaning off the body are 250 of them, and two thirds of the
         # ones inside)
         if sd[i] == np.inf or not ((other[i] < near and facing[i] < lean) or sd[i] < 0.0 or behind[i]):
             continue
-        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
-        if winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) <= 0:
-            continue
-        best, sense = np.inf, 0.0
-        for sgn in (1.0, -1.0):
-            t = march_exit(px, py, pz, sgn * n[i, 0], sgn * n[i, 1], sgn * n[i, 2], min(best, reach), body_x, wfaces,
-                           wlo, wstart, wids, wspan, wextent)
-            if t < best:
-                best, sense = t, sgn
-        ux, uy, uz = sense * n[i, 0], sense * n[i, 1], sense * n[i, 2]
-        t = np.inf
-        if best < np.inf:
-            t = _beyond_exit(px, py, pz, ux, uy, uz, best, clearance, np.inf, body_x, wfaces, wlo, wstart, wids, wspan,
-                             wextent)
-        elif face_reach > 0.0:
-            t, ux, uy, uz = _out_through_nearest_face(px, py, pz, body_face[i], face_reach, clearance, body_x, wfaces,
-                                                      wlo, wstart, wids, wspan, wextent, tris, face_n, box, child,
-                                                      tfirst, count, order, parent, leaf, stack, q)
-        if t == np.inf:
-            continue
-        moves[moved, 0], moves[moved, 1], moves[moved, 2] = t * ux, t * uy, t * uz
-        for a in range(3):
-            p[i, a] += moves[moved, a]
-        ids[moved] = i
-        moved += 1
+        seen[i] = 1
+        found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
+                                  face_reach, tris, face_n, box, child, tfirst, count, order, parent, leaf, stack, q,
+                                  body_face[i], ids, moves, moved)
+        if found:
+            inside[n_inside] = i
+            n_inside += 1
+    if not spread:
+        return moved
+    k = 0
+    while k < n_inside:  # (the list grows as neighbours are found inside: a flood over the inside particles)
+        i = inside[k]
+        for m in range(edge_start[i], edge_start[i + 1]):
+            e = edge_ids[m]
+            j = d_edges[e, 0] + d_edges[e, 1] - i
+            if j < first or seen[j]:
+                continue
+            seen[j] = 1
+            found, moved = _exit_body(p, n, j, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
+                                      face_reach, tris, face_n, box, child, tfirst, count, order, parent, leaf, stack,
+                                      q, body_face[j] if body_face[j] >= 0 else body_face[i], ids, moves, moved)
+            if found:
+                inside[n_inside] = j
+                n_inside += 1
+        k += 1
     return moved
 
 

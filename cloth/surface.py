@@ -82,6 +82,9 @@ class SurfaceSettings:
     # its walk there) that the body's winding number puts inside goes out along ±n_i, where the body ends
     # nearest (Decision, `creases.out_along_normals`)
     exit_normals: bool = True
+    # and the neighbours of a particle the winding number puts inside are asked too, and theirs while they
+    # are inside (Decision, `creases.out_along_normals`' spread)
+    exit_spread: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -230,6 +233,8 @@ class SurfaceState:
         self.exit_ids = np.zeros(N, dtype=np.int32)  # out_along_normals: the particles it moved (first
         self.exit_moves = np.zeros((N, 3))  # DetailedSurface.exited of them) and their moves, m
         self.crease_seen = np.zeros(N, dtype=np.uint8)
+        self.exit_seen = np.zeros(N, dtype=np.uint8)  # out_along_normals' spread: the particles asked,
+        self.exit_inside = np.zeros(N, dtype=np.int32)  # and those found inside
         self.tree_stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # out_along_normals' face-tree query scratch
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
@@ -344,7 +349,8 @@ class DetailedSurface:
                                             EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
                                             s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,
                                             body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),
-                                            s.tree_stack, s.q, s.body_face)
+                                            s.tree_stack, s.q, s.body_face, st.exit_spread, m.d_edges,
+                                            m.d_edge_start, m.d_edge_ids, s.exit_seen, s.exit_inside)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -108,15 +108,20 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
     return count, ids, moves
 
 
-def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None):
+def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
+              d_edges=None):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
-    (none: no way out through the nearest face); start: S103's walks' faces (None: none).
-    Returns (count, ids, moves)."""
+    (none: no way out through the nearest face); start: S103's walks' faces (None: none);
+    d_edges: the particles' edges, spread along (None: no spread). Returns (count, ids, moves)."""
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     start = np.full(len(p), -1, dtype=np.int32) if start is None else start
+    edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
+    edge_start, edge_ids = vertex_cells(len(p), edges)
     count = out_along_normals(p, n, sd, other, facing, behind, first, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
                               *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
-                              np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start)
+                              np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start, d_edges is not None,
+                              edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
+                              np.zeros(len(p), dtype=np.int32))
     return count, ids, moves
 
 
@@ -329,3 +334,44 @@ def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_neares
     assert ids_off == [] and (q_off == p).all()
     q_off, ids_off = run(EXIT_FACE_REACH, NO_FACE_TREE, anywhere)
     assert ids_off == [] and (q_off == p).all()
+
+
+@pytest.mark.parametrize("spread", [True, False])
+def test_the_neighbours_of_a_particle_inside_are_asked_too(spread):
+    """`out_along_normals`' spread (Decision): a chain of particles across the thigh, S103 read
+    each as outside with its normal along the body's (not asked), but the first one leaning off
+    it (asked): with the spread, the winding number finds the first inside, then its neighbour,
+    and so on along the chain while they are inside: each goes out along ±n_i; the chain's last
+    one, outside the thigh, is asked and stays, and so does a particle beyond it (not asked: its
+    neighbour was outside), inside the thigh but not on the chain, and a coarse vertex (before
+    `first`) beside the first. Without the spread only the first moves."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    side = (1.0, 0.0, 0.0)  # across the thigh's inner wall (x = -1 cm)
+    cases = [  # (position, facing): S103's sd 2 mm, other part 4 mm away, normal along +x
+        ((-0.012, 0.005, 0.005), 0.0),   # 0: a coarse vertex, leaning off the body: stays
+        ((-0.012, 0.005, 0.0), 0.0),     # 1: leaning off the body: asked, out through the inner wall
+        ((-0.013, 0.010, 0.0), 0.95),    # 2: its neighbour: out
+        ((-0.014, 0.015, 0.0), 0.95),    # 3: and its neighbour: out
+        ((-0.013, 0.055, 0.0), 0.95),    # 4: above the thigh's top: outside, stays
+        ((-0.013, 0.060, 0.0), 0.95),    # 5: beyond it: outside, never asked
+        ((-0.012, 0.005, -0.01), 0.95),  # 6: inside the thigh, not on the chain: not asked
+    ]
+    p = np.array([c[0] for c in cases])
+    n = np.array([side] * len(cases))
+    facing = np.array([c[1] for c in cases])
+    sd, other = np.full(len(p), 0.002), np.full(len(p), 0.004)
+    behind = np.zeros(len(p), dtype=np.uint8)
+    assert facing[2:].min() > EXIT_FACING and inside_boxes(p[[0, 1, 2, 3, 6]]).all() and not inside_boxes(p[4:6]).any()
+    p0 = p.copy()
+    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 1, x, tris, g.arrays(),
+                                  d_edges=[(0, 1), (1, 2), (2, 3), (3, 4), (4, 5)] if spread else None)
+    out = [1, 2, 3] if spread else [1]
+    assert list(ids[:moved]) == out
+    np.testing.assert_allclose(moves[:moved], p[out] - p0[out], atol=1e-15)
+    for i in out:
+        np.testing.assert_allclose(p[i], (-0.01 + C, p0[i, 1], p0[i, 2]), atol=1e-5)
+    rest = [i for i in range(len(p)) if i not in out]
+    np.testing.assert_array_equal(p[rest], p0[rest])
+    assert not inside_boxes(p[out]).any()
