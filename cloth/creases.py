@@ -311,7 +311,8 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
 @kernel
 def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach, clearance, body_x, wfaces, wlo,
                       wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst, count,
-                      order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen, inside):
+                      order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen, inside,
+                      was_inside, memory):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
@@ -336,6 +337,10 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
     edge_ids: the detailed edges and each particle's, CSR): of the walk's vertex-frames left
     deeper than 1 mm, most had been read outside by S103 near another part with the normal
     along the body's, and were never asked, in a patch around particles that were.
+    Decision (memory, sixty-fourth session): a particle found inside the frame before is asked
+    again (was_inside (N,) uint8, carried between frames: written with this frame's, memory
+    False: not read), whatever S103 reads of it: its Δh is unchanged, so it starts the frame where
+    it was before the move out, and the readings that named it flicker from frame to frame.
     p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
     (sd UNTESTED = inf where it did not test); particles before `first` (the coarse vertices)
     are left alone.
@@ -354,7 +359,8 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
         # (a winding number for every particle near another part was 0.7 ms a garment-frame on the walk's
         # casual outfit, 2,000 particles; those leaning off the body are 250 of them, and two thirds of the
         # ones inside)
-        if sd[i] == np.inf or not ((other[i] < near and facing[i] < lean) or sd[i] < 0.0 or behind[i]):
+        if not ((memory and was_inside[i]) or (sd[i] != np.inf and ((other[i] < near and facing[i] < lean)
+                                                                      or sd[i] < 0.0 or behind[i]))):
             continue
         seen[i] = 1
         found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
@@ -363,10 +369,8 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
         if found:
             inside[n_inside] = i
             n_inside += 1
-    if not spread:
-        return moved
     k = 0
-    while k < n_inside:  # (the list grows as neighbours are found inside: a flood over the inside particles)
+    while spread and k < n_inside:  # (the list grows as neighbours are found inside: a flood over them)
         i = inside[k]
         for m in range(edge_start[i], edge_start[i + 1]):
             e = edge_ids[m]
@@ -381,6 +385,10 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
                 inside[n_inside] = j
                 n_inside += 1
         k += 1
+    for i in range(was_inside.shape[0]):
+        was_inside[i] = 0
+    for k in range(n_inside):
+        was_inside[inside[k]] = 1
     return moved
 
 

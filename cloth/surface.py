@@ -85,6 +85,8 @@ class SurfaceSettings:
     # and the neighbours of a particle the winding number puts inside are asked too, and theirs while they
     # are inside (Decision, `creases.out_along_normals`' spread)
     exit_spread: bool = True
+    # and a particle found inside the frame before is asked again (Decision, `creases.out_along_normals`' memory)
+    exit_memory: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -235,6 +237,7 @@ class SurfaceState:
         self.crease_seen = np.zeros(N, dtype=np.uint8)
         self.exit_seen = np.zeros(N, dtype=np.uint8)  # out_along_normals' spread: the particles asked,
         self.exit_inside = np.zeros(N, dtype=np.int32)  # and those found inside
+        self.exit_was_inside = np.zeros(N, dtype=np.uint8)  # out_along_normals: 1 where it found the particle inside
         self.tree_stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # out_along_normals' face-tree query scratch
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
 
@@ -350,7 +353,8 @@ class DetailedSurface:
                                             s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,
                                             body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),
                                             s.tree_stack, s.q, s.body_face, st.exit_spread, m.d_edges,
-                                            m.d_edge_start, m.d_edge_ids, s.exit_seen, s.exit_inside)
+                                            m.d_edge_start, m.d_edge_ids, s.exit_seen, s.exit_inside,
+                                            s.exit_was_inside, st.exit_memory)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -109,10 +109,11 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
 
 
 def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
-              d_edges=None):
+              d_edges=None, was_inside=None):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
     (none: no way out through the nearest face); start: S103's walks' faces (None: none);
-    d_edges: the particles' edges, spread along (None: no spread). Returns (count, ids, moves)."""
+    d_edges: the particles' edges, spread along (None: no spread); was_inside: the frame before's
+    particles found inside, updated (None: no memory). Returns (count, ids, moves)."""
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     start = np.full(len(p), -1, dtype=np.int32) if start is None else start
     edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
@@ -121,7 +122,9 @@ def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=
                               *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
                               np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start, d_edges is not None,
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
-                              np.zeros(len(p), dtype=np.int32))
+                              np.zeros(len(p), dtype=np.int32),
+                              np.zeros(len(p), dtype=np.uint8) if was_inside is None else was_inside,
+                              was_inside is not None)
     return count, ids, moves
 
 
@@ -375,3 +378,39 @@ def test_the_neighbours_of_a_particle_inside_are_asked_too(spread):
     rest = [i for i in range(len(p)) if i not in out]
     np.testing.assert_array_equal(p[rest], p0[rest])
     assert not inside_boxes(p[out]).any()
+
+
+def chain_across_the_thigh():
+    """Particles on the thigh's inner wall side, each read outside by S103 (2 mm) with another part
+    4 mm away and its normal along +x (across the wall at x = -1 cm): 0 and 1 inside the thigh
+    (0 with its normal leaning off the body's: asked), 2 outside it, above the thigh's top."""
+    p = np.array([(-0.012, 0.005, 0.0), (-0.013, 0.010, 0.0), (-0.013, 0.055, 0.0)])
+    n = np.tile((1.0, 0.0, 0.0), (len(p), 1))
+    facing = np.array([0.0, 0.95, 0.95])
+    return p, n, np.full(len(p), 0.002), np.full(len(p), 0.004), facing, np.zeros(len(p), dtype=np.uint8)
+
+
+def test_a_particle_found_inside_is_asked_again_the_next_frame():
+    """`out_along_normals`' memory (Decision): a particle the winding number found inside is asked
+    again the next frame, though S103's reading no longer names it (its normal now along the
+    body's), and goes out again; without the memory it stays. Its record is the frame's: one
+    found outside is dropped, one not asked (and not inside) is not kept."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    p, n, sd, other, facing, behind = chain_across_the_thigh()
+    p0 = p.copy()
+    was_inside = np.zeros(len(p), dtype=np.uint8)
+    moved, ids, _ = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), was_inside=was_inside)
+    assert list(ids[:moved]) == [0] and list(was_inside) == [1, 0, 0]
+    facing[0] = 0.95  # the next frame: back where it was (Δh unchanged), its normal along the body's
+    for memory in (True, False):
+        p = p0.copy()
+        moved, ids, _ = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(),
+                                  was_inside=was_inside.copy() if memory else None)
+        assert list(ids[:moved]) == ([0] if memory else [])
+        np.testing.assert_allclose(p[0], (-0.01 + C, 0.005, 0.0) if memory else p0[0], atol=1e-5)
+    p = p0.copy()
+    p[0] = (-0.005, 0.005, 0.0)  # a frame later it lies outside the body: asked, and dropped from the record
+    moved, ids, _ = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), was_inside=was_inside)
+    assert moved == 0 and not was_inside.any()
