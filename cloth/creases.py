@@ -53,7 +53,11 @@ the body's, or one S103 found inside, is asked the winding number at its final p
 one inside goes along ±n_i to where the body ends nearest (within 1 cm), the clearance beyond.
 Where neither way ends within 1 cm (n_i along the skin, or deep in a limb that the coarse face
 cuts across), it goes out through the nearest body face instead, or on along the line to it,
-within 3 cm (Decision, sixty-third session). Its Δh is unchanged, as above.
+within 3 cm (Decision, sixty-third session). Its Δh is unchanged, as above. The neighbours of
+each particle found inside are asked too, and theirs while they are inside, and a particle found
+inside is asked again the next frame (Decisions, sixty-fourth session: the spread and the
+memory): most of the walk's vertex-frames left deeper than 1 mm lay in patches around particles
+the rule above asked, read outside by S103 with their normals along the body's.
 """
 
 from __future__ import annotations
