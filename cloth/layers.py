@@ -18,6 +18,12 @@ the inner garment's vertices still within LAYER_GAP under the (lifted) outer sur
 front of it by less than LAYER_DEPTH, are pressed along their reference normals to LAYER_GAP
 under it, as far as the body below them allows (S103's distance, `SurfaceState.body_floor`),
 eased off and kept within the inner's edge bounds the same way.
+Decision (never into the body, sixty-fifth session): a move that would take a vertex from outside the
+body as a whole (its winding number, `cloth.winding`) to inside it is halved until it does not, and
+dropped after KEEP_OUT_HALVINGS halvings: the rooms above come from S103's distances at the heights it
+tested, and the drawn surface has moved since (S106, the moves out of creases), so a lift within its room
+could still end in the thigh under a top's hem in the walk's stride (47 of the casual T-shirt's 156
+vertex-frames deeper than 1 mm over the walk's first 250 frames).
 It is a pass on the drawn surfaces only: no garment's state (its coarse cloth, its Δh) sees
 it, so each garment's simulation stays what it is alone; the outer never moves towards the
 body, the inner never away from it.
@@ -41,6 +47,7 @@ from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
 from .surface import rest_surface as surface_at_rest
 from .topology import vertex_cells, vertex_neighbours
+from .winding import winding_number
 
 LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
 LAYER_REACH = 0.03  # m: a vertex this near the other garment at rest is tested every frame
@@ -61,6 +68,7 @@ UNDER = 0.5
 LEAN = 0.7
 WALK_STEPS = 256  # at most this many vertices walked per tracked vertex and frame
 RING_STRETCH = 1.5  # the detailed edges are taken to stretch at most this much (for ring_reach)
+KEEP_OUT_HALVINGS = 3  # a move into the body is halved at most this many times, then dropped
 OVER_SIDE, UNDER_SIDE = 1.0, -1.0  # the side of the other surface a garment is kept on (the way it moves)
 
 
@@ -97,6 +105,7 @@ class LayerModel:
     gap: float = LAYER_GAP
     depth: float = LAYER_DEPTH
     max_lift: float = MAX_LAYER_LIFT
+    keep_out: bool = True  # no move into the body (the Decision never into the body; False: the rooms alone)
 
 
 class SheetMoves:
@@ -110,6 +119,7 @@ class SheetMoves:
         self.queue = np.zeros(len(t.candidates), dtype=np.int32)  # ease_lifts' scratch
         self.queued = np.zeros(len(t.candidates), dtype=np.uint8)
         self.moved = 0  # candidates moved in the last frame (before the easing)
+        self.held = 0  # of the moved, those held back out of the body (keep_out_of_body)
         size = int(t.candidates.max()) + 1 if len(t.candidates) else 0
         self.no_heights = np.zeros(size)  # a garment with no body near: height 0, nothing above
         self.no_floor = np.full(size, -np.inf)  # ... nothing below
@@ -299,9 +309,40 @@ def apply_lifts(p, n, side, candidates, move, room):
             p[i, 2] += s * n[i, 2]
 
 
+@kernel
+def keep_out_of_body(p, n, side, candidates, move, room, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
+    """The module's Decision (never into the body), after `apply_lifts`: each candidate that its
+    move took from outside the body as a whole (winding number 0 over wfaces, the pose's grid wlo
+    ... wextent) to inside is moved back by half its move, and again, at most KEEP_OUT_HALVINGS
+    times, then all the way; room is cut to the move kept. Returns how many were held back."""
+    held = 0
+    for c in range(candidates.shape[0]):
+        s = side * min(move[c], room[c])
+        i = candidates[c]
+        if s == 0.0 or winding_number(p[i, 0], p[i, 1], p[i, 2], body_x, wfaces, wlo, wstart, wids, wspan,
+                                      wextent) == 0:
+            continue
+        bx, by, bz = p[i, 0] - s * n[i, 0], p[i, 1] - s * n[i, 1], p[i, 2] - s * n[i, 2]
+        if winding_number(bx, by, bz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) != 0:
+            continue  # inside before it moved: not this pass's doing
+        f = 0.5
+        for _ in range(KEEP_OUT_HALVINGS):
+            if winding_number(bx + f * s * n[i, 0], by + f * s * n[i, 1], bz + f * s * n[i, 2], body_x, wfaces, wlo,
+                              wstart, wids, wspan, wextent) == 0:
+                break
+            f *= 0.5
+        else:
+            f = 0.0
+        p[i, 0], p[i, 1], p[i, 2] = bx + f * s * n[i, 0], by + f * s * n[i, 1], bz + f * s * n[i, 2]
+        room[c] = f * min(move[c], room[c])
+        held += 1
+    return held
+
+
 def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: np.ndarray, p_ref: np.ndarray,
-                n_ref: np.ndarray, side: float, q: np.ndarray) -> None:
-    """One garment of a pair moved to its side of the other (its room already set)."""
+                n_ref: np.ndarray, side: float, q: np.ndarray, body: tuple | None = None) -> None:
+    """One garment of a pair moved to its side of the other (its room already set); body: (body_x,
+    winding faces, the pose's winding grid arrays), out of which no move takes a vertex (None: no body)."""
     s.moved = offsets_from_sheet(p, n, p_ref, n_ref, t.candidates, s.nearest, t.nbr_start, t.nbr_ids, t.tri_start,
                                  t.tri_ids, t.triangles, t.ring_reach, side, m.gap, m.depth, s.room, q, s.move)
     if s.moved:
@@ -311,31 +352,35 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
         keep_within_bounds(p, n, side, t.candidates, t.spread_edges, t.spread_limit, s.move, s.room, BOUND_SWEEPS,
                            True)
         apply_lifts(p, n, side, t.candidates, s.move, s.room)
+        s.held = 0 if body is None else keep_out_of_body(p, n, side, t.candidates, s.move, s.room, *body)
 
 
 def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarray, p_in: np.ndarray,
                 n_in: np.ndarray, outer: SurfaceState | None = None, inner: SurfaceState | None = None,
-                max_height: float = 0.0) -> None:
+                max_height: float = 0.0, body: tuple | None = None) -> None:
     """Lift the outer garment's detailed positions p_out (N, 3), in place, over the inner
     garment's detailed surface (p_in, n_in) of the same frame, then press p_in, in place, under
     what is left above it (the module's Decision). n_out, n_in: the shading normals (unit, away
     from the body). outer: the outer's surface state, whose drawn heights and S106 ceilings the
     lifts keep to where S103 found a body part above or beside a vertex (a ceiling under
     max_height, its SurfaceSettings'); inner: the inner's, whose vertices are pressed along
-    their reference normals (n_pn) no lower than their body floors; None: no body near."""
+    their reference normals (n_pn) no lower than their body floors; None: no body near. body: (body_x,
+    winding faces, the pose's `WindingGrid.arrays()`): no move takes a vertex into the body as a whole
+    (`keep_out_of_body`; None: no body)."""
     lift, press = s.lift, s.press
     if outer is None:
         lift_room(m.over.candidates, lift.no_heights, lift.no_heights, 0.0, m.max_lift, lift.room)
     else:
         lift_room(m.over.candidates, outer.height, outer.ceiling, max_height, m.max_lift, lift.room)
-    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, OVER_SIDE, s.q)
+    body = body if m.keep_out else None
+    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, OVER_SIDE, s.q, body)
     if inner is None:
         press_room(m.under.candidates, press.no_heights, press.no_floor, m.max_lift, press.room)
         n_press = n_in
     else:
         press_room(m.under.candidates, inner.height, inner.body_floor, m.max_lift, press.room)
         n_press = inner.n_pn
-    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, UNDER_SIDE, s.q)
+    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, UNDER_SIDE, s.q, body)
 
 
 def nearest(points: np.ndarray, targets: np.ndarray, within: float = np.inf) -> tuple[np.ndarray, np.ndarray]:

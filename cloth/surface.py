@@ -18,7 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, VertexGrid, part_scratch
-from .creases import EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, leave_creases, out_along_normals
+from .creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, NO_DIRECTIONS,
+                      leave_creases, out_along_normals)
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -87,6 +88,9 @@ class SurfaceSettings:
     exit_spread: bool = True
     # and a particle found inside the frame before is asked again (Decision, `creases.out_along_normals`' memory)
     exit_memory: bool = True
+    # and where no way out along ±n_i or through the nearest face is found, the nearest among the axes and
+    # diagonals (Decision, `creases.out_along_normals`' around)
+    exit_around: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -354,7 +358,8 @@ class DetailedSurface:
                                             body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),
                                             s.tree_stack, s.q, s.body_face, st.exit_spread, m.d_edges,
                                             m.d_edge_start, m.d_edge_ids, s.exit_seen, s.exit_inside,
-                                            s.exit_was_inside, st.exit_memory)
+                                            s.exit_was_inside, st.exit_memory,
+                                            EXIT_DIRECTIONS if st.exit_around else NO_DIRECTIONS)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -273,11 +273,13 @@ class OutfitSession:
             raise failed[0]
         if self._frame[2]:
             t0 = time.perf_counter()
+            body = None if self.pose.winding is None else (self.pose.x, self.body_mesh.winding_faces,
+                                                           *self.pose.winding.arrays())
             for lm, ls in self.layers:
                 (p_out, n_out), (p_in, n_in) = self._detailed[lm.outer], self._detailed[lm.inner]
                 outer, inner = self.surfaces[lm.outer], self.surfaces[lm.inner]
                 stack_layer(lm, ls, p_out, n_out, p_in, n_in, outer.state, inner.state,
-                            outer.model.settings.max_height)
+                            outer.model.settings.max_height, body)
             self.layer_seconds = time.perf_counter() - t0
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
             if on_garment is not None:

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from cloth.collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, FaceTree, face_normals
-from cloth.creases import (EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, leave_creases, out_along_normals,
-                           out_of_two_planes)
+from cloth.creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, NO_DIRECTIONS,
+                           leave_creases, out_along_normals, out_of_two_planes)
 from cloth.topology import vertex_cells
 from cloth.winding import NO_WINDING, WindingGrid
 from tests.test_cloth_dynamics import box
@@ -109,7 +109,7 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
 
 
 def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
-              d_edges=None, was_inside=None):
+              d_edges=None, was_inside=None, around=NO_DIRECTIONS):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
     (none: no way out through the nearest face); start: S103's walks' faces (None: none);
     d_edges: the particles' edges, spread along (None: no spread); was_inside: the frame before's
@@ -124,7 +124,7 @@ def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
                               np.zeros(len(p), dtype=np.int32),
                               np.zeros(len(p), dtype=np.uint8) if was_inside is None else was_inside,
-                              was_inside is not None)
+                              was_inside is not None, around)
     return count, ids, moves
 
 
@@ -414,3 +414,33 @@ def test_a_particle_found_inside_is_asked_again_the_next_frame():
     p[0] = (-0.005, 0.005, 0.0)  # a frame later it lies outside the body: asked, and dropped from the record
     moved, ids, _ = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), was_inside=was_inside)
     assert moved == 0 and not was_inside.any()
+
+
+def test_a_particle_with_no_way_out_along_its_normal_or_a_face_goes_out_along_the_nearest_direction():
+    """`out_along_normals`' way around (Decision): on the two boxes, with no face tree to go through,
+    a particle inside the thigh whose normal runs along it goes out along the nearest of
+    EXIT_DIRECTIONS that ends within EXIT_REACH, the clearance beyond; one with none within reach
+    stays, and without the directions every one stays."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    cases = [
+        (-0.063, 0.020, 0.0),  # 0: 7 mm inside the thigh's outer wall (x = -7 cm): out along -x
+        (-0.040, 0.043, 0.0),  # 1: 7 mm under the thigh's top (y = 5 cm): out along +y
+        (0.000, -0.050, 0.0),  # 2: the torso's middle, 5 cm from every wall: stays
+    ]
+    p = np.array(cases)
+    n = np.array([(0.0, 0.0, 1.0)] * len(cases))  # along the thigh: its ends 3 cm away
+    sd, other, facing = np.full(len(p), -0.005), np.full(len(p), np.inf), np.ones(len(p))
+    behind = np.zeros(len(p), dtype=np.uint8)
+    assert inside_boxes(p).all() and EXIT_REACH < 0.02
+    q = p.copy()
+    moved, ids, moves = out_along(q, n, sd, other, facing, behind, 0, x, tris, g.arrays(), around=EXIT_DIRECTIONS)
+    assert list(ids[:moved]) == [0, 1]
+    np.testing.assert_allclose(q[0], (-0.07 - C, 0.02, 0.0), atol=2e-5)
+    np.testing.assert_allclose(q[1], (-0.04, 0.05 + C, 0.0), atol=2e-5)
+    np.testing.assert_array_equal(q[2], p[2])
+    assert not inside_boxes(q[:2]).any()
+    q = p.copy()
+    moved, _, _ = out_along(q, n, sd, other, facing, behind, 0, x, tris, g.arrays())
+    assert moved == 0 and (q == p).all()

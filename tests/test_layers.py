@@ -336,3 +336,42 @@ def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound(side):
     assert 0.0 < lift[0] < 0.002 and d == pytest.approx(0.011, abs=1e-15)  # to 1.4 mm, where they part 11 mm
     lift, d = lifted(0.011, [0.0, 0.0])
     assert np.all(lift == 0.0) and d == pytest.approx(0.01, abs=1e-15)
+
+
+def test_no_lift_or_press_takes_a_vertex_into_the_body():
+    """The Decision never into the body: the first test's sheets with a body part (a box, its
+    bottom at y = 5 mm) right over the middle of the outer sheet: the outer's lift to LAYER_GAP over
+    the inner (6 mm) would end inside it, so there it is halved (3 mm, outside); elsewhere the lift
+    is whole. The inner is then pressed under the outer that is left, away from the body, as before."""
+    from cloth.winding import WindingGrid
+    from tests.test_cloth_dynamics import box
+    bx, bt = box(half=0.05, n=4)
+    bx = np.ascontiguousarray(bx + [0.2, 0.055, 0.1])
+    g = WindingGrid(bt.astype(np.int32), len(bx), cell=0.01)
+    g.update(bx)
+    body = (bx, bt.astype(np.int32), *g.arrays())
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    p, q = po.copy(), pi.copy()
+    s = LayerState(m)
+    stack_layer(m, s, p, up(len(p)), q, up(len(q)), body=body)
+    x, z = po[:, 0], po[:, 2]
+    over = (x > 0.1 - 1e-9) & (x < 0.3 + 1e-9)
+    under_box = (np.abs(x - 0.2) < 0.05 - 1e-9) & (np.abs(z - 0.1) < 0.05 - 1e-9)
+    beside = over & ((np.abs(x - 0.2) > 0.05 + 1e-9) | (np.abs(z - 0.1) > 0.05 + 1e-9))
+    np.testing.assert_allclose(p[under_box, 1], 0.5 * (0.004 + LAYER_GAP), atol=1e-12)
+    np.testing.assert_allclose(p[beside, 1], 0.004 + LAYER_GAP, atol=1e-12)
+    on_walls = (np.abs(x - 0.2) < 0.05 + 1e-9) & (np.abs(z - 0.1) < 0.05 + 1e-9)  # (on them: either)
+    assert s.lift.held == int(np.sum(np.isclose(p[:, 1], 0.5 * (0.004 + LAYER_GAP))))
+    assert under_box.sum() <= s.lift.held <= on_walls.sum()
+    np.testing.assert_array_equal(p[:, [0, 2]], po[:, [0, 2]])
+    xi, zi = pi[:, 0], pi[:, 2]
+    inner_under = (np.abs(xi - 0.2) < 0.05 - 1e-9) & (np.abs(zi - 0.1) < 0.05 - 1e-9)
+    # (where the outer steps back up at the box's walls the press eases off a little)
+    assert np.all((q[inner_under, 1] > 0.5 * (0.004 + LAYER_GAP) - LAYER_GAP - 1e-12) & (q[inner_under, 1] < 0.0015))
+    over_at = {(round(a, 6), round(c, 6)): y for a, y, c in p}
+    assert np.all(q[:, 1] < np.array([over_at[round(a, 6), round(c, 6)] for a, _, c in q]))
+    assert s.press.held == 0
+    # without the body the lift is whole everywhere
+    p = po.copy()
+    stack_layer(m, LayerState(m), p, up(len(p)), pi.copy(), up(len(pi)))
+    np.testing.assert_allclose(p[under_box, 1], 0.004 + LAYER_GAP, atol=1e-12)
