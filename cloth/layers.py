@@ -343,6 +343,7 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
                 n_ref: np.ndarray, side: float, q: np.ndarray, body: tuple | None = None) -> None:
     """One garment of a pair moved to its side of the other (its room already set); body: (body_x,
     winding faces, the pose's winding grid arrays), out of which no move takes a vertex (None: no body)."""
+    s.held = 0
     s.moved = offsets_from_sheet(p, n, p_ref, n_ref, t.candidates, s.nearest, t.nbr_start, t.nbr_ids, t.tri_start,
                                  t.tri_ids, t.triangles, t.ring_reach, side, m.gap, m.depth, s.room, q, s.move)
     if s.moved:
@@ -352,7 +353,8 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
         keep_within_bounds(p, n, side, t.candidates, t.spread_edges, t.spread_limit, s.move, s.room, BOUND_SWEEPS,
                            True)
         apply_lifts(p, n, side, t.candidates, s.move, s.room)
-        s.held = 0 if body is None else keep_out_of_body(p, n, side, t.candidates, s.move, s.room, *body)
+        if body is not None:
+            s.held = keep_out_of_body(p, n, side, t.candidates, s.move, s.room, *body)
 
 
 def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarray, p_in: np.ndarray,
