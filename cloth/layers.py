@@ -42,6 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .collision import outside_at
 from .geometry import closest_in_fan, nearest_vertices
 from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
@@ -327,8 +328,8 @@ def keep_out_of_body(p, n, side, candidates, move, room, body_x, wfaces, wlo, ws
             continue  # inside before it moved: not this pass's doing
         f = 0.5
         for _ in range(KEEP_OUT_HALVINGS):
-            if winding_number(bx + f * s * n[i, 0], by + f * s * n[i, 1], bz + f * s * n[i, 2], body_x, wfaces, wlo,
-                              wstart, wids, wspan, wextent) == 0:
+            if outside_at(bx, by, bz, n[i, 0], n[i, 1], n[i, 2], f * s, body_x, wfaces, wlo, wstart, wids, wspan,
+                          wextent):
                 break
             f *= 0.5
         else:
