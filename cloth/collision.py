@@ -83,12 +83,13 @@ class BodyMesh:
         convert them with `internal`); the mesh's own arrays and `BodyPose.x` are in the inner one.
         wound_faces: (m,) bool, the faces of the surface whose winding number tells inside from
         outside (`winding_faces`: these, their holes capped), a superset of the clothed faces.
-        Decision: the clothed faces and the hands as far as 6 cm from the wrist
-        (the cloth service's `collision_body`, WRIST_REACH). Capped at the wrist, a point inside the
-        hand read as outside the body, and a sleeve's particle inside the hand stayed there (the
-        walk's blouse and skirt: 340 of their 1,715 vertex-frames deeper than 1 mm lay nearest a
-        hand's skin). The whole hands would cost their 6,330 faces' share of the winding grid's
-        rebuild each pose (351 → 597 µs); to 6 cm, 548 faces. None: the clothed faces."""
+        Decision: the clothed faces and the whole hands (the cloth service's `collision_body`,
+        WRIST_REACH). Capped at the wrist, a point inside the hand read as outside the body, and a
+        sleeve's particle inside the hand stayed there (the walk's blouse and skirt: 340 of their
+        1,715 vertex-frames deeper than 1 mm lay nearest a hand's skin, fifty-ninth session); capped
+        6 cm from the wrist (548 of the hands' 6,330 faces, fifty-ninth to sixty-fifth sessions), a
+        point inside the fingers did (the walk's skirt under the left hand: half its vertex-frames
+        deeper than 1 mm, sixty-sixth session). None: the clothed faces."""
         triangles = np.ascontiguousarray(triangles, dtype=np.int32)
         if regions is None:
             regions = np.ones(n_vertices, dtype=REGION_DTYPE)

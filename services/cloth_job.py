@@ -69,15 +69,16 @@ def outfit_checker(data: Path) -> Callable[[dict], None]:
     return check
 
 
-# m: how far into the hand from the wrist the cloth's winding surface reaches (BodyMesh.build's wound_faces)
-WRIST_REACH = 0.06
+# m: how far into the hand from the wrist the cloth's winding surface reaches (BodyMesh.build's wound_faces);
+# None: the whole hand, fingers and thumb (Decision, sixty-sixth session: a skirt under the fingers)
+WRIST_REACH: float | None = None
 
 
 def collision_body(body: Body) -> BodyMesh:
     """The body as the cloth collides with it: its parts (upper arms and forearms apart, one
     sleeve over both; lower legs and feet apart, one trouser leg over both), the faces clothes
-    can touch, numbered along a Morton curve; its winding number counts the hands too, as far as
-    WRIST_REACH from the wrist (BodyMesh.build's wound_faces)."""
+    can touch, numbered along a Morton curve; its winding number counts the hands too (WRIST_REACH:
+    the whole hands; BodyMesh.build's wound_faces)."""
     clothed = body_clothed_faces(body)
     return BodyMesh.build(body.triangles, body.n_visible, body_regions(body), clothed, body.vertices,
                           limbs=ARM_LIMBS + LEG_LIMBS, wound_faces=clothed | body_hand_faces(body, WRIST_REACH))

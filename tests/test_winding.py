@@ -284,32 +284,39 @@ def test_the_collision_body_keeps_each_foot_with_its_lower_leg_for_the_coarse_cl
     assert set(np.unique(mesh.parts).tolist()) == set(BODY_REGIONS.values())
 
 
-def test_the_cloth_winding_number_counts_the_hands_by_the_wrist(body):
-    """The collision body's winding surface keeps the hands to WRIST_REACH from the wrist
-    (`BodyMesh.wound_faces`): within 3 cm of the wrist it says inside exactly where the
-    independent test does (tests/signed_distance.py, over the whole skin), where the clothed
-    faces alone, capped at the wrists, said outside inside the hand."""
+def test_the_cloth_winding_number_counts_the_whole_hands(body):
+    """The collision body's winding surface keeps the whole hands (`BodyMesh.wound_faces`,
+    WRIST_REACH None): within 3 cm of the hands' skin, fingers and thumbs included, it says inside
+    exactly where the independent test does (tests/signed_distance.py, over the whole skin), where
+    the clothed faces alone, capped at the wrists, said outside inside the hand, and the hands
+    capped 6 cm from the wrist (the rule before) said outside inside the fingers."""
     from services.cloth_job import WRIST_REACH, collision_body
-    from skinning.body import body_clothed_faces, body_hand_faces
+    from skinning.body import ARM_LIMBS, LEG_LIMBS, body_clothed_faces, body_hand_faces, body_regions
     from tests.signed_distance import SignedDistance
 
+    assert WRIST_REACH is None
     mesh = collision_body(body)
     skin = np.asarray(body.vertices[: body.n_visible], dtype=np.float64)
     x = mesh.internal(body.vertices)
     hand, clothed = body_hand_faces(body), body_clothed_faces(body)
-    wrist = skin[np.intersect1d(body.triangles[hand], body.triangles[clothed])]
+    hand_skin = skin[np.unique(body.triangles[hand])]
     rng = np.random.default_rng(7)
-    points = rng.uniform(wrist.min(axis=0) - 0.03, wrist.max(axis=0) + 0.03, size=(200000, 3))
-    by_wrist = ((points[:, None, :] - wrist[None, :, :]) ** 2).sum(axis=2).min(axis=1) < 0.03**2
-    points = points[by_wrist]
+    points = rng.uniform(hand_skin.min(axis=0) - 0.03, hand_skin.max(axis=0) + 0.03, size=(200000, 3))
+    near = np.zeros(len(points), dtype=bool)
+    for chunk in np.array_split(np.arange(len(points)), 20):
+        near[chunk] = ((points[chunk, None, :] - hand_skin[None, ::4, :]) ** 2).sum(axis=2).min(axis=1) < 0.03**2
+    points = points[near]
     expected = SignedDistance(body.triangles, body.n_visible).winding_numbers(skin, points) >= 1
     got = windings(x, mesh.winding_faces, points) >= 1
     clothed_only = windings(x, closed_faces(mesh.triangles, mesh.clothed_faces), points) >= 1
+    before = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), clothed, body.vertices,
+                            limbs=ARM_LIMBS + LEG_LIMBS, wound_faces=clothed | body_hand_faces(body, 0.06))
+    to_6cm = windings(before.internal(body.vertices), before.winding_faces, points) >= 1
     in_hand = expected & ~clothed_only  # inside the hand (the clothed skin's cap is flat at the wrist)
-    assert in_hand.sum() > 100
+    in_fingers = expected & ~to_6cm
+    assert in_hand.sum() > 1000 and in_fingers.sum() > 300
     np.testing.assert_array_equal(got, expected)
-    assert mesh.wound_faces.sum() == clothed.sum() + body_hand_faces(body, WRIST_REACH).sum()
-    assert 0 < body_hand_faces(body, WRIST_REACH).sum() < 0.2 * hand.sum()
+    assert mesh.wound_faces.sum() == clothed.sum() + hand.sum()
 
 
 def reference_columns(x, tris, lo):
