@@ -53,7 +53,9 @@ the body's, or one S103 found inside, is asked the winding number at its final p
 one inside goes along ±n_i to where the body ends nearest (within 1 cm), the clearance beyond.
 Where neither way ends within 1 cm (n_i along the skin, or deep in a limb that the coarse face
 cuts across), it goes out through the nearest body face instead, or on along the line to it,
-within 3 cm (Decision, sixty-third session). Its Δh is unchanged, as above. The neighbours of
+within 4 cm (Decision, sixty-third session; 3 cm until the sixty-sixth, when the walk's elegant
+blouse had one or two particles a frame 32-35 mm inside the left arm at the armpit, over frames
+286-496, half its vertex-frames deeper than 1 mm). Its Δh is unchanged, as above. The neighbours of
 each particle found inside are asked too, and theirs while they are inside, and a particle found
 inside is asked again the next frame (Decisions, sixty-fourth session: the spread and the
 memory): most of the walk's vertex-frames left deeper than 1 mm lay in patches around particles
@@ -90,8 +92,9 @@ EXIT_NEAR = 0.01
 EXIT_FACING = 0.9
 EXIT_REACH = 0.01
 # m: where no way out along ±n_i lies within EXIT_REACH, `out_along_normals` takes the way out through the
-# nearest body face, or on along the line to it, within this (as far as `leave_creases` moves: CREASE_MOVE)
-EXIT_FACE_REACH = 0.03
+# nearest body face, or on along the line to it, within this (3 cm, CREASE_MOVE, until the sixty-sixth session:
+# the walk's blouse left 32-35 mm inside the arm at the armpit, under a coarse face that cuts across it)
+EXIT_FACE_REACH = 0.04
 # where neither way ends within reach, `out_along_normals` looks for the way out along each of these (unit: the
 # axes, the diagonals of the cube's edges and its corners), within EXIT_REACH, and takes the nearest
 EXIT_DIRECTIONS = np.ascontiguousarray(np.concatenate([np.eye(3), -np.eye(3), DIAGONALS]))
