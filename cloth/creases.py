@@ -336,7 +336,7 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
 
 
 @kernel
-def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach, clearance, body_x, wfaces, wlo,
+def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, reach, clearance, body_x, wfaces, wlo,
                       wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst, count,
                       order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen, inside,
                       was_inside, memory, around):
@@ -372,9 +372,14 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
     particle goes out along the nearest way among the directions `around` (EXIT_DIRECTIONS; (0, 3): none),
     within `reach`: in the walk's crouch, the jeans' particles inside the thigh beside the belly's skin
     buried in it, whose nearest face leads into the belly, and n_i along the thigh.
+    Decision (lowered after a lift, sixty-seventh session): a particle S103 lifted this frame that
+    S106 then lowered by more than the clearance (`lowered`, from `lowered_after_lift`) is asked
+    too: after a lift S103's walk can stop on a face the particle projects into while a nearer
+    surface lies beside it, and read it farther out than it is (the run's silk blouse: 12-27 mm
+    where it was 8-13 mm), and S106's floor follows that reading back into the body.
     p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
-    (sd UNTESTED = inf where it did not test); particles before `first` (the coarse vertices)
-    are left alone.
+    (sd UNTESTED = inf where it did not test); lowered (N,) uint8: 1 where a particle is to be asked
+    whatever S103 read; particles before `first` (the coarse vertices) are left alone.
     wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
     pose's face normals; box ... leaf: the pose's `FaceTree.arrays()` (tfirst its `first`),
     stack (FACE_TREE_STACK,) int32 and q (3,): scratch; body_face: the face each particle's S103
@@ -390,8 +395,8 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
         # (a winding number for every particle near another part was 0.7 ms a garment-frame on the walk's
         # casual outfit, 2,000 particles; those leaning off the body are 250 of them, and two thirds of the
         # ones inside)
-        if not ((memory and was_inside[i]) or (sd[i] != np.inf and ((other[i] < near and facing[i] < lean)
-                                                                      or sd[i] < 0.0 or behind[i]))):
+        if not ((memory and was_inside[i]) or lowered[i]
+                or (sd[i] != np.inf and ((other[i] < near and facing[i] < lean) or sd[i] < 0.0 or behind[i]))):
             continue
         seen[i] = 1
         found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
@@ -424,5 +429,14 @@ def out_along_normals(p, n, sd, other, facing, behind, first, near, lean, reach,
     return moved
 
 
+@kernel
+def lowered_after_lift(dh_pen, lifted, height, by, lowered):
+    """`out_along_normals`' particles lowered after a lift: 1 where S103 lifted the particle this
+    frame (dh_pen > 0) and its drawn height (S106's, folds included) ends more than `by` below the
+    height S103 left it at (lifted), else 0."""
+    for i in range(dh_pen.shape[0]):
+        lowered[i] = 1 if dh_pen[i] > 0.0 and height[i] < lifted[i] - by else 0
+
+
 __all__ = ["EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_NEAR", "EXIT_REACH", "NO_DIRECTIONS",
-           "leave_creases", "out_along_normals", "out_of_two_planes"]
+           "leave_creases", "lowered_after_lift", "out_along_normals", "out_of_two_planes"]

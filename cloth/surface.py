@@ -19,7 +19,7 @@ import numpy as np
 
 from .collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, VertexGrid, part_scratch
 from .creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, NO_DIRECTIONS,
-                      leave_creases, out_along_normals)
+                      leave_creases, lowered_after_lift, out_along_normals)
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -91,6 +91,9 @@ class SurfaceSettings:
     # and where no way out along ±n_i or through the nearest face is found, the nearest among the axes and
     # diagonals (Decision, `creases.out_along_normals`' around)
     exit_around: bool = True
+    # and a particle S103 lifted that S106 lowered again by more than the clearance (Decision,
+    # `creases.out_along_normals`' lowered after a lift)
+    exit_lowered: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -185,6 +188,8 @@ class SurfaceState:
         self.facing = np.zeros(N)  # S103: n_i . n_body at each tested particle's closest body point
         self.other = np.zeros(N)  # S103: distance to the nearest other body part walked to (inf: none)
         self.behind = np.zeros(N, dtype=np.uint8)  # S103: 1 where a walk in another part found it behind that part
+        self.lifted = np.zeros(N)  # S103: the heights after its lifts, m
+        self.lowered = np.zeros(N, dtype=np.uint8)  # 1 where S106 lowered a particle S103 lifted (out_along_normals)
         self.body_face = np.full(N, -1, dtype=np.int32)  # S103: body face each particle's last walk ended on,
         self.part_face = np.full(N, -1, dtype=np.int32)  # and its last walk in another body part
         self.part_seeds = np.zeros((n, MAX_PART_SEEDS), dtype=np.int32)  # S103: other body parts near each
@@ -305,6 +310,7 @@ class DetailedSurface:
                                             s.part_face, face_n, s.q, face_tip, st.tip_share, st.clearance,
                                             st.contact_margin, st.face_margin, st.penetration_iterations,
                                             st.max_lift, st.max_height, st.lift_search)
+        s.lifted[:] = s.dh
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)
         t2 = time.perf_counter()
@@ -352,7 +358,12 @@ class DetailedSurface:
                                          *(NO_WINDING if winding is None else winding),
                                          winding is not None)
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
-            self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, t.n_coarse, EXIT_NEAR,
+            if st.exit_lowered:
+                lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance, s.lowered)
+            else:
+                s.lowered[:] = 0
+            self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, s.lowered, t.n_coarse,
+                                            EXIT_NEAR,
                                             EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
                                             s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,
                                             body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),

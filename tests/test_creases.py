@@ -6,7 +6,7 @@ import pytest
 
 from cloth.collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, FaceTree, face_normals
 from cloth.creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, NO_DIRECTIONS,
-                           leave_creases, out_along_normals, out_of_two_planes)
+                           leave_creases, lowered_after_lift, out_along_normals, out_of_two_planes)
 from cloth.topology import vertex_cells
 from cloth.winding import NO_WINDING, WindingGrid
 from tests.test_cloth_dynamics import box
@@ -109,16 +109,18 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
 
 
 def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
-              d_edges=None, was_inside=None, around=NO_DIRECTIONS):
+              d_edges=None, was_inside=None, around=NO_DIRECTIONS, lowered=None):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
     (none: no way out through the nearest face); start: S103's walks' faces (None: none);
     d_edges: the particles' edges, spread along (None: no spread); was_inside: the frame before's
-    particles found inside, updated (None: no memory). Returns (count, ids, moves)."""
+    particles found inside, updated (None: no memory); lowered: the particles lowered after a lift
+    (None: none). Returns (count, ids, moves)."""
+    lowered = np.zeros(len(p), dtype=np.uint8) if lowered is None else lowered
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     start = np.full(len(p), -1, dtype=np.int32) if start is None else start
     edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
     edge_start, edge_ids = vertex_cells(len(p), edges)
-    count = out_along_normals(p, n, sd, other, facing, behind, first, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
+    count = out_along_normals(p, n, sd, other, facing, behind, lowered, first, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
                               *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
                               np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start, d_edges is not None,
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
@@ -414,6 +416,36 @@ def test_a_particle_found_inside_is_asked_again_the_next_frame():
     p[0] = (-0.005, 0.005, 0.0)  # a frame later it lies outside the body: asked, and dropped from the record
     moved, ids, _ = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), was_inside=was_inside)
     assert moved == 0 and not was_inside.any()
+
+
+def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
+    """`out_along_normals`' lowered after a lift (Decision): `lowered_after_lift` names the
+    particles S103 lifted this frame that S106 brought more than the clearance below S103's
+    height, and only those; such a particle, read well outside by S103 (1 cm: its walk stopped on
+    a face it projects into) with its normal facing the body's and no other part near, which the
+    winding number puts inside, goes out along n_i; unnamed, it stays."""
+    dh_pen = np.array([0.02, 0.02, 0.02, 0.0, -0.004])
+    lifted = np.array([0.02, 0.02, 0.02, 0.01, 0.0])
+    height = np.array([0.004, 0.0195, 0.02, 0.0, -0.01])  # 0: 16 mm down; 1: 0.5 mm down; 2: as lifted
+    lowered = np.zeros(len(dh_pen), dtype=np.uint8)
+    lowered_after_lift(dh_pen, lifted, height, C, lowered)
+    assert list(lowered) == [1, 0, 0, 0, 0]  # (3: not lifted; 4: lowered by S103, not lifted)
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    p = np.array([(-0.03, 0.047, 0.0), (-0.03, 0.047, 0.01)])  # 3 mm under the thigh's top, n_i up
+    n = np.tile((0.0, 1.0, 0.0), (2, 1))
+    sd, other, facing = np.full(2, 0.01), np.full(2, np.inf), np.full(2, 1.0)
+    behind = np.zeros(2, dtype=np.uint8)
+    p0 = p.copy()
+    for named in ([0, 0], [1, 0]):
+        p = p0.copy()
+        moved, ids, _ = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(),
+                                  lowered=np.array(named, dtype=np.uint8))
+        assert list(ids[:moved]) == ([0] if named[0] else [])
+        np.testing.assert_allclose(p[0], (-0.03, 0.05 + C, 0.0) if named[0] else p0[0], atol=1e-5)
+        np.testing.assert_array_equal(p[1], p0[1])
+    assert inside_boxes(p0).all() and not inside_boxes(p[:1]).any()
 
 
 def test_a_particle_with_no_way_out_along_its_normal_or_a_face_goes_out_along_the_nearest_direction():
