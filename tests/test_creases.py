@@ -120,8 +120,8 @@ def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=
     start = np.full(len(p), -1, dtype=np.int32) if start is None else start
     edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
     edge_start, edge_ids = vertex_cells(len(p), edges)
-    count = out_along_normals(p, n, sd, other, facing, behind, lowered, first, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C, x, tris,
-                              *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
+    count = out_along_normals(p, n, sd, other, facing, behind, lowered, first, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C,
+                              x, tris, *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
                               np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start, d_edges is not None,
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
                               np.zeros(len(p), dtype=np.int32),
@@ -253,9 +253,10 @@ def test_a_particle_inside_by_the_winding_number_goes_out_along_its_normal(sense
     its normal leaning off the body's, that the winding number puts inside goes out along ±n_i
     to where the body ends nearest, the clearance beyond, and so does one S103 read as outside,
     not near another part and its normal facing the body's, but behind another part's surface
-    by its walk there (`behind`); the others stay: one whose normal faces the body (S103's lifts
-    are right there), the same not behind another part, one outside, one untested, one with no
-    way out within reach, and a coarse vertex (before `first`)."""
+    by its walk there (`behind`), and one read 2 cm outside with another part within EXIT_NEAR
+    (2.5 cm); the others stay: one whose normal faces the body (S103's lifts are right there),
+    the same not behind another part, one outside, one untested, one with no way out within
+    reach, one whose other part is farther than EXIT_NEAR, and a coarse vertex (before `first`)."""
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
     g.update(x)
@@ -271,23 +272,27 @@ def test_a_particle_inside_by_the_winding_number_goes_out_along_its_normal(sense
         ((-0.040, 0.020, 0.0), up, 0.002, 0.004, 0.0, 0),       # 6: 3 cm from a way out along ±n: stays
         ((-0.012, 0.005, -0.02), side, 0.002, 0.02, 0.95, 0),   # 7: as 3, no other part near: stays
         ((-0.012, 0.005, 0.015), side, 0.002, 0.02, 0.95, 1),   # 8: as 7, but behind another part's surface: out
+        ((-0.012, 0.005, -0.015), side, 0.02, 0.025, 0.0, 0),   # 9: as 1, read 2 cm out, another part 2.5 cm: out
+        ((-0.012, 0.005, 0.005), side, 0.02, 0.035, 0.0, 0),    # 10: as 9, the other part 3.5 cm away: stays
     ]
     p = np.array([c[0] for c in cases])
     n = np.array([c[1] for c in cases])
     sd, other, facing = (np.array([c[k] for c in cases]) for k in (2, 3, 4))
     behind = np.array([c[5] for c in cases], dtype=np.uint8)
-    assert EXIT_FACING < 0.95 and EXIT_NEAR > 0.004 and 0.003 < EXIT_REACH < 0.03
+    assert EXIT_FACING < 0.95 and 0.025 < EXIT_NEAR < 0.035 and 0.003 < EXIT_REACH < 0.03
     p0 = p.copy()
     moved, ids, moves = out_along(p, n, sd, other, facing, behind, 1, x, tris, g.arrays())
-    assert moved == 3 and list(ids[:3]) == [1, 2, 8]
-    out = [1, 2, 8]
-    np.testing.assert_allclose(moves[:3], p[out] - p0[out], atol=1e-15)
+    assert moved == 4 and list(ids[:4]) == [1, 2, 8, 9]
+    out = [1, 2, 8, 9]
+    np.testing.assert_allclose(moves[:4], p[out] - p0[out], atol=1e-15)
     np.testing.assert_allclose(p[1], (-0.01 + C, 0.005, 0.0), atol=1e-5)  # (the exit to 10 bisections of 4 mm)
     np.testing.assert_allclose(p[2], (-0.03, 0.05 + C, 0.0), atol=1e-5)
     np.testing.assert_allclose(p[8], (-0.01 + C, 0.005, 0.015), atol=1e-5)
+    np.testing.assert_allclose(p[9], (-0.01 + C, 0.005, -0.015), atol=1e-5)
     np.testing.assert_array_equal(p[3:8], p0[3:8])
+    np.testing.assert_array_equal(p[10], p0[10])
     np.testing.assert_array_equal(p[0], p0[0])
-    assert inside_boxes(p0[out]).all() and not inside_boxes(p[out]).any() and inside_boxes(p[[3, 7]]).all()
+    assert inside_boxes(p0[out]).all() and not inside_boxes(p[out]).any() and inside_boxes(p[[3, 7, 10]]).all()
 
 
 def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_nearest_face():
