@@ -65,7 +65,9 @@ normals nor the nearest face lead out, the nearest way out along the axes and th
 first 250 frames, 125 of the casual jeans' 174 vertex-frames left deeper than 1 mm were inside by the
 winding number with neither way out, most in the right thigh in the crouch, beside the belly's skin
 buried in it (the nearest face, which leads into the belly), and half had a way out within 1 cm
-along one of 26 directions.
+along one of 26 directions. Since the sixty-seventh session "near another body part" is within
+3 cm (EXIT_NEAR), and a particle S103 lifted that S106 lowered again by more than the clearance
+is asked too (Decision: lowered after a lift): S103's walks misread both kinds as well outside.
 """
 
 from __future__ import annotations
@@ -338,10 +340,10 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
 
 
 @kernel
-def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, reach, clearance, body_x, wfaces, wlo,
-                      wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst, count,
-                      order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen, inside,
-                      was_inside, memory, around):
+def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, reach, clearance, body_x, wfaces,
+                      wlo, wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst,
+                      count, order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen,
+                      inside, was_inside, memory, around):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
