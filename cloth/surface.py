@@ -358,13 +358,11 @@ class DetailedSurface:
                                          *(NO_WINDING if winding is None else winding),
                                          winding is not None)
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
-            if st.exit_lowered:
-                lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance, s.lowered)
-            else:
-                s.lowered[:] = 0
+            # (off: lowered by more than infinity, none)
+            lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance if st.exit_lowered else np.inf, s.lowered)
             self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, s.lowered, t.n_coarse,
-                                            EXIT_NEAR,
-                                            EXIT_FACING, EXIT_REACH, st.clearance, body_x, body.winding_faces, *winding,
+                                            EXIT_NEAR, EXIT_FACING, EXIT_REACH, st.clearance, body_x,
+                                            body.winding_faces, *winding,
                                             s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,
                                             body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),
                                             s.tree_stack, s.q, s.body_face, st.exit_spread, m.d_edges,

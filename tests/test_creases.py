@@ -435,6 +435,8 @@ def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
     lowered = np.zeros(len(dh_pen), dtype=np.uint8)
     lowered_after_lift(dh_pen, lifted, height, C, lowered)
     assert list(lowered) == [1, 0, 0, 0, 0]  # (3: not lifted; 4: lowered by S103, not lifted)
+    lowered_after_lift(dh_pen, lifted, height, np.inf, lowered)  # (SurfaceSettings.exit_lowered False)
+    assert not lowered.any()
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
     g.update(x)
