@@ -39,7 +39,7 @@ class SurfaceSettings:
     # off a particle's distance (`wrinkles.tip_allowance`): a coarse body's vertices stand 2-7 mm
     # out, and came through the detailed triangles between particles the clearance away (0: off)
     tip_share: float = 0.25
-    contact_margin: float = 0.005  # m: S103 tests a finer particle only near a particle this close
+    contact_margin: float = 0.0075  # m: S103 tests a finer particle only near a particle this close
     # m: S103 tests a coarse face, and its first subdivision, only if a corner is this close
     # (wider than contact_margin: a face whose corners stand off a convex part can cut into it)
     face_margin: float = 0.01

@@ -376,7 +376,11 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
     towards the body (`bulge_towards_body`, from its control points ctrl (T, 10, 3) of this
     frame): where the coarse normals lean towards the body, as on a sleeve whose arm has come
     through it between coarse particles, the patch dips into the body from corners 1-1.6 cm off
-    it (the walk's blouse at the armpit).
+    it (the walk's blouse at the armpit). Decision (the Lipschitz reach): a finer particle is
+    tested too where every tested parent lies within the clearance plus its distance from the
+    particle (the distance to the body changes no faster than the position, so only then can the
+    particle be within the clearance): a body part narrower than the lattice (a finger, a
+    vertex standing out) can come through between parents all farther than `margin`.
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
     a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
@@ -430,10 +434,25 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                 if not near:
                     break  # no corner near the body: skip the face
                 hit = False
+                bound = 0  # tested parents, and of those, the ones that leave room for it inside
+                room = 0
                 for m in range(3):
                     par = parents[loc, m]
-                    if par >= 0 and sd[face_ids[f, par]] < (corner_margin if parents[par, 0] < 0 else margin):
+                    if par < 0:
+                        continue
+                    pid = face_ids[f, par]
+                    if sd[pid] < (corner_margin if parents[par, 0] < 0 else margin):
                         hit = True
+                    if sd[pid] != UNTESTED:
+                        # Decision (the Lipschitz reach): the distance to the body changes no faster
+                        # than the position, so the particle can be within the clearance only if
+                        # each parent is within the clearance plus its distance from it
+                        gx, gy, gz = p[vid, 0] - p[pid, 0], p[vid, 1] - p[pid, 1], p[vid, 2] - p[pid, 2]
+                        bound += 1
+                        if sd[pid] < clearance + math.sqrt(gx * gx + gy * gy + gz * gz):
+                            room += 1
+                if bound > 0 and room == bound:
+                    hit = True
                 if not hit:
                     continue
             if sd[vid] == UNTESTED:

@@ -554,7 +554,7 @@ def test_a_body_part_pressing_from_the_outer_side_lowers_the_sheet_and_lets_it_g
 def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(face_margin, lift_search):
     """Decision (S103): a cube of half-width 13 mm whose top is 3 mm above the flat sheet, under
     the middle of the coarse edge from (0, 0, 40) to (40, 0, 40) mm. That edge's end particles
-    are 7 mm from the cube, farther than contact_margin (5 mm); every other coarse particle is
+    are 7 mm from the cube, farther than the 5 mm contact_margin of that time; every other coarse particle is
     farther still. With face_margin 10 mm the faces around the edge are tested from their
     corners' first subdivision (the mid-edge particle, inside) down, and the particles over
     the cube are found inside and end outside it: lifted by S103's search (lift_search; their
@@ -565,7 +565,9 @@ def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(f
     centre = np.array([0.02, -0.01, 0.04])
     bv = np.ascontiguousarray(bv + centre)
     body = body_mesh_of(bv, bt)
-    m = build_surface_model(sheet_model().cloth, SurfaceSettings(face_margin=face_margin, lift_search=lift_search))
+    # (the rule before: faces tested only as far as the 5 mm contact margin of that time)
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(face_margin=face_margin, lift_search=lift_search,
+                                                                 contact_margin=min(0.0075, face_margin)))
     surf = DetailedSurface(m)
     x = m.cloth.rest_positions.copy()
     nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
@@ -582,6 +584,54 @@ def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(f
             assert surf.state.sd[over].max() < 0.0 and surf.creased >= over.sum()  # left inside, then moved out
     else:
         assert inside[over].all() and np.isinf(surf.state.sd[over]).all()  # never tested
+
+
+def test_a_finer_particle_is_tested_while_its_parents_distances_leave_it_room_inside():
+    """Decision (S103, the Lipschitz reach): a sphere of radius 1.5 mm around a particle of the
+    finest lattice whose parents are none of them a coarse corner, each more than 6 mm away: the
+    particle is 1 mm inside the sphere, every parent more than the 5 mm contact margin outside it.
+    By the margin alone the particle was never tested and stayed inside; as the distance to
+    the body changes no faster than the position, a parent's distance that is less than the
+    clearance plus how far it lies from the particle leaves room for it inside, and where every
+    parent's does, the particle is tested: it is found inside and lifted out."""
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(face_margin=0.03))
+    t = m.tess
+    x = m.cloth.rest_positions.copy()
+    rest = DetailedSurface(m)
+    rest.step(x, np.zeros(len(x), np.int32), *far_body(), DT)
+    flat = rest.state.p_smoothed.copy()
+    f = 2  # a coarse triangle in the sheet's middle
+    best, best_gap = -1, 0.0
+    for loc in range(t.parents.shape[0]):
+        par = t.parents[loc][t.parents[loc] >= 0]
+        if len(par) == 0 or np.any(t.parents[par, 0] < 0):
+            continue  # a corner, or a corner's child
+        gap = np.linalg.norm(flat[t.face_ids[f, par]] - flat[t.face_ids[f, loc]], axis=1).min()
+        if gap > best_gap:
+            best, best_gap = loc, gap
+    assert best_gap > 0.006
+    vid = t.face_ids[f, best]
+    r, c = 0.0015, flat[vid] - [0.0, 0.0005, 0.0]  # a sphere whose top stands 1 mm over the particle
+    bv, bt = uv_sphere(radius=r, n_lat=16, n_lon=32)
+    bv = np.ascontiguousarray(bv + c)
+    par_ids = t.face_ids[f, t.parents[best][t.parents[best] >= 0]]
+    gap_out = np.linalg.norm(flat[par_ids] - c, axis=1) - r
+    reach = 0.001 + np.linalg.norm(flat[par_ids] - c, axis=1)  # the clearance plus each one's distance
+    assert np.all(gap_out > 0.005) and np.all(gap_out < reach)  # beyond the margin, room inside
+    nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
+    surf = DetailedSurface(m)
+    p, _ = surf.step(x, nearest, bv, body_mesh_of(bv, bt), face_normals(bv, bt), DT)
+    sag = r * (1 - np.cos(np.pi / 16))  # (the mesh lies inside the analytic sphere by its chord sag)
+    assert np.linalg.norm(p[vid] - c) > r - sag
+    assert np.isfinite(surf.state.sd[vid]) and surf.state.dh_pen[vid] > 0.0014
+    assert np.all(np.isfinite(surf.state.sd[par_ids]))
+
+
+def far_body():
+    """A box 1 m under the sheet (nothing near it): the flat reference surface."""
+    bv, bt = box(half=0.05, n=2)
+    bv = np.ascontiguousarray(bv + [0.08, -1.0, 0.04])
+    return bv, body_mesh_of(bv, bt), face_normals(bv, bt)
 
 
 def test_a_coarse_face_bulging_towards_the_body_is_tested_from_its_corners_bulge_farther():
