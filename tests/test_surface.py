@@ -589,7 +589,7 @@ def test_a_coarse_face_whose_corners_stand_off_the_body_is_tested_between_them(f
 def test_a_finer_particle_is_tested_while_its_parents_distances_leave_it_room_inside():
     """Decision (S103, the Lipschitz reach): a sphere of radius 1.5 mm around a particle of the
     finest lattice whose parents are none of them a coarse corner, each more than 6 mm away: the
-    particle is 1 mm inside the sphere, every parent more than the 5 mm contact margin outside it.
+    particle is 1 mm inside the sphere, every parent more than the contact margin (7.5 mm) outside it.
     By the margin alone the particle was never tested and stayed inside; as the distance to
     the body changes no faster than the position, a parent's distance that is less than the
     clearance plus how far it lies from the particle leaves room for it inside, and where every
@@ -617,7 +617,7 @@ def test_a_finer_particle_is_tested_while_its_parents_distances_leave_it_room_in
     par_ids = t.face_ids[f, t.parents[best][t.parents[best] >= 0]]
     gap_out = np.linalg.norm(flat[par_ids] - c, axis=1) - r
     reach = 0.001 + np.linalg.norm(flat[par_ids] - c, axis=1)  # the clearance plus each one's distance
-    assert np.all(gap_out > 0.005) and np.all(gap_out < reach)  # beyond the margin, room inside
+    assert np.all(gap_out > SurfaceSettings().contact_margin) and np.all(gap_out < reach)  # beyond the margin, room inside
     nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
     surf = DetailedSurface(m)
     p, _ = surf.step(x, nearest, bv, body_mesh_of(bv, bt), face_normals(bv, bt), DT)
