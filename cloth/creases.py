@@ -94,6 +94,11 @@ CREASE_MOVE = 0.03
 # another part 1-4 cm away, and never asked; at 3 cm 59 are left, for 0.02-0.03 ms a garment-frame)
 EXIT_NEAR = 0.03
 EXIT_FACING = 0.9
+# m: another body part this near (S103's `other`) and `out_along_normals` asks the particle whatever its normal's
+# facing (sixty-ninth session: most of the walk's vertex-frames left deeper than 1 mm had been read 6-10 mm
+# outside by S103 from a face of a sheet buried in the same part, normal along the body's, another part within
+# 1 cm; asking them took the casual outfit's 175 to 81 and the elegant's 183 to 143, for 0.5 ms a garment-frame)
+EXIT_NEAR_ALONG = 0.01
 EXIT_REACH = 0.01
 # m: where no way out along ±n_i lies within EXIT_REACH, `out_along_normals` takes the way out through the
 # nearest body face, or on along the line to it, within this (3 cm, CREASE_MOVE, until the sixty-sixth session:
@@ -340,9 +345,9 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
 
 
 @kernel
-def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, reach, clearance, body_x, wfaces,
-                      wlo, wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box, child, tfirst,
-                      count, order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen,
+def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, near_along, reach, clearance,
+                      body_x, wfaces, wlo, wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box,
+                      child, tfirst, count, order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen,
                       inside, was_inside, memory, around):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
@@ -381,6 +386,11 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     too: after a lift S103's walk can stop on a face the particle projects into while a nearer
     surface lies beside it, and read it farther out than it is (the run's silk blouse: 12-27 mm
     where it was 8-13 mm), and S106's floor follows that reading back into the body.
+    Decision (another part within a centimetre, sixty-ninth session): a particle S103 tested with
+    another part nearer than `near_along` is asked whatever its normal's facing: at the walk's
+    hip S103's walk stops on a face of a sheet folded into the same part (the thigh's skin
+    buried under the belly's) and reads the particle 6-10 mm outside, its normal along that face's,
+    where it is 1-6 mm inside; the other part's nearness is the sign of such a fold.
     p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
     (sd UNTESTED = inf where it did not test); lowered (N,) uint8: 1 where a particle is to be asked
     whatever S103 read; particles before `first` (the coarse vertices) are left alone.
@@ -400,7 +410,8 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
         # casual outfit, 2,000 particles; those leaning off the body are 250 of them, and two thirds of the
         # ones inside)
         if not ((memory and was_inside[i]) or lowered[i]
-                or (sd[i] != np.inf and ((other[i] < near and facing[i] < lean) or sd[i] < 0.0 or behind[i]))):
+                or (sd[i] != np.inf and ((other[i] < near and facing[i] < lean) or other[i] < near_along
+                                         or sd[i] < 0.0 or behind[i]))):
             continue
         seen[i] = 1
         found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
@@ -442,5 +453,5 @@ def lowered_after_lift(dh_pen, lifted, height, by, lowered):
         lowered[i] = 1 if dh_pen[i] > 0.0 and height[i] < lifted[i] - by else 0
 
 
-__all__ = ["EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_NEAR", "EXIT_REACH", "NO_DIRECTIONS",
-           "leave_creases", "lowered_after_lift", "out_along_normals", "out_of_two_planes"]
+__all__ = ["EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_NEAR", "EXIT_NEAR_ALONG", "EXIT_REACH",
+           "NO_DIRECTIONS", "leave_creases", "lowered_after_lift", "out_along_normals", "out_of_two_planes"]

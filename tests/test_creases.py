@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from cloth.collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, FaceTree, face_normals
-from cloth.creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_REACH, NO_DIRECTIONS,
-                           leave_creases, lowered_after_lift, out_along_normals, out_of_two_planes)
+from cloth.creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_NEAR_ALONG, EXIT_REACH,
+                           NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals, out_of_two_planes)
 from cloth.topology import vertex_cells
 from cloth.winding import NO_WINDING, WindingGrid
 from tests.test_cloth_dynamics import box
@@ -109,18 +109,20 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
 
 
 def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
-              d_edges=None, was_inside=None, around=NO_DIRECTIONS, lowered=None):
+              d_edges=None, was_inside=None, around=NO_DIRECTIONS, lowered=None, near_along=0.0):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
     (none: no way out through the nearest face); start: S103's walks' faces (None: none);
     d_edges: the particles' edges, spread along (None: no spread); was_inside: the frame before's
     particles found inside, updated (None: no memory); lowered: the particles lowered after a lift
-    (None: none). Returns (count, ids, moves)."""
+    (None: none); near_along: another part this near asks a particle whatever its facing (0: the
+    rule before the sixty-ninth session). Returns (count, ids, moves)."""
     lowered = np.zeros(len(p), dtype=np.uint8) if lowered is None else lowered
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     start = np.full(len(p), -1, dtype=np.int32) if start is None else start
     edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
     edge_start, edge_ids = vertex_cells(len(p), edges)
-    count = out_along_normals(p, n, sd, other, facing, behind, lowered, first, EXIT_NEAR, EXIT_FACING, EXIT_REACH, C,
+    count = out_along_normals(p, n, sd, other, facing, behind, lowered, first, EXIT_NEAR, EXIT_FACING, near_along,
+                              EXIT_REACH, C,
                               x, tris, *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
                               np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start, d_edges is not None,
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
@@ -453,6 +455,34 @@ def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
         np.testing.assert_allclose(p[0], (-0.03, 0.05 + C, 0.0) if named[0] else p0[0], atol=1e-5)
         np.testing.assert_array_equal(p[1], p0[1])
     assert inside_boxes(p0).all() and not inside_boxes(p[:1]).any()
+
+
+@pytest.mark.parametrize("near_along", [0.0, EXIT_NEAR_ALONG])
+def test_a_particle_read_outside_with_another_part_within_a_centimetre_is_asked_whatever_its_normal(near_along):
+    """`out_along_normals`' another part within a centimetre (Decision): on the two boxes, a
+    particle in the thigh 2 mm from its inner wall, read 2 mm outside by S103 with its normal
+    facing the body's (0.95, above EXIT_FACING) and another part 4 mm away goes out across the
+    wall, the clearance beyond, when another part that near asks it (EXIT_NEAR_ALONG), and stays
+    under the rule before (0); the same particle with the other part 2 cm away stays either way."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    p = np.array([(-0.012, 0.005, 0.01), (-0.012, 0.005, -0.01)])
+    n = np.tile((1.0, 0.0, 0.0), (2, 1))
+    sd, other, facing = np.full(2, 0.002), np.array([0.004, 0.02]), np.full(2, 0.95)
+    behind = np.zeros(2, dtype=np.uint8)
+    assert EXIT_FACING < 0.95 and 0.004 < EXIT_NEAR_ALONG < 0.02 and inside_boxes(p).all()
+    p0 = p.copy()
+    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), near_along=near_along)
+    if near_along:
+        assert moved == 1 and ids[0] == 0
+        np.testing.assert_allclose(p[0], (-0.01 + C, 0.005, 0.01), atol=1e-5)
+        np.testing.assert_allclose(moves[0], p[0] - p0[0], atol=1e-15)
+        assert not inside_boxes(p[:1]).any()
+    else:
+        assert moved == 0
+        np.testing.assert_array_equal(p[0], p0[0])
+    np.testing.assert_array_equal(p[1], p0[1])
 
 
 def test_a_particle_with_no_way_out_along_its_normal_or_a_face_goes_out_along_the_nearest_direction():
