@@ -347,8 +347,8 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
 @kernel
 def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, near_along, reach, clearance,
                       body_x, wfaces, wlo, wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box,
-                      child, tfirst, count, order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start, edge_ids, seen,
-                      inside, was_inside, memory, around):
+                      child, tfirst, count, order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start,
+                      edge_ids, seen, inside, was_inside, memory, around):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
