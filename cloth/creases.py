@@ -61,7 +61,8 @@ inside is asked again the next frame (Decisions, sixty-fourth session: the sprea
 memory): most of the walk's vertex-frames left deeper than 1 mm lay in patches around particles
 the rule above asked, read outside by S103 with their normals along the body's. Where neither the
 normals nor the nearest face lead out, the nearest way out along the axes and the diagonals
-(EXIT_DIRECTIONS), within 1 cm, is taken (Decision, sixty-fifth session: the around): over the walk's
+(EXIT_DIRECTIONS), within 3 cm (1 cm until the seventieth session), is taken (Decision, sixty-fifth session:
+the around): over the walk's
 first 250 frames, 125 of the casual jeans' 174 vertex-frames left deeper than 1 mm were inside by the
 winding number with neither way out, most in the right thigh in the crouch, beside the belly's skin
 buried in it (the nearest face, which leads into the belly), and half had a way out within 1 cm
@@ -106,6 +107,9 @@ EXIT_REACH = 0.01
 EXIT_FACE_REACH = 0.04
 # where neither way ends within reach, `out_along_normals` looks for the way out along each of these (unit: the
 # axes, the diagonals of the cube's edges and its corners), within EXIT_REACH, and takes the nearest
+# m: how far along each of those it looks (EXIT_REACH until the seventieth session: most of the walk's jeans
+# vertex-frames left deeper than 1 mm were 5-20 mm deep in a crease between the thighs, the way out 1-3 cm away)
+EXIT_AROUND_REACH = 0.03
 EXIT_DIRECTIONS = np.ascontiguousarray(np.concatenate([np.eye(3), -np.eye(3), DIAGONALS]))
 NO_DIRECTIONS = np.zeros((0, 3))
 
@@ -303,10 +307,11 @@ def _beyond_exit(px, py, pz, ux, uy, uz, t, clearance, limit, body_x, wfaces, wl
 
 @helper
 def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent, face_reach, tris, face_n,
-               box, child, tfirst, count, order, parent, leaf, stack, q, start_face, ids, moves, moved, around):
+               box, child, tfirst, count, order, parent, leaf, stack, q, start_face, ids, moves, moved, around,
+               around_reach):
     """`out_along_normals` for particle i: if the body's winding number puts it inside, out along
     ±n_i, else through the nearest face (within reach, face_reach), else along the nearest way out
-    among the directions `around` (within reach). Returns (inside, the new length of the moved list
+    among the directions `around` (within around_reach). Returns (inside, the new length of the moved list
     ids, moves)."""
     px, py, pz = p[i, 0], p[i, 1], p[i, 2]
     if winding_number(px, py, pz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) <= 0:
@@ -328,8 +333,8 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
                                                   count, order, parent, leaf, stack, q)
     if t == np.inf and around.shape[0] > 0:
         for d in range(around.shape[0]):
-            s = march_exit(px, py, pz, around[d, 0], around[d, 1], around[d, 2], min(best, reach), body_x, wfaces,
-                           wlo, wstart, wids, wspan, wextent)
+            s = march_exit(px, py, pz, around[d, 0], around[d, 1], around[d, 2], min(best, around_reach), body_x,
+                           wfaces, wlo, wstart, wids, wspan, wextent)
             if s < best:
                 best, ux, uy, uz = s, around[d, 0], around[d, 1], around[d, 2]
         if best < np.inf:
@@ -348,7 +353,7 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
 def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, near_along, reach, clearance,
                       body_x, wfaces, wlo, wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box,
                       child, tfirst, count, order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start,
-                      edge_ids, seen, inside, was_inside, memory, around):
+                      edge_ids, seen, inside, was_inside, memory, around, around_reach):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
@@ -379,8 +384,10 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     it was before the move out, and the readings that named it flicker from frame to frame.
     Decision (around, sixty-fifth session): where neither way along ±n_i nor the nearest face leads out, the
     particle goes out along the nearest way among the directions `around` (EXIT_DIRECTIONS; (0, 3): none),
-    within `reach`: in the walk's crouch, the jeans' particles inside the thigh beside the belly's skin
-    buried in it, whose nearest face leads into the belly, and n_i along the thigh.
+    within `around_reach`: in the walk's crouch, the jeans' particles inside the thigh beside the belly's skin
+    buried in it, whose nearest face leads into the belly, and n_i along the thigh. Its reach is
+    EXIT_AROUND_REACH (3 cm; EXIT_REACH, 1 cm, until the seventieth session): the walk's jeans were left
+    5-20 mm deep in the crease between the thighs as they pass, the crease's mouth 1-3 cm away.
     Decision (lowered after a lift, sixty-seventh session): a particle S103 lifted this frame that
     S106 then lowered by more than the clearance (`lowered`, from `lowered_after_lift`) is asked
     too: after a lift S103's walk can stop on a face the particle projects into while a nearer
@@ -416,7 +423,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
         seen[i] = 1
         found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
                                   face_reach, tris, face_n, box, child, tfirst, count, order, parent, leaf, stack, q,
-                                  body_face[i], ids, moves, moved, around)
+                                  body_face[i], ids, moves, moved, around, around_reach)
         if found:
             inside[n_inside] = i
             n_inside += 1
@@ -432,7 +439,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
             found, moved = _exit_body(p, n, j, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
                                       face_reach, tris, face_n, box, child, tfirst, count, order, parent, leaf, stack,
                                       q, body_face[j] if body_face[j] >= 0 else body_face[i], ids, moves, moved,
-                                      around)
+                                      around, around_reach)
             if found:
                 inside[n_inside] = j
                 n_inside += 1
@@ -453,5 +460,6 @@ def lowered_after_lift(dh_pen, lifted, height, by, lowered):
         lowered[i] = 1 if dh_pen[i] > 0.0 and height[i] < lifted[i] - by else 0
 
 
-__all__ = ["EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_NEAR", "EXIT_NEAR_ALONG", "EXIT_REACH",
-           "NO_DIRECTIONS", "leave_creases", "lowered_after_lift", "out_along_normals", "out_of_two_planes"]
+__all__ = ["EXIT_AROUND_REACH", "EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_NEAR", "EXIT_NEAR_ALONG",
+           "EXIT_REACH", "NO_DIRECTIONS", "leave_creases", "lowered_after_lift", "out_along_normals",
+           "out_of_two_planes"]

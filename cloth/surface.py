@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, VertexGrid, part_scratch
-from .creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_NEAR_ALONG, EXIT_REACH,
-                      NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals)
+from .creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_NEAR_ALONG,
+                      EXIT_REACH, NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals)
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -91,6 +91,8 @@ class SurfaceSettings:
     # and where no way out along ±n_i or through the nearest face is found, the nearest among the axes and
     # diagonals (Decision, `creases.out_along_normals`' around)
     exit_around: bool = True
+    # m: how far along those it looks (Decision, `creases.out_along_normals`' around, 3 cm)
+    exit_around_reach: float = EXIT_AROUND_REACH
     # and a particle S103 lifted that S106 lowered again by more than the clearance (Decision,
     # `creases.out_along_normals`' lowered after a lift)
     exit_lowered: bool = True
@@ -103,7 +105,7 @@ class SurfaceSettings:
         check_fields(self, integers={"level": 1, "penetration_iterations": 1, "constraint_passes": 1,
                                      "length_iterations": 1, "crease_rounds": 1},
                      non_negative=("clearance", "tip_share", "face_margin"),
-                     positive=("contact_margin", "max_lift", "max_height", "length_tolerance"))
+                     positive=("contact_margin", "max_lift", "max_height", "length_tolerance", "exit_around_reach"))
         if not 1 <= self.max_step_scale < math.inf:
             raise ValueError(f"SurfaceSettings.max_step_scale must be >= 1 (the patent's step) and finite, "
                              f"got {self.max_step_scale!r}")
@@ -372,7 +374,8 @@ class DetailedSurface:
                                             s.tree_stack, s.q, s.body_face, st.exit_spread, m.d_edges,
                                             m.d_edge_start, m.d_edge_ids, s.exit_seen, s.exit_inside,
                                             s.exit_was_inside, st.exit_memory,
-                                            EXIT_DIRECTIONS if st.exit_around else NO_DIRECTIONS)
+                                            EXIT_DIRECTIONS if st.exit_around else NO_DIRECTIONS,
+                                            st.exit_around_reach)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -5,8 +5,9 @@ import numpy as np
 import pytest
 
 from cloth.collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, FaceTree, face_normals
-from cloth.creases import (EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_NEAR_ALONG, EXIT_REACH,
-                           NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals, out_of_two_planes)
+from cloth.creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR,
+                           EXIT_NEAR_ALONG, EXIT_REACH, NO_DIRECTIONS, leave_creases, lowered_after_lift,
+                           out_along_normals, out_of_two_planes)
 from cloth.topology import vertex_cells
 from cloth.winding import NO_WINDING, WindingGrid
 from tests.test_cloth_dynamics import box
@@ -109,7 +110,8 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
 
 
 def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
-              d_edges=None, was_inside=None, around=NO_DIRECTIONS, lowered=None, near_along=0.0):
+              d_edges=None, was_inside=None, around=NO_DIRECTIONS, lowered=None, near_along=0.0,
+              around_reach=EXIT_REACH):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
     (none: no way out through the nearest face); start: S103's walks' faces (None: none);
     d_edges: the particles' edges, spread along (None: no spread); was_inside: the frame before's
@@ -128,7 +130,7 @@ def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
                               np.zeros(len(p), dtype=np.int32),
                               np.zeros(len(p), dtype=np.uint8) if was_inside is None else was_inside,
-                              was_inside is not None, around)
+                              was_inside is not None, around, around_reach)
     return count, ids, moves
 
 
@@ -483,6 +485,30 @@ def test_a_particle_read_outside_with_another_part_within_a_centimetre_is_asked_
         assert moved == 0
         np.testing.assert_array_equal(p[0], p0[0])
     np.testing.assert_array_equal(p[1], p0[1])
+
+
+@pytest.mark.parametrize("around_reach", [EXIT_REACH, EXIT_AROUND_REACH])
+def test_the_way_around_looks_as_far_as_its_reach(around_reach):
+    """`out_along_normals`' way around (Decision, its 3 cm reach): on the two boxes, a particle
+    1.4 cm inside the thigh's outer wall, its normal along the thigh (whose ends lie 3 cm away),
+    goes out along -x, the clearance beyond, within EXIT_AROUND_REACH, and stays within EXIT_REACH."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    p = np.array([(-0.056, 0.020, 0.0)])
+    n = np.array([(0.0, 0.0, 1.0)])
+    sd, other, facing = np.full(1, -0.005), np.full(1, np.inf), np.ones(1)
+    behind = np.zeros(1, dtype=np.uint8)
+    assert inside_boxes(p).all() and EXIT_REACH < 0.014 < EXIT_AROUND_REACH
+    q = p.copy()
+    moved, ids, _ = out_along(q, n, sd, other, facing, behind, 0, x, tris, g.arrays(), around=EXIT_DIRECTIONS,
+                              around_reach=around_reach)
+    if around_reach > 0.014:
+        assert moved == 1 and ids[0] == 0
+        np.testing.assert_allclose(q[0], (-0.07 - C, 0.02, 0.0), atol=2e-5)
+        assert not inside_boxes(q).any()
+    else:
+        assert moved == 0 and (q == p).all()
 
 
 def test_a_particle_with_no_way_out_along_its_normal_or_a_face_goes_out_along_the_nearest_direction():
