@@ -61,10 +61,9 @@ inside is asked again the next frame (Decisions, sixty-fourth session: the sprea
 memory): most of the walk's vertex-frames left deeper than 1 mm lay in patches around particles
 the rule above asked, read outside by S103 with their normals along the body's. Where neither the
 normals nor the nearest face lead out, the nearest way out along the axes and the diagonals
-(EXIT_DIRECTIONS), within 3 cm (1 cm until the seventieth session), is taken (Decision, sixty-fifth session:
-the around): over the walk's
-first 250 frames, 125 of the casual jeans' 174 vertex-frames left deeper than 1 mm were inside by the
-winding number with neither way out, most in the right thigh in the crouch, beside the belly's skin
+(EXIT_DIRECTIONS), within 3 cm (1 cm until the seventieth session), is taken (Decision, sixty-fifth
+session: the around): over the walk's first 250 frames, 125 of the casual jeans' 174 vertex-frames
+left deeper than 1 mm were inside by the winding number with neither way out, most in the right thigh in the crouch, beside the belly's skin
 buried in it (the nearest face, which leads into the belly), and half had a way out within 1 cm
 along one of 26 directions. Since the sixty-seventh session "near another body part" is within
 3 cm (EXIT_NEAR), and a particle S103 lifted that S106 lowered again by more than the clearance
@@ -105,11 +104,12 @@ EXIT_REACH = 0.01
 # nearest body face, or on along the line to it, within this (3 cm, CREASE_MOVE, until the sixty-sixth session:
 # the walk's blouse left 32-35 mm inside the arm at the armpit, under a coarse face that cuts across it)
 EXIT_FACE_REACH = 0.04
-# where neither way ends within reach, `out_along_normals` looks for the way out along each of these (unit: the
-# axes, the diagonals of the cube's edges and its corners), within EXIT_REACH, and takes the nearest
-# m: how far along each of those it looks (EXIT_REACH until the seventieth session: most of the walk's jeans
-# vertex-frames left deeper than 1 mm were 5-20 mm deep in a crease between the thighs, the way out 1-3 cm away)
+# m: how far `out_along_normals` looks along each of EXIT_DIRECTIONS (EXIT_REACH until the seventieth session:
+# most of the walk's jeans vertex-frames left deeper than 1 mm were 5-20 mm deep in a crease between the thighs,
+# the way out 1-3 cm away)
 EXIT_AROUND_REACH = 0.03
+# where neither way ends within reach, `out_along_normals` looks for the way out along each of these (unit: the
+# axes, the diagonals of the cube's edges and its corners), within EXIT_AROUND_REACH, and takes the nearest
 EXIT_DIRECTIONS = np.ascontiguousarray(np.concatenate([np.eye(3), -np.eye(3), DIAGONALS]))
 NO_DIRECTIONS = np.zeros((0, 3))
 
