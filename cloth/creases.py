@@ -63,8 +63,9 @@ the rule above asked, read outside by S103 with their normals along the body's. 
 normals nor the nearest face lead out, the nearest way out along the axes and the diagonals
 (EXIT_DIRECTIONS), within 3 cm (1 cm until the seventieth session), is taken (Decision, sixty-fifth
 session: the around): over the walk's first 250 frames, 125 of the casual jeans' 174 vertex-frames
-left deeper than 1 mm were inside by the winding number with neither way out, most in the right thigh in the crouch, beside the belly's skin
-buried in it (the nearest face, which leads into the belly), and half had a way out within 1 cm
+left deeper than 1 mm were inside by the winding number with neither way out, most in the right
+thigh in the crouch, beside the belly's skin buried in it (the nearest face, which leads into the
+belly), and half had a way out within 1 cm
 along one of 26 directions. Since the sixty-seventh session "near another body part" is within
 3 cm (EXIT_NEAR), and a particle S103 lifted that S106 lowered again by more than the clearance
 is asked too (Decision: lowered after a lift): S103's walks misread both kinds as well outside.
