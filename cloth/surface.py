@@ -19,7 +19,7 @@ import numpy as np
 
 from .collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, VertexGrid, part_scratch
 from .creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_NEAR_ALONG,
-                      EXIT_REACH, NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals)
+                      EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals)
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -99,6 +99,9 @@ class SurfaceSettings:
     # and a particle with another body part within a centimetre, whatever its normal's facing (Decision,
     # `creases.out_along_normals`' another part within a centimetre)
     exit_near_along: bool = True
+    # and a particle whose normal faces into the body (n_i . n_body below 0), wherever the other parts are
+    # (Decision, `creases.out_along_normals`' turned in)
+    exit_turned: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -367,6 +370,7 @@ class DetailedSurface:
             lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance if st.exit_lowered else np.inf, s.lowered)
             self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, s.lowered, t.n_coarse,
                                             EXIT_NEAR, EXIT_FACING, EXIT_NEAR_ALONG if st.exit_near_along else 0.0,
+                                            EXIT_TURNED if st.exit_turned else -np.inf,
                                             EXIT_REACH, st.clearance, body_x,
                                             body.winding_faces, *winding,
                                             s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,

@@ -6,7 +6,7 @@ import pytest
 
 from cloth.collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, FaceTree, face_normals
 from cloth.creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR,
-                           EXIT_NEAR_ALONG, EXIT_REACH, NO_DIRECTIONS, leave_creases, lowered_after_lift,
+                           EXIT_NEAR_ALONG, EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases, lowered_after_lift,
                            out_along_normals, out_of_two_planes)
 from cloth.topology import vertex_cells
 from cloth.winding import NO_WINDING, WindingGrid
@@ -111,20 +111,21 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
 
 def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
               d_edges=None, was_inside=None, around=NO_DIRECTIONS, lowered=None, near_along=0.0,
-              around_reach=EXIT_REACH):
+              around_reach=EXIT_REACH, turned=-np.inf):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
     (none: no way out through the nearest face); start: S103's walks' faces (None: none);
     d_edges: the particles' edges, spread along (None: no spread); was_inside: the frame before's
     particles found inside, updated (None: no memory); lowered: the particles lowered after a lift
     (None: none); near_along: another part this near asks a particle whatever its facing (0: the
-    rule before the sixty-ninth session). Returns (count, ids, moves)."""
+    rule before the sixty-ninth session); turned: n_i . n_body below this asks a particle wherever the
+    other parts are (-inf: the rule before the seventy-first session). Returns (count, ids, moves)."""
     lowered = np.zeros(len(p), dtype=np.uint8) if lowered is None else lowered
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     start = np.full(len(p), -1, dtype=np.int32) if start is None else start
     edges = np.zeros((0, 2), dtype=np.int32) if d_edges is None else np.asarray(d_edges, dtype=np.int32)
     edge_start, edge_ids = vertex_cells(len(p), edges)
     count = out_along_normals(p, n, sd, other, facing, behind, lowered, first, EXIT_NEAR, EXIT_FACING, near_along,
-                              EXIT_REACH, C,
+                              turned, EXIT_REACH, C,
                               x, tris, *grid, ids, moves, face_reach, tris, face_normals(x, tris), *tree,
                               np.zeros(FACE_TREE_STACK, dtype=np.int32), np.zeros(3), start, d_edges is not None,
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
@@ -477,6 +478,35 @@ def test_a_particle_read_outside_with_another_part_within_a_centimetre_is_asked_
     p0 = p.copy()
     moved, ids, moves = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), near_along=near_along)
     if near_along:
+        assert moved == 1 and ids[0] == 0
+        np.testing.assert_allclose(p[0], (-0.01 + C, 0.005, 0.01), atol=1e-5)
+        np.testing.assert_allclose(moves[0], p[0] - p0[0], atol=1e-15)
+        assert not inside_boxes(p[:1]).any()
+    else:
+        assert moved == 0
+        np.testing.assert_array_equal(p[0], p0[0])
+    np.testing.assert_array_equal(p[1], p0[1])
+
+
+@pytest.mark.parametrize("turned", [-np.inf, EXIT_TURNED])
+def test_a_particle_whose_normal_faces_into_the_body_is_asked_wherever_the_other_parts_are(turned):
+    """`out_along_normals`' turned in (Decision): on the two boxes, a particle in the thigh 2 mm
+    from its inner wall, read 2 mm outside by S103 with no other part found and its normal facing
+    into the body (n_i . n_body -0.5, below EXIT_TURNED), goes out across the wall, the clearance
+    beyond, when a turned normal asks it (EXIT_TURNED), and stays under the rule before (-inf);
+    the same particle with its normal leaning off the body's but not turned (0.5) stays either way."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    p = np.array([(-0.012, 0.005, 0.01), (-0.012, 0.005, -0.01)])
+    n = np.tile((1.0, 0.0, 0.0), (2, 1))
+    sd, other, facing = np.full(2, 0.002), np.full(2, np.inf), np.array([-0.5, 0.5])
+    behind = np.zeros(2, dtype=np.uint8)
+    assert -0.5 < EXIT_TURNED < 0.5 < EXIT_FACING and inside_boxes(p).all()
+    p0 = p.copy()
+    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), near_along=EXIT_NEAR_ALONG,
+                                  turned=turned)
+    if turned > -np.inf:
         assert moved == 1 and ids[0] == 0
         np.testing.assert_allclose(p[0], (-0.01 + C, 0.005, 0.01), atol=1e-5)
         np.testing.assert_allclose(moves[0], p[0] - p0[0], atol=1e-15)
