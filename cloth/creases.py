@@ -358,7 +358,7 @@ def _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wsp
 def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lean, near_along, turned, reach, clearance,
                       body_x, wfaces, wlo, wstart, wids, wspan, wextent, ids, moves, face_reach, tris, face_n, box,
                       child, tfirst, count, order, parent, leaf, stack, q, body_face, spread, d_edges, edge_start,
-                      edge_ids, seen, inside, was_inside, memory, around, around_reach):
+                      edge_ids, seen, inside, was_inside, memory, around, around_reach, coarse):
     """Decision (out along the normal by the winding number, fifty-ninth session): a detailed
     particle S103 tested near another body part (its walks found one within `near`, `other`) with
     its normal leaning off the body's (`facing` below `lean`), or found inside, or (sixtieth
@@ -409,7 +409,13 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     with n_i turned against the skin's, a sign the walk stopped on a face the particle is behind.
     p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
     (sd UNTESTED = inf where it did not test); lowered (N,) uint8: 1 where a particle is to be asked
-    whatever S103 read; particles before `first` (the coarse vertices) are left alone.
+    whatever S103 read; particles before `first` (the coarse vertices) are left alone, or with
+    `coarse` asked as the others are but moved only along ±n_i (Decision, the coarse vertices,
+    seventy-second session: S101 keeps the coarse particle itself out of the body, but the lift
+    S103 gave it along n_i, carried from frame to frame, can take it into another part: on the
+    walk's leggings 18 of 27 vertex-frames deeper than 1 mm were coarse vertices 4-12 mm above
+    their particle, between the thighs, S103 reading 2-5 mm outside them by the other thigh's
+    buried skin. Along ±n_i it stays on its normal, where S102 and S103 put it).
     wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
     pose's face normals; box ... leaf: the pose's `FaceTree.arrays()` (tfirst its `first`),
     stack (FACE_TREE_STACK,) int32 and q (3,): scratch; body_face: the face each particle's S103
@@ -421,7 +427,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     if spread:
         for i in range(p.shape[0]):
             seen[i] = 0
-    for i in range(first, p.shape[0]):
+    for i in range(0 if coarse else first, p.shape[0]):
         # (a winding number for every particle near another part was 0.7 ms a garment-frame on the walk's
         # casual outfit, 2,000 particles; those leaning off the body are 250 of them, and two thirds of the
         # ones inside)
@@ -430,9 +436,11 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
                                          or facing[i] < turned or sd[i] < 0.0 or behind[i]))):
             continue
         seen[i] = 1
+        off = i >= first  # (a coarse vertex: along ±n_i only)
         found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
-                                  face_reach, tris, face_n, box, child, tfirst, count, order, parent, leaf, stack, q,
-                                  body_face[i], ids, moves, moved, around, around_reach)
+                                  face_reach if off else 0.0, tris, face_n, box, child, tfirst, count, order, parent,
+                                  leaf, stack, q, body_face[i], ids, moves, moved, around,
+                                  around_reach if off else 0.0)
         if found:
             inside[n_inside] = i
             n_inside += 1
@@ -442,13 +450,14 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
         for m in range(edge_start[i], edge_start[i + 1]):
             e = edge_ids[m]
             j = d_edges[e, 0] + d_edges[e, 1] - i
-            if j < first or seen[j]:
+            if (j < first and not coarse) or seen[j]:
                 continue
             seen[j] = 1
+            off = j >= first
             found, moved = _exit_body(p, n, j, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
-                                      face_reach, tris, face_n, box, child, tfirst, count, order, parent, leaf, stack,
-                                      q, body_face[j] if body_face[j] >= 0 else body_face[i], ids, moves, moved,
-                                      around, around_reach)
+                                      face_reach if off else 0.0, tris, face_n, box, child, tfirst, count, order,
+                                      parent, leaf, stack, q, body_face[j] if body_face[j] >= 0 else body_face[i],
+                                      ids, moves, moved, around, around_reach if off else 0.0)
             if found:
                 inside[n_inside] = j
                 n_inside += 1

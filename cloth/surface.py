@@ -43,6 +43,9 @@ class SurfaceSettings:
     # m: S103 tests a coarse face, and its first subdivision, only if a corner is this close
     # (wider than contact_margin: a face whose corners stand off a convex part can cut into it)
     face_margin: float = 0.01
+    # and from as far again as the largest |Δh| among the face's particles (Decision, `wrinkles.avoid_penetration`'s
+    # heights' reach)
+    height_reach: bool = True
     # S103 also walks in the other body parts near a coarse face (an arm by the torso under a
     # sleeve): finds particles inside them that a walk from the torso misses, for about 0.4 ms
     # per garment-frame
@@ -102,6 +105,8 @@ class SurfaceSettings:
     # and a particle whose normal faces into the body (n_i . n_body below 0), wherever the other parts are
     # (Decision, `creases.out_along_normals`' turned in)
     exit_turned: bool = True
+    # and the coarse vertices too, moved along ±n_i only (Decision, `creases.out_along_normals`' coarse vertices)
+    exit_coarse: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -317,7 +322,7 @@ class DetailedSurface:
                                             body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face,
                                             s.part_face, face_n, s.q, face_tip, st.tip_share, st.clearance,
                                             st.contact_margin, st.face_margin, st.penetration_iterations,
-                                            st.max_lift, st.max_height, st.lift_search)
+                                            st.max_lift, st.max_height, st.lift_search, st.height_reach)
         s.lifted[:] = s.dh
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)
@@ -379,7 +384,7 @@ class DetailedSurface:
                                             m.d_edge_start, m.d_edge_ids, s.exit_seen, s.exit_inside,
                                             s.exit_was_inside, st.exit_memory,
                                             EXIT_DIRECTIONS if st.exit_around else NO_DIRECTIONS,
-                                            st.exit_around_reach)
+                                            st.exit_around_reach, st.exit_coarse)
         t5 = time.perf_counter()
         shading_normals(s.p, t.triangles, s.n_pn, s.height, m.h_normal, s.n_deform, s.normals)
         t3 = time.perf_counter()

@@ -361,7 +361,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                       coarse_nearest, find_parts, part_seeds, seed_reach, seed_count, corners, parts, reach, groups,
                       group_reach, body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face,
                       part_face, face_n, q, face_tip, tip_share, clearance, margin, face_margin, max_iterations,
-                      max_lift, max_height, search):
+                      max_lift, max_height, search, heights):
     """S103: raise each detailed particle that is inside the body (or closer than `clearance`)
     along its normal n_i by the smallest Δh_penetration that puts it `clearance` outside:
     p_i = p_smoothed,i + (Δh_last_frame,i + Δh_penetration,i) n_i.
@@ -380,7 +380,12 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
     tested too where every tested parent lies within the clearance plus its distance from the
     particle (the distance to the body changes no faster than the position, so only then can the
     particle be within the clearance): a body part narrower than the lattice (a finger, a
-    vertex standing out) can come through between parents all farther than `margin`.
+    vertex standing out) can come through between parents all farther than `margin`. Decision
+    (the heights' reach, seventy-second session; `heights` False: off): a face's corners count as
+    near from as far again as the largest |Δh| among its particles (`face_height`): the heights
+    carried from the frame before stand the particles off the PN patch along n_i, which can take
+    them into another body part over the cloth (the walk's blouse: particles raised 10-20 mm
+    earlier, 1-6 mm inside the arm, their face's corners farther than the margin, never tested).
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
     a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
@@ -428,6 +433,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
             if parents[loc, 0] >= 0:
                 if k == 3:  # (the corners come first in order, and are tested whatever their distance)
                     corner_margin = face_margin + bulge_towards_body(ctrl, f, face_ids, order, normals, facing)
+                    if heights:
+                        corner_margin += face_height(dh, f, face_ids)
                     for c in range(3):
                         if sd[face_ids[f, order[c]]] < corner_margin:
                             near = True
@@ -476,6 +483,16 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                 sd[vid] = d
                 facing[vid] = rate
     return tested
+
+
+@helper
+def face_height(dh, f, face_ids):
+    """The largest |Δh| among coarse face f's detailed particles (m): how far S103's positions of
+    them stand off the PN patch along their normals at most."""
+    h = 0.0
+    for k in range(face_ids.shape[1]):
+        h = max(h, abs(dh[face_ids[f, k]]))
+    return h
 
 
 @helper

@@ -111,14 +111,16 @@ def leave(x, tris, body, p, sd, body_face, part_face, first=0, d_edges=None, who
 
 def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=0.0, tree=NO_FACE_TREE, start=None,
               d_edges=None, was_inside=None, around=NO_DIRECTIONS, lowered=None, near_along=0.0,
-              around_reach=EXIT_REACH, turned=-np.inf):
+              around_reach=EXIT_REACH, turned=-np.inf, coarse=False):
     """out_along_normals on a body (x, tris) with its winding grid's arrays, and a face tree's
     (none: no way out through the nearest face); start: S103's walks' faces (None: none);
     d_edges: the particles' edges, spread along (None: no spread); was_inside: the frame before's
     particles found inside, updated (None: no memory); lowered: the particles lowered after a lift
     (None: none); near_along: another part this near asks a particle whatever its facing (0: the
     rule before the sixty-ninth session); turned: n_i . n_body below this asks a particle wherever the
-    other parts are (-inf: the rule before the seventy-first session). Returns (count, ids, moves)."""
+    other parts are (-inf: the rule before the seventy-first session); coarse: the coarse vertices
+    (before `first`) asked too, along ±n_i only (False: the rule before the seventy-second session).
+    Returns (count, ids, moves)."""
     lowered = np.zeros(len(p), dtype=np.uint8) if lowered is None else lowered
     ids, moves = np.zeros(len(p), dtype=np.int32), np.zeros((len(p), 3))
     start = np.full(len(p), -1, dtype=np.int32) if start is None else start
@@ -131,7 +133,7 @@ def out_along(p, n, sd, other, facing, behind, first, x, tris, grid, face_reach=
                               edges, edge_start, edge_ids, np.zeros(len(p), dtype=np.uint8),
                               np.zeros(len(p), dtype=np.int32),
                               np.zeros(len(p), dtype=np.uint8) if was_inside is None else was_inside,
-                              was_inside is not None, around, around_reach)
+                              was_inside is not None, around, around_reach, coarse)
     return count, ids, moves
 
 
@@ -515,6 +517,51 @@ def test_a_particle_whose_normal_faces_into_the_body_is_asked_wherever_the_other
         assert moved == 0
         np.testing.assert_array_equal(p[0], p0[0])
     np.testing.assert_array_equal(p[1], p0[1])
+
+
+@pytest.mark.parametrize("coarse", [False, True])
+def test_a_coarse_vertex_inside_goes_out_along_its_normal_only(coarse):
+    """`out_along_normals`' coarse vertices (Decision): on the two boxes, with the coarse ones
+    asked, a coarse vertex in the thigh 2 mm from its inner wall, its normal across the wall and
+    leaning off the body's, goes out along it, the clearance beyond, and so does one the spread
+    reaches from a detailed neighbour inside; a coarse vertex whose normal runs along the thigh
+    (no way out along ±n_i within EXIT_REACH) stays, where a detailed particle beside it goes out
+    the way around (-x, 1.4 cm). Under the rule before, only the detailed particles move."""
+    x, tris, regions, body = two_boxes()
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    side, along = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+    cases = [  # (position, normal, S103's sd, facing): the first three coarse vertices, other part 4 mm away
+        ((-0.012, 0.005, 0.01), side, 0.002, 0.0),     # 0: leaning off the body: asked, out across the wall
+        ((-0.056, 0.020, 0.0), along, -0.005, 1.0),    # 1: found inside by S103, no way along ±n_i: stays
+        ((-0.013, 0.010, -0.01), side, 0.002, 0.95),   # 2: facing the body's normal: reached by the spread from 3
+        ((-0.012, 0.005, -0.01), side, 0.002, 0.0),    # 3: a detailed particle leaning off the body: out
+        ((-0.056, 0.020, 0.01), along, -0.005, 1.0),   # 4: as 1, a detailed particle: out the way around
+    ]
+    p = np.array([c[0] for c in cases])
+    n = np.array([c[1] for c in cases])
+    sd, facing = np.array([c[2] for c in cases]), np.array([c[3] for c in cases])
+    other, behind = np.full(len(p), 0.004), np.zeros(len(p), dtype=np.uint8)
+    assert inside_boxes(p).all() and EXIT_REACH < 0.014 < EXIT_AROUND_REACH and 0.95 > EXIT_FACING
+    p0 = p.copy()
+    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 3, x, tris, g.arrays(), d_edges=[(2, 3)],
+                                  around=EXIT_DIRECTIONS, around_reach=EXIT_AROUND_REACH, coarse=coarse)
+    out = [0, 3, 4, 2] if coarse else [3, 4]
+    assert list(ids[:moved]) == out
+    np.testing.assert_allclose(moves[:moved], p[out] - p0[out], atol=1e-15)
+    np.testing.assert_allclose(p[3], (-0.01 + C, 0.005, -0.01), atol=1e-5)
+    np.testing.assert_allclose(p[4], (-0.07 - C, 0.020, 0.01), atol=1e-5)
+    np.testing.assert_array_equal(p[1], p0[1])
+    if coarse:
+        np.testing.assert_allclose(p[0], (-0.01 + C, 0.005, 0.01), atol=1e-5)
+        np.testing.assert_allclose(p[2], (-0.01 + C, 0.010, -0.01), atol=1e-5)
+        # along ±n_i only: each coarse move is parallel to its normal
+        for k, i in enumerate(ids[:moved]):
+            if i < 3:
+                np.testing.assert_allclose(np.cross(moves[k], n[i]), 0.0, atol=1e-15)
+        assert not inside_boxes(p[[0, 2, 3, 4]]).any()
+    else:
+        np.testing.assert_array_equal(p[[0, 2]], p0[[0, 2]])
 
 
 @pytest.mark.parametrize("around_reach", [EXIT_REACH, EXIT_AROUND_REACH])

@@ -707,8 +707,9 @@ def test_a_particle_behind_another_body_parts_surface_goes_out_along_its_normal(
     sheet, its top 8 mm over it). The nearest surface to the particles over the arm's middle is
     the torso's buried top, 4 mm below them, facing them: S103 reads them outside. Its walk in
     the arm finds them behind the arm's surface (`behind`), so the winding number is asked, and
-    they go up along n_i, out of the arm's top, the clearance beyond it; no detailed particle
-    but the coarse vertex in the arm's middle is left inside the arm. With the arm's sides in 2
+    they go up along n_i, out of the arm's top, the clearance beyond it; no detailed particle is
+    left inside the arm, the coarse vertex in its middle included (along its normal too, since the
+    seventy-second session; it was left inside before). With the arm's sides in 2
     x 2 quads (vertices 3 cm apart) most of those walks end at a vertex farther than the part
     could be nearest from (`other_part_distance`), and p behind every face around it marks them
     the same. (The moves out of creases are off here: they take the particles the arm's walk
@@ -739,7 +740,53 @@ def test_a_particle_behind_another_body_parts_surface_goes_out_along_its_normal(
     np.testing.assert_allclose(p[middle, 1], 0.008 + SurfaceSettings().clearance, atol=1e-5)
     assert surf.exited >= middle.sum() and surf.creased == 0
     inside_arm = np.all(np.abs(p - [0.08, -0.002, 0.04]) < [0.03 - 1e-6, 0.01 - 1e-6, 0.03 - 1e-6], axis=1)
-    assert not inside_arm[fine].any() and inside_arm[~fine].sum() == 1
+    assert not inside_arm.any()
+    centre = np.flatnonzero(np.all(np.abs(x - [0.08, 0.0, 0.04])[:, [0, 2]] < 0.022, axis=1))  # coarse vertices
+    assert len(centre) == 1
+    np.testing.assert_allclose(p[centre, 1], 0.008 + SurfaceSettings().clearance, atol=1e-5)
+    np.testing.assert_allclose(p[centre][:, [0, 2]], x[centre][:, [0, 2]], atol=1e-12)  # straight up its normal
+
+
+@pytest.mark.parametrize("height_reach", [False, True])
+def test_particles_raised_into_a_body_part_over_the_cloth_are_tested(height_reach):
+    """Decision (S103's heights' reach, `wrinkles.avoid_penetration`): a sheet 2 cm over a torso box,
+    under an arm box whose bottom is 5 mm over it (x 5-11 cm, z 1-7 cm), with S103's margins at 2 mm:
+    its coarse faces' corners are all farther than that from the body, so S103 skips the faces. The
+    detailed particles over the arm's middle carry Δh = 2 cm from the frame before, which takes them
+    into the arm. With the heights' reach their faces count as near (the corners within the margin
+    plus the largest |Δh|), S103 tests every one of them and none is left inside the arm; without,
+    none is tested and S106's neighbour distances bring them down only to 0-10 mm, 8 inside it."""
+    tv, tt = box(half=0.05, n=8)
+    tv = tv + [0.08, -0.07, 0.04]  # torso: top face at y = -20 mm
+    av, at = box(half=0.03, n=8)
+    av = av * [1.0, 0.2, 1.0] + [0.08, 0.011, 0.04]  # arm: y 5..17 mm
+    bv = np.ascontiguousarray(np.vstack([tv, av]))
+    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
+    body = BodyMesh.build(bt, len(bv), regions)
+    grid = VertexGrid(len(bv))
+    grid.update(bv, regions)
+    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
+    winding.update(bv)
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(height_reach=height_reach, face_margin=0.002,
+                                                                 contact_margin=0.002))
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(tv - q, axis=1))) for q in x], dtype=np.int32)
+    surf.step(x, nearest, bv, body, face_normals(bv, bt), DT, grid, winding=winding.arrays())
+    s = surf.state
+    assert s.dh.max() == 0.0 and np.all(np.isfinite(s.sd) == (np.arange(len(s.p)) < len(x)))  # corners only
+    fine = np.arange(len(s.p)) >= m.tess.n_coarse
+    raised = fine & np.all(np.abs(s.p_smoothed - [0.08, 0.0, 0.04])[:, [0, 2]] < 0.022, axis=1)
+    s.dh[raised] = 0.02  # (Δh_last_frame)
+    p = surf.step(x, nearest, bv, body, face_normals(bv, bt), DT, grid, winding=winding.arrays())[0]
+    inside_arm = np.all(np.abs(p - [0.08, 0.011, 0.04]) < [0.03 - 1e-6, 0.006 - 1e-6, 0.03 - 1e-6], axis=1)
+    assert raised.sum() == 48
+    if height_reach:
+        assert np.isfinite(s.sd[raised]).all() and not inside_arm.any()
+    else:
+        assert not np.isfinite(s.sd[raised]).any() and inside_arm.sum() == 8
+        assert p[raised, 1].max() < 0.0101
 
 
 def test_a_small_body_part_anywhere_under_the_sheet_is_left_by_every_detailed_particle():

@@ -37,14 +37,15 @@ def test_surface_through_the_run_clip(body, data, outfit):
         for surf, (_, n), p, x in zip(session.surfaces, session.detailed, layered, positions):
             s, st, m = surf.state, surf.model.settings, surf.model
             # and the moves out of creases (cloth.creases: off the normal, never a coarse vertex, bounded)
-            # first the moves out along ±n_i (cloth.creases.out_along_normals: along the normal, never a
-            # coarse vertex, bounded, each from inside the body as a whole)
+            # first the moves out along ±n_i (cloth.creases.out_along_normals: along the normal, a coarse
+            # vertex only so, bounded, each from inside the body as a whole)
             k = surf.exited
             ids, moves = s.exit_ids[:k], s.exit_moves[:k]
-            assert np.all(ids >= len(x)) and len(np.unique(ids)) == k
+            assert len(np.unique(ids)) == k
             # (or, with no way out along ±n_i within EXIT_REACH, through the nearest face, within EXIT_FACE_REACH)
             along, length = np.sum(moves * s.n_pn[ids], axis=1), np.linalg.norm(moves, axis=1)
             normal = np.isclose(np.abs(along), length, rtol=1e-9, atol=0.0)
+            assert normal[ids < len(x)].all()
             assert np.all(length[normal] <= EXIT_REACH + st.clearance + 1e-12)
             assert np.all(length <= EXIT_FACE_REACH + 1e-12)
             p[ids] -= moves
@@ -76,7 +77,8 @@ def test_surface_through_the_run_clip(body, data, outfit):
             low = s.dh < 0.0
             assert np.all(s.facing[low] < 0.0) and np.all(np.isfinite(s.sd[low]))
             np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-9)
-            # the coarse particles are detailed vertices 0..n-1, moved only along their normal
+            # the coarse particles are detailed vertices 0..n-1, moved only along their normal (by S103's lifts;
+            # the moves out along ±n_i were taken off above)
             off = p[: len(x)] - x
             np.testing.assert_allclose(off, s.dh[: len(x), None] * s.n_pn[: len(x)], atol=1e-12)
         checked.append(index)
