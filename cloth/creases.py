@@ -413,7 +413,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     `coarse` asked as the others are but moved only along ±n_i (Decision, the coarse vertices,
     seventy-second session: S101 keeps the coarse particle itself out of the body, but the lift
     S103 gave it along n_i, carried from frame to frame, can take it into another part: on the
-    walk's leggings 18 of 27 vertex-frames deeper than 1 mm were coarse vertices 4-12 mm above
+    walk's leggings 18 of 26 vertex-frames deeper than 1 mm were coarse vertices 4-12 mm above
     their particle, between the thighs, S103 reading 2-5 mm outside them by the other thigh's
     buried skin. Along ±n_i it stays on its normal, where S102 and S103 put it).
     wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
