@@ -53,9 +53,10 @@ the body's, or one S103 found inside, is asked the winding number at its final p
 one inside goes along ±n_i to where the body ends nearest (within 1 cm), the clearance beyond.
 Where neither way ends within 1 cm (n_i along the skin, or deep in a limb that the coarse face
 cuts across), it goes out through the nearest body face instead, or on along the line to it,
-within 4 cm (Decision, sixty-third session; 3 cm until the sixty-sixth, when the walk's elegant
+within 6 cm (Decision, sixty-third session; 3 cm until the sixty-sixth, when the walk's elegant
 blouse had one or two particles a frame 32-35 mm inside the left arm at the armpit, over frames
-286-496, half its vertex-frames deeper than 1 mm). Its Δh is unchanged, as above. The neighbours of
+286-496, half its vertex-frames deeper than 1 mm; 4 cm until the seventy-second, when the run's
+skirt and blouse had particles 40-52 mm inside the body in its first 25 frames). Its Δh is unchanged, as above. The neighbours of
 each particle found inside are asked too, and theirs while they are inside, and a particle found
 inside is asked again the next frame (Decisions, sixty-fourth session: the spread and the
 memory): most of the walk's vertex-frames left deeper than 1 mm lay in patches around particles
@@ -107,8 +108,10 @@ EXIT_TURNED = 0.0
 EXIT_REACH = 0.01
 # m: where no way out along ±n_i lies within EXIT_REACH, `out_along_normals` takes the way out through the
 # nearest body face, or on along the line to it, within this (3 cm, CREASE_MOVE, until the sixty-sixth session:
-# the walk's blouse left 32-35 mm inside the arm at the armpit, under a coarse face that cuts across it)
-EXIT_FACE_REACH = 0.04
+# the walk's blouse left 32-35 mm inside the arm at the armpit, under a coarse face that cuts across it; 4 cm until
+# the seventy-second: the run's skirt and blouse left particles 40-52 mm inside the body in its first 25 frames,
+# under coarse faces that cut across it, 31 of the run's 59 vertex-frames deeper than 1 mm)
+EXIT_FACE_REACH = 0.06
 # m: how far `out_along_normals` looks along each of EXIT_DIRECTIONS (EXIT_REACH until the seventieth session:
 # most of the walk's jeans vertex-frames left deeper than 1 mm were 5-20 mm deep in a crease between the thighs,
 # the way out 1-3 cm away)

@@ -307,8 +307,8 @@ def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_neares
     particle inside the thigh whose normal runs along it, so that neither way along ±n_i ends
     within EXIT_REACH, goes out through the face nearest to it, to its closest point and the
     clearance beyond; one whose nearest face is the thigh's bottom, buried in the torso, goes on
-    along the same line through the torso to where the body ends; one with no face within
-    EXIT_FACE_REACH stays, and with no face tree every one stays."""
+    along the same line through the torso to where the body ends; with no face tree every one
+    stays (one with no face within the reach: the next test)."""
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
     g.update(x)
@@ -320,13 +320,12 @@ def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_neares
         (-0.040, 0.043, 0.0),  # 1: 7 mm under the thigh's top (y = 5 cm): out along +y
         (-0.048, -0.004, 0.0),  # 2: in both, 2 mm inside the torso's side (x = -5 cm), buried in the thigh:
         #                        on along -x through the thigh to its outer wall, 2.2 cm
-        (0.000, -0.050, 0.0),  # 3: the torso's middle, every face 5 cm away: stays
     ]
     p = np.array(cases)
     n = np.array([along] * len(cases))
     sd, other, facing = np.full(len(p), -0.005), np.full(len(p), np.inf), np.ones(len(p))
     behind = np.zeros(len(p), dtype=np.uint8)
-    assert inside_boxes(p).all() and EXIT_REACH < 0.02 and 0.022 + C < EXIT_FACE_REACH < 0.05
+    assert inside_boxes(p).all() and EXIT_REACH < 0.02 and 0.022 + C < EXIT_FACE_REACH
 
     def run(face_reach, arrays, start):
         q = p.copy()
@@ -345,12 +344,40 @@ def test_a_particle_with_no_way_out_along_its_normal_goes_out_through_the_neares
     np.testing.assert_allclose(q[0], (-0.07 - C, 0.02, 0.0), atol=1e-12)
     np.testing.assert_allclose(q[1], (-0.04, 0.05 + C, 0.0), atol=1e-12)
     np.testing.assert_allclose(q[2], (-0.07 - C, -0.004, 0.0), atol=2e-5)  # (the march's bisections of 15 mm)
-    np.testing.assert_array_equal(q[3], p[3])
-    assert not inside_boxes(q[:3]).any()
+    assert not inside_boxes(q).any()
     q_off, ids_off = run(0.0, tree.arrays(), anywhere)  # off, and with no tree: every one stays
     assert ids_off == [] and (q_off == p).all()
     q_off, ids_off = run(EXIT_FACE_REACH, NO_FACE_TREE, anywhere)
     assert ids_off == [] and (q_off == p).all()
+
+
+@pytest.mark.parametrize("face_reach", [0.04, EXIT_FACE_REACH])
+def test_the_way_out_through_the_nearest_face_looks_as_far_as_its_reach(face_reach):
+    """`out_along_normals`' way out through the nearest face within 6 cm (Decision, seventy-second
+    session): in a box 12 cm across (a thigh a coarse face cuts across), a particle 5 cm under its
+    top, its normal along the box and 6 cm from its ends, found inside by S103, goes out through the
+    top, the clearance beyond, within EXIT_FACE_REACH, and stays within 4 cm (the reach before)."""
+    bx, bt = box(half=0.06, n=8)
+    x = np.ascontiguousarray(bx)
+    tris = bt.astype(np.int32)
+    body = BodyMesh.build(tris, len(x), np.ones(len(x), dtype=np.uint8))
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    tree = FaceTree(tris, np.arange(len(tris)), body.regions)
+    tree.update(x)
+    p = np.array([(0.0, 0.01, 0.0)])
+    n = np.array([(0.0, 0.0, 1.0)])
+    sd, other, facing = np.full(1, -0.05), np.full(1, np.inf), np.ones(1)
+    behind = np.zeros(1, dtype=np.uint8)
+    assert 0.04 < 0.05 + C < EXIT_FACE_REACH
+    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), face_reach, tree.arrays(),
+                                  around=EXIT_DIRECTIONS, around_reach=EXIT_AROUND_REACH)
+    if face_reach > 0.05 + C:
+        assert moved == 1
+        np.testing.assert_allclose(p[0], (0.0, 0.06 + C, 0.0), atol=1e-12)
+    else:
+        assert moved == 0
+        np.testing.assert_array_equal(p[0], (0.0, 0.01, 0.0))
 
 
 @pytest.mark.parametrize("spread", [True, False])
