@@ -56,8 +56,8 @@ cuts across), it goes out through the nearest body face instead, or on along the
 within 6 cm (Decision, sixty-third session; 3 cm until the sixty-sixth, when the walk's elegant
 blouse had one or two particles a frame 32-35 mm inside the left arm at the armpit, over frames
 286-496, half its vertex-frames deeper than 1 mm; 4 cm until the seventy-second, when the run's
-skirt and blouse had particles 40-52 mm inside the body in its first 25 frames). Its Δh is unchanged, as above. The neighbours of
-each particle found inside are asked too, and theirs while they are inside, and a particle found
+skirt and blouse had particles 40-52 mm inside the body in its first 25 frames). Its Δh is
+unchanged, as above. The neighbours of each particle found inside are asked too, and theirs while they are inside, and a particle found
 inside is asked again the next frame (Decisions, sixty-fourth session: the spread and the
 memory): most of the walk's vertex-frames left deeper than 1 mm lay in patches around particles
 the rule above asked, read outside by S103 with their normals along the body's. Where neither the
@@ -106,6 +106,9 @@ EXIT_NEAR_ALONG = 0.01
 # part found, many with the normal facing into the body)
 EXIT_TURNED = 0.0
 EXIT_REACH = 0.01
+# m: `lowered_after_lift` names a particle S106 lowered to less than this from the body by S103's reading
+# (seventy-second session: S103's walks read the blouse's such particles 2-3 mm farther out than they were)
+EXIT_LOWERED_NEAR = 0.002
 # m: where no way out along ±n_i lies within EXIT_REACH, `out_along_normals` takes the way out through the
 # nearest body face, or on along the line to it, within this (3 cm, CREASE_MOVE, until the sixty-sixth session:
 # the walk's blouse left 32-35 mm inside the arm at the armpit, under a coarse face that cuts across it; 4 cm until
@@ -473,14 +476,21 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
 
 
 @kernel
-def lowered_after_lift(dh_pen, lifted, height, by, lowered):
+def lowered_after_lift(dh_pen, lifted, height, by, lowered, sd, near):
     """`out_along_normals`' particles lowered after a lift: 1 where S103 lifted the particle this
     frame (dh_pen > 0) and its drawn height (S106's, folds included) ends more than `by` below the
-    height S103 left it at (lifted), else 0."""
+    height S103 left it at (lifted), else 0. Decision (lowered near the body, seventy-second
+    session): 1 too where S106 lowered a particle S103 tested to less than `near` (EXIT_LOWERED_NEAR;
+    0: none) from the body by S103's reading (sd less how far it came down): the walk's blouse left
+    22 vertex-frames deeper than 1 mm that S103 had read 2-12 mm out and S106 then lowered by 1-4 mm,
+    1-2 mm short of the body by that reading, where they ended 1-2 mm inside it (the reading
+    2-3 mm long there)."""
     for i in range(dh_pen.shape[0]):
-        lowered[i] = 1 if dh_pen[i] > 0.0 and height[i] < lifted[i] - by else 0
+        down = lifted[i] - height[i]
+        lowered[i] = 1 if ((dh_pen[i] > 0.0 and down > by) or (down > 0.0 and sd[i] - down < near)) else 0
 
 
-__all__ = ["EXIT_AROUND_REACH", "EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_NEAR", "EXIT_NEAR_ALONG",
+__all__ = ["EXIT_AROUND_REACH", "EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_LOWERED_NEAR", "EXIT_NEAR",
+           "EXIT_NEAR_ALONG",
            "EXIT_REACH", "EXIT_TURNED", "NO_DIRECTIONS", "leave_creases", "lowered_after_lift", "out_along_normals",
            "out_of_two_planes"]

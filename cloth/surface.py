@@ -18,8 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, VertexGrid, part_scratch
-from .creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR, EXIT_NEAR_ALONG,
-                      EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals)
+from .creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_LOWERED_NEAR, EXIT_NEAR,
+                      EXIT_NEAR_ALONG, EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals)
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
@@ -107,6 +107,9 @@ class SurfaceSettings:
     exit_turned: bool = True
     # and the coarse vertices too, moved along ±n_i only (Decision, `creases.out_along_normals`' coarse vertices)
     exit_coarse: bool = True
+    # and a particle S106 lowered to within EXIT_LOWERED_NEAR of the body by S103's reading (Decision,
+    # `creases.lowered_after_lift`'s lowered near the body)
+    exit_lowered_near: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -372,7 +375,8 @@ class DetailedSurface:
                                          winding is not None)
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
             # (off: lowered by more than infinity, none)
-            lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance if st.exit_lowered else np.inf, s.lowered)
+            lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance if st.exit_lowered else np.inf, s.lowered,
+                               s.sd, EXIT_LOWERED_NEAR if st.exit_lowered_near else 0.0)
             self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, s.lowered, t.n_coarse,
                                             EXIT_NEAR, EXIT_FACING, EXIT_NEAR_ALONG if st.exit_near_along else 0.0,
                                             EXIT_TURNED if st.exit_turned else -np.inf,

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from cloth.collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, FaceTree, face_normals
-from cloth.creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_NEAR,
-                           EXIT_NEAR_ALONG, EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases, lowered_after_lift,
-                           out_along_normals, out_of_two_planes)
+from cloth.creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_LOWERED_NEAR,
+                           EXIT_NEAR, EXIT_NEAR_ALONG, EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases,
+                           lowered_after_lift, out_along_normals, out_of_two_planes)
 from cloth.topology import vertex_cells
 from cloth.winding import NO_WINDING, WindingGrid
 from tests.test_cloth_dynamics import box
@@ -457,6 +457,22 @@ def test_a_particle_found_inside_is_asked_again_the_next_frame():
     assert moved == 0 and not was_inside.any()
 
 
+@pytest.mark.parametrize("near", [0.0, EXIT_LOWERED_NEAR])
+def test_a_particle_s106_lowered_near_the_body_by_s103s_reading_is_named(near):
+    """`lowered_after_lift`'s lowered near the body (Decision): S103 read each particle 5 mm from the
+    body and did not lift it; S106 lowered the first by 4 mm (1 mm left by that reading, within
+    EXIT_LOWERED_NEAR: named), the second by 2 mm (3 mm left: not), raised the third by 6 mm (not),
+    and lowered the fourth, untested (sd inf), by 2 cm (not). With the rule off (0) none is named."""
+    dh_pen = np.zeros(4)
+    lifted = np.full(4, 0.006)
+    height = np.array([0.002, 0.004, 0.012, -0.014])
+    sd = np.array([0.005, 0.005, 0.005, np.inf])
+    lowered = np.zeros(4, dtype=np.uint8)
+    assert 0.001 < EXIT_LOWERED_NEAR < 0.003
+    lowered_after_lift(dh_pen, lifted, height, C, lowered, sd, near)
+    assert list(lowered) == ([1, 0, 0, 0] if near > 0.0 else [0, 0, 0, 0])
+
+
 def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
     """`out_along_normals`' lowered after a lift (Decision): `lowered_after_lift` names the
     particles S103 lifted this frame that S106 brought more than the clearance below S103's
@@ -467,9 +483,10 @@ def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
     lifted = np.array([0.02, 0.02, 0.02, 0.01, 0.0])
     height = np.array([0.004, 0.0195, 0.02, 0.0, -0.01])  # 0: 16 mm down; 1: 0.5 mm down; 2: as lifted
     lowered = np.zeros(len(dh_pen), dtype=np.uint8)
-    lowered_after_lift(dh_pen, lifted, height, C, lowered)
+    far = np.full(len(dh_pen), 0.05)  # S103's readings, all farther than any move here
+    lowered_after_lift(dh_pen, lifted, height, C, lowered, far, EXIT_LOWERED_NEAR)
     assert list(lowered) == [1, 0, 0, 0, 0]  # (3: not lifted; 4: lowered by S103, not lifted)
-    lowered_after_lift(dh_pen, lifted, height, np.inf, lowered)  # (SurfaceSettings.exit_lowered False)
+    lowered_after_lift(dh_pen, lifted, height, np.inf, lowered, far, EXIT_LOWERED_NEAR)  # (exit_lowered False)
     assert not lowered.any()
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
