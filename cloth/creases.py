@@ -57,19 +57,21 @@ within 6 cm (Decision, sixty-third session; 3 cm until the sixty-sixth, when the
 blouse had one or two particles a frame 32-35 mm inside the left arm at the armpit, over frames
 286-496, half its vertex-frames deeper than 1 mm; 4 cm until the seventy-second, when the run's
 skirt and blouse had particles 40-52 mm inside the body in its first 25 frames). Its Δh is
-unchanged, as above. The neighbours of each particle found inside are asked too, and theirs while they are inside, and a particle found
-inside is asked again the next frame (Decisions, sixty-fourth session: the spread and the
-memory): most of the walk's vertex-frames left deeper than 1 mm lay in patches around particles
-the rule above asked, read outside by S103 with their normals along the body's. Where neither the
-normals nor the nearest face lead out, the nearest way out along the axes and the diagonals
-(EXIT_DIRECTIONS), within 3 cm (1 cm until the seventieth session), is taken (Decision, sixty-fifth
-session: the around): over the walk's first 250 frames, 125 of the casual jeans' 174 vertex-frames
-left deeper than 1 mm were inside by the winding number with neither way out, most in the right
-thigh in the crouch, beside the belly's skin buried in it (the nearest face, which leads into the
-belly), and half had a way out within 1 cm
-along one of 26 directions. Since the sixty-seventh session "near another body part" is within
-3 cm (EXIT_NEAR), and a particle S103 lifted that S106 lowered again by more than the clearance
-is asked too (Decision: lowered after a lift): S103's walks misread both kinds as well outside.
+unchanged, as above. The neighbours of each particle found inside are asked too, and theirs while
+they are inside, and a particle found inside is asked again the next frame (Decisions, sixty-fourth
+session: the spread and the memory): most of the walk's vertex-frames left deeper than 1 mm lay in
+patches around particles the rule above asked, read outside by S103 with their normals along the
+body's. Where neither the normals nor the nearest face lead out, the nearest way out along the axes
+and the diagonals (EXIT_DIRECTIONS), within 3 cm (1 cm until the seventieth session), is taken
+(Decision, sixty-fifth session: the around): over the walk's first 250 frames, 125 of the casual
+jeans' 174 vertex-frames left deeper than 1 mm were inside by the winding number with neither way
+out, most in the right thigh in the crouch, beside the belly's skin buried in it (the nearest face,
+which leads into the belly), and half had a way out within 1 cm along one of 26 directions. Since
+the sixty-seventh session "near another body part" is within 3 cm (EXIT_NEAR), and a particle S103
+lifted that S106 lowered again by more than the clearance is asked too (Decision: lowered after a
+lift): S103's walks misread both kinds as well outside. Since the seventy-second session the coarse
+vertices are asked too, moved along ±n_i only, and so is a particle S106 lowered to within
+EXIT_LOWERED_NEAR of the body by S103's reading (Decisions, `out_along_normals`, `lowered_after_lift`).
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ import numpy as np
 
 from .collision import FACE_TREE_STACK, NO_FACE_TREE, BodyMesh, VertexGrid, part_scratch
 from .creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_FACING, EXIT_LOWERED_NEAR, EXIT_NEAR,
-                      EXIT_NEAR_ALONG, EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases, lowered_after_lift, out_along_normals)
+                      EXIT_NEAR_ALONG, EXIT_REACH, EXIT_TURNED, NO_DIRECTIONS, leave_creases, lowered_after_lift,
+                      out_along_normals)
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
