@@ -700,6 +700,26 @@ def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(fin
         np.testing.assert_allclose(p[over, 1], 0.0, atol=1e-12)
 
 
+def torso_under_arm(torso_top, arm_bottom, arm_top, arm_quads=8):
+    """A torso box (10 cm, its top face at y = torso_top) under the sheet's middle and an arm box
+    (x 5-11 cm, z 1-7 cm, y arm_bottom..arm_top) across it, two body parts: (torso vertices, body
+    vertices, triangles, BodyMesh, VertexGrid, WindingGrid), the grids updated."""
+    tv, tt = box(half=0.05, n=8)
+    tv = tv + [0.08, torso_top - 0.05, 0.04]
+    av, at = box(half=0.03, n=arm_quads)
+    half = 0.5 * (arm_top - arm_bottom)
+    av = av * [1.0, half / 0.03, 1.0] + [0.08, arm_bottom + half, 0.04]
+    bv = np.ascontiguousarray(np.vstack([tv, av]))
+    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
+    body = BodyMesh.build(bt, len(bv), regions)
+    grid = VertexGrid(len(bv))
+    grid.update(bv, regions)
+    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
+    winding.update(bv)
+    return tv, bv, bt, body, grid, winding
+
+
 @pytest.mark.parametrize("arm_quads", [8, 2])
 def test_a_particle_behind_another_body_parts_surface_goes_out_along_its_normal(arm_quads):
     """Decision (`creases.out_along_normals`, sixtieth session): a torso box whose top face, 4 mm
@@ -714,18 +734,8 @@ def test_a_particle_behind_another_body_parts_surface_goes_out_along_its_normal(
     could be nearest from (`other_part_distance`), and p behind every face around it marks them
     the same. (The moves out of creases are off here: they take the particles the arm's walk
     ended within 1 cm of out through the nearest wall, and not those it ended farther from.)"""
-    tv, tt = box(half=0.05, n=8)
-    tv = tv + [0.08, -0.054, 0.04]  # torso: top face at y = -4 mm
-    av, at = box(half=0.03, n=arm_quads)
-    av = av * [1.0, 1.0 / 3.0, 1.0] + [0.08, -0.002, 0.04]  # arm: y -12..8 mm, x 0.05-0.11, z 0.01-0.07
-    bv = np.ascontiguousarray(np.vstack([tv, av]))
-    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
-    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
-    body = BodyMesh.build(bt, len(bv), regions)
-    grid = VertexGrid(len(bv))
-    grid.update(bv, regions)
-    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
-    winding.update(bv)
+    # torso: top face at y = -4 mm; arm: y -12..8 mm, x 0.05-0.11, z 0.01-0.07
+    tv, bv, bt, body, grid, winding = torso_under_arm(-0.004, -0.012, 0.008, arm_quads)
     m = build_surface_model(sheet_model().cloth, SurfaceSettings(creases=False))
     surf = DetailedSurface(m)
     x = m.cloth.rest_positions.copy()
@@ -756,18 +766,7 @@ def test_particles_raised_into_a_body_part_over_the_cloth_are_tested(height_reac
     into the arm. With the heights' reach their faces count as near (the corners within the margin
     plus the largest |Δh|), S103 tests every one of them and none is left inside the arm; without,
     none is tested and S106's neighbour distances bring them down only to 0-10 mm, 8 inside it."""
-    tv, tt = box(half=0.05, n=8)
-    tv = tv + [0.08, -0.07, 0.04]  # torso: top face at y = -20 mm
-    av, at = box(half=0.03, n=8)
-    av = av * [1.0, 0.2, 1.0] + [0.08, 0.011, 0.04]  # arm: y 5..17 mm
-    bv = np.ascontiguousarray(np.vstack([tv, av]))
-    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
-    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
-    body = BodyMesh.build(bt, len(bv), regions)
-    grid = VertexGrid(len(bv))
-    grid.update(bv, regions)
-    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
-    winding.update(bv)
+    tv, bv, bt, body, grid, winding = torso_under_arm(-0.02, 0.005, 0.017)  # torso top y = -20 mm, arm y 5..17 mm
     m = build_surface_model(sheet_model().cloth, SurfaceSettings(height_reach=height_reach, face_margin=0.002,
                                                                  contact_margin=0.002))
     surf = DetailedSurface(m)
