@@ -483,7 +483,7 @@ def lowered_after_lift(dh_pen, lifted, height, by, lowered, sd, near):
     frame (dh_pen > 0) and its drawn height (S106's, folds included) ends more than `by` below the
     height S103 left it at (lifted), else 0. Decision (lowered near the body, seventy-second
     session): 1 too where S106 lowered a particle S103 tested to less than `near` (EXIT_LOWERED_NEAR;
-    0: none) from the body by S103's reading (sd less how far it came down): the walk's blouse left
+    -inf: none) from the body by S103's reading (sd less how far it came down): the walk's blouse left
     22 vertex-frames deeper than 1 mm that S103 had read 2-12 mm out and S106 then lowered by 1-4 mm,
     1-2 mm short of the body by that reading, where they ended 1-2 mm inside it (the reading
     2-3 mm long there)."""
@@ -493,6 +493,5 @@ def lowered_after_lift(dh_pen, lifted, height, by, lowered, sd, near):
 
 
 __all__ = ["EXIT_AROUND_REACH", "EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_LOWERED_NEAR", "EXIT_NEAR",
-           "EXIT_NEAR_ALONG",
-           "EXIT_REACH", "EXIT_TURNED", "NO_DIRECTIONS", "leave_creases", "lowered_after_lift", "out_along_normals",
-           "out_of_two_planes"]
+           "EXIT_NEAR_ALONG", "EXIT_REACH", "EXIT_TURNED", "NO_DIRECTIONS", "leave_creases", "lowered_after_lift",
+           "out_along_normals", "out_of_two_planes"]

@@ -377,7 +377,7 @@ class DetailedSurface:
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
             # (off: lowered by more than infinity, none)
             lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance if st.exit_lowered else np.inf, s.lowered,
-                               s.sd, EXIT_LOWERED_NEAR if st.exit_lowered_near else 0.0)
+                               s.sd, EXIT_LOWERED_NEAR if st.exit_lowered_near else -np.inf)
             self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, s.lowered, t.n_coarse,
                                             EXIT_NEAR, EXIT_FACING, EXIT_NEAR_ALONG if st.exit_near_along else 0.0,
                                             EXIT_TURNED if st.exit_turned else -np.inf,

@@ -457,20 +457,22 @@ def test_a_particle_found_inside_is_asked_again_the_next_frame():
     assert moved == 0 and not was_inside.any()
 
 
-@pytest.mark.parametrize("near", [0.0, EXIT_LOWERED_NEAR])
+@pytest.mark.parametrize("near", [-np.inf, EXIT_LOWERED_NEAR])
 def test_a_particle_s106_lowered_near_the_body_by_s103s_reading_is_named(near):
     """`lowered_after_lift`'s lowered near the body (Decision): S103 read each particle 5 mm from the
     body and did not lift it; S106 lowered the first by 4 mm (1 mm left by that reading, within
     EXIT_LOWERED_NEAR: named), the second by 2 mm (3 mm left: not), raised the third by 6 mm (not),
-    and lowered the fourth, untested (sd inf), by 2 cm (not). With the rule off (0) none is named."""
-    dh_pen = np.zeros(4)
-    lifted = np.full(4, 0.006)
-    height = np.array([0.002, 0.004, 0.012, -0.014])
-    sd = np.array([0.005, 0.005, 0.005, np.inf])
-    lowered = np.zeros(4, dtype=np.uint8)
+    and lowered the fourth, untested (sd inf), by 2 cm (not). With the rule off (-inf) none is named,
+    though S106 lowered the first by less and a fifth, read 1 mm out, by 3 mm, past the body by that
+    reading."""
+    dh_pen = np.zeros(5)
+    lifted = np.full(5, 0.006)
+    height = np.array([0.002, 0.004, 0.012, -0.014, 0.003])
+    sd = np.array([0.005, 0.005, 0.005, np.inf, 0.001])
+    lowered = np.zeros(5, dtype=np.uint8)
     assert 0.001 < EXIT_LOWERED_NEAR < 0.003
     lowered_after_lift(dh_pen, lifted, height, C, lowered, sd, near)
-    assert list(lowered) == ([1, 0, 0, 0] if near > 0.0 else [0, 0, 0, 0])
+    assert list(lowered) == ([1, 0, 0, 0, 1] if near > 0.0 else [0, 0, 0, 0, 0])
 
 
 def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
