@@ -51,6 +51,12 @@ class SurfaceSettings:
     # sleeve): finds particles inside them that a walk from the torso misses, for about 0.4 ms
     # per garment-frame
     other_parts: bool = True
+    # S103's walk starts again from the particle's own nearest body vertex (a walk from the last frame's)
+    # where that is nearer than the walk's answer (Decision, `wrinkles._detail_signed_distance`'s own vertex)
+    own_vertex: bool = True
+    # S103 walks again from a tested parent's last face where a particle reads farther than the parent's reading
+    # plus their distance apart (Decision, `wrinkles.avoid_penetration`'s Lipschitz check)
+    recheck: bool = True
     penetration_iterations: int = 4  # S103 lifts per particle (one suffices on a flat body)
     # S103: where the linear lifts fail (n_i along the body, a particle caught in a crease), search
     # for a lift by doubling and bisection (`wrinkles._lift_out`). Off (fifty-second session): such a
@@ -209,6 +215,8 @@ class SurfaceState:
         self.lowered = np.zeros(N, dtype=np.uint8)  # 1 where S106 lowered a particle S103 lifted (out_along_normals)
         self.body_face = np.full(N, -1, dtype=np.int32)  # S103: body face each particle's last walk ended on,
         self.part_face = np.full(N, -1, dtype=np.int32)  # and its last walk in another body part
+        # S103: each particle's nearest body vertex by its last vertex walk (-1: none yet; empty: not kept)
+        self.near_vertex = np.full(N if m.settings.own_vertex else 0, -1, dtype=np.int32)
         self.part_seeds = np.zeros((n, MAX_PART_SEEDS), dtype=np.int32)  # S103: other body parts near each
         self.seed_reach = np.zeros((n, MAX_PART_SEEDS))  # coarse particle (other_part_seeds)
         self.seed_count = np.zeros(n, dtype=np.int32)
@@ -324,9 +332,10 @@ class DetailedSurface:
                                             s.part_seeds, s.seed_reach, s.seed_count, s.corners, s.parts, s.reach,
                                             s.groups, s.group_reach, body_x, body.nbr_start, body.nbr_ids, body.parts,
                                             body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face,
-                                            s.part_face, face_n, s.q, face_tip, st.tip_share, st.clearance,
-                                            st.contact_margin, st.face_margin, st.penetration_iterations,
-                                            st.max_lift, st.max_height, st.lift_search, st.height_reach)
+                                            s.part_face, s.near_vertex, face_n, s.q, face_tip, st.tip_share,
+                                            st.clearance, st.contact_margin, st.face_margin, st.penetration_iterations,
+                                            st.max_lift, st.max_height, st.lift_search, st.height_reach,
+                                            st.recheck)
         s.lifted[:] = s.dh
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)

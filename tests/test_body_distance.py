@@ -68,7 +68,7 @@ def test_face_walk_distance_matches_brute_force(shape):
 
 @njit  # (not cached, as above)
 def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, body_face,
-                face_n, out):
+                face_n, out, near_vertex=np.zeros(0, dtype=np.int32)):  # (empty: the seed alone checks the walk)
     q = np.zeros(3)
     no_parts = np.zeros((0, 2), dtype=np.int32)  # no walks in other body parts: the walk itself
     no_groups = np.zeros((0, 3), dtype=np.int32)
@@ -76,7 +76,7 @@ def _detail_all(points, seeds, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_s
     for i in range(points.shape[0]):
         out[i] = _detail_signed_distance(points, i, seeds[i], points, np.zeros(3, dtype=np.int32), no_parts, no_groups,
                                          np.zeros((0, 3)), 0, -1, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
-                                         tri_ids, tri_nbrs, body_face, part_face, face_n, q)[0]
+                                         tri_ids, tri_nbrs, body_face, part_face, near_vertex, face_n, q)[0]
 
 
 def test_detailed_particle_walk_starts_from_its_last_face_and_re_anchors_at_the_seed():
@@ -107,6 +107,42 @@ def test_detailed_particle_walk_starts_from_its_last_face_and_re_anchors_at_the_
                     body.nbr_start, body.nbr_ids, body.regions, body_face, face_n, out)
         np.testing.assert_allclose(out, expected, atol=1e-9, err_msg=case)
         assert (body_face >= 0).all() and (body_face < len(t1)).all()  # faces of the first sphere remembered
+
+
+@pytest.mark.parametrize("own_vertex", [True, False])
+def test_a_walk_stopped_farther_than_the_particles_own_vertex_walks_again_from_it(own_vertex):
+    """Decision (S103, the particle's own vertex): two spheres 0.3 m apart, points 1-10 mm from
+    the first (inside and out), their walks remembered on the second sphere (a walk that stopped
+    on a local minimum of the distance) and their seeds there too, farther than that answer, so
+    the seed does not call it wrong. Each point's own nearest vertex, walked from the one it
+    found the frame before (on the first sphere), is nearer than the answer: the walk starts
+    again from it and gives the exact signed distance. Without it the answer stays on the second
+    sphere, 0.15 m or more from the point."""
+    v1, t1 = uv_sphere(radius=0.1, n_lat=16, n_lon=32)
+    verts = np.concatenate([v1, v1 + [0.3, 0.0, 0.0]])
+    tris = np.concatenate([t1, t1 + len(v1)]).astype(np.int32)
+    rng = np.random.default_rng(7)
+    d = rng.normal(size=(100, 3))
+    d[:, 0] = -np.abs(d[:, 0])  # the first sphere's far side from the second
+    points = d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0.09, 0.11, (100, 1))
+    body = BodyMesh.build(tris, len(verts))
+    body_x = np.ascontiguousarray(verts, dtype=np.float64)
+    face_n = face_normals(verts, tris)
+    far = len(v1) + np.argmax(v1[:, 0])  # the second sphere's vertex farthest from the first
+    seeds = np.full(len(points), far, dtype=np.int32)
+    body_face = np.full(len(points), len(t1) + int(np.argmax(v1[t1].mean(axis=1)[:, 0])), dtype=np.int32)
+    last = np.argmin(np.linalg.norm(v1[None] - points[:, None], axis=2), axis=1)
+    near_vertex = (np.roll(last, 1) if own_vertex else np.zeros(0)).astype(np.int32)  # (a vertex of the first)
+    out = np.zeros(len(points))
+    _detail_all(points, seeds, body_x, body.triangles, body.tri_nbrs, body.tri_start, body.tri_ids, body.nbr_start,
+                body.nbr_ids, body.regions, body_face, face_n, out, near_vertex)
+    expected = SignedDistance(tris, len(verts))(verts, points)
+    if own_vertex:
+        np.testing.assert_allclose(out, expected, atol=1e-9)
+        assert (body_face < len(t1)).all()
+        np.testing.assert_array_equal(near_vertex, last)  # each point's nearest vertex, kept for the next frame
+    else:
+        assert np.all(np.abs(out) > 0.15) and (body_face >= len(t1)).all()
 
 
 @njit  # (not cached, as above)

@@ -627,6 +627,47 @@ def test_a_finer_particle_is_tested_while_its_parents_distances_leave_it_room_in
     assert np.all(np.isfinite(surf.state.sd[par_ids]))
 
 
+@pytest.mark.parametrize("recheck", [True, False])
+def test_a_reading_farther_than_its_parents_allow_is_walked_again_from_theirs(recheck):
+    """Decision (S103, the Lipschitz check): a sheet 3 mm over a box, a small box 5 cm over the
+    sheet. After a first frame every particle's walk ends on the lower box; then one finer
+    particle's walk is remembered on the upper box (a walk stopped on a local minimum), and the
+    coarse seeds are put there too, so the seed check does not catch it (nor the particle's own
+    vertex: off). Its tested parents read 3 mm, 2 cm from it, so its reading of 5 cm cannot
+    be right: with the check it walks again from a parent's face and reads the lower box, 3 mm
+    (the exact distance); without it reads the upper box."""
+    av, at = box(half=0.1, n=8)
+    av = av + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
+    uv, ut = box(half=0.01, n=2)
+    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    bv = np.ascontiguousarray(np.concatenate([av, uv]))
+    bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
+    body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=recheck))
+    t = m.tess
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(av - q, axis=1))) for q in x], dtype=np.int32)
+    surf.step(x, nearest, bv, body, face_n, DT)
+    s = surf.state
+    f = 2  # a coarse triangle in the sheet's middle, over the lower box
+    loc = int(t.order[3])  # the first particle after the corners, tested from them
+    vid = t.face_ids[f, loc]
+    par_ids = t.face_ids[f, t.parents[loc][t.parents[loc] >= 0]]
+    assert np.allclose(s.sd[par_ids], 0.003) and np.isclose(s.sd[vid], 0.003)
+    assert (s.body_face[np.isfinite(s.sd)] < len(at)).all()
+    s.body_face[vid] = len(at) + int(np.argmin(bv[bt[len(at):]].mean(axis=1)[:, 1]))  # the upper box's bottom
+    nearest[:] = len(av) + int(np.argmax(uv[:, 1]))  # a vertex on the upper box's top
+    surf.step(x, nearest, bv, body, face_n, DT)
+    assert np.allclose(s.sd[par_ids], 0.003)  # (their walks start on the lower box, as before)
+    gap = np.linalg.norm(s.p[par_ids] - s.p[vid], axis=1).min()
+    assert 0.001 < gap < 0.021  # (an edge's midpoint, 2 cm from its corners)
+    if recheck:
+        assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(at)
+    else:
+        assert s.sd[vid] > 0.045 and s.body_face[vid] >= len(at)
+
+
 def far_body():
     """A box 1 m under the sheet (nothing near it): the flat reference surface."""
     bv, bt = box(half=0.05, n=2)
