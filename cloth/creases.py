@@ -478,7 +478,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
 
 
 @kernel
-def lowered_after_lift(dh_pen, lifted, height, by, lowered, sd, near):
+def lowered_after_lift(dh_pen, lifted, height, by, lowered, sd, near, raised_by):
     """`out_along_normals`' particles lowered after a lift: 1 where S103 lifted the particle this
     frame (dh_pen > 0) and its drawn height (S106's, folds included) ends more than `by` below the
     height S103 left it at (lifted), else 0. Decision (lowered near the body, seventy-second
@@ -486,10 +486,15 @@ def lowered_after_lift(dh_pen, lifted, height, by, lowered, sd, near):
     -inf: none) from the body by S103's reading (sd less how far it came down): the walk's blouse left
     22 vertex-frames deeper than 1 mm that S103 had read 2-12 mm out and S106 then lowered by 1-4 mm,
     1-2 mm short of the body by that reading, where they ended 1-2 mm inside it (the reading
-    2-3 mm long there)."""
+    2-3 mm long there). Decision (raised after a lowering, seventy-third session): 1 too where S103
+    lowered the particle (dh_pen < 0: a body part on the cloth's outer side) and S106 raised it again
+    by more than `raised_by` (inf: none): S103's reading was taken where the particle no longer is
+    (the walk's skirt under the left hand: lowered 18-24 mm, brought back to the reference surface,
+    5-12 mm inside the thigh, never asked)."""
     for i in range(dh_pen.shape[0]):
         down = lifted[i] - height[i]
-        lowered[i] = 1 if ((dh_pen[i] > 0.0 and down > by) or (down > 0.0 and sd[i] - down < near)) else 0
+        lowered[i] = 1 if ((dh_pen[i] > 0.0 and down > by) or (down > 0.0 and sd[i] - down < near)
+                           or (dh_pen[i] < 0.0 and -down > raised_by)) else 0
 
 
 __all__ = ["EXIT_AROUND_REACH", "EXIT_DIRECTIONS", "EXIT_FACE_REACH", "EXIT_FACING", "EXIT_LOWERED_NEAR", "EXIT_NEAR",

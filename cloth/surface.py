@@ -117,6 +117,9 @@ class SurfaceSettings:
     # and a particle S106 lowered to within EXIT_LOWERED_NEAR of the body by S103's reading (Decision,
     # `creases.lowered_after_lift`'s lowered near the body)
     exit_lowered_near: bool = True
+    # and a particle S103 lowered that S106 raised again by more than the clearance (Decision,
+    # `creases.lowered_after_lift`'s raised after a lowering)
+    exit_raised: bool = True
 
     def __post_init__(self):
         """A setting out of its range is named here, not met as a NaN or an index error in a kernel."""
@@ -386,7 +389,8 @@ class DetailedSurface:
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
             # (off: lowered by more than infinity, none)
             lowered_after_lift(s.dh_pen, s.lifted, s.height, st.clearance if st.exit_lowered else np.inf, s.lowered,
-                               s.sd, EXIT_LOWERED_NEAR if st.exit_lowered_near else -np.inf)
+                               s.sd, EXIT_LOWERED_NEAR if st.exit_lowered_near else -np.inf,
+                               st.clearance if st.exit_raised else np.inf)
             self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, s.lowered, t.n_coarse,
                                             EXIT_NEAR, EXIT_FACING, EXIT_NEAR_ALONG if st.exit_near_along else 0.0,
                                             EXIT_TURNED if st.exit_turned else -np.inf,

@@ -471,8 +471,23 @@ def test_a_particle_s106_lowered_near_the_body_by_s103s_reading_is_named(near):
     sd = np.array([0.005, 0.005, 0.005, np.inf, 0.001])
     lowered = np.zeros(5, dtype=np.uint8)
     assert 0.001 < EXIT_LOWERED_NEAR < 0.003
-    lowered_after_lift(dh_pen, lifted, height, C, lowered, sd, near)
+    lowered_after_lift(dh_pen, lifted, height, C, lowered, sd, near, np.inf)
     assert list(lowered) == ([1, 0, 0, 0, 1] if near > 0.0 else [0, 0, 0, 0, 0])
+
+
+@pytest.mark.parametrize("raised_by", [np.inf, C])
+def test_a_particle_s103_lowered_that_s106_raised_again_is_named(raised_by):
+    """`lowered_after_lift`'s raised after a lowering (Decision): S103 lowered the first three
+    particles by 2 cm (a body part on the cloth's outer side); S106 raised the first back to the
+    reference surface (named), the second by 0.5 mm (within the clearance: not) and lowered the third
+    further (not); the fourth S103 lifted and S106 raised further (not: not lowered). Off (inf): none."""
+    dh_pen = np.array([-0.02, -0.02, -0.02, 0.005])
+    lifted = np.array([-0.02, -0.02, -0.02, 0.005])
+    height = np.array([0.0, -0.0195, -0.025, 0.01])
+    sd = np.full(4, 0.01)  # (read well off the body after the move: no other rule names them)
+    lowered = np.zeros(4, dtype=np.uint8)
+    lowered_after_lift(dh_pen, lifted, height, C, lowered, sd, EXIT_LOWERED_NEAR, raised_by)
+    assert list(lowered) == ([1, 0, 0, 0] if raised_by == C else [0, 0, 0, 0])
 
 
 def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
@@ -486,9 +501,9 @@ def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
     height = np.array([0.004, 0.0195, 0.02, 0.0, -0.01])  # 0: 16 mm down; 1: 0.5 mm down; 2: as lifted
     lowered = np.zeros(len(dh_pen), dtype=np.uint8)
     far = np.full(len(dh_pen), 0.05)  # S103's readings, all farther than any move here
-    lowered_after_lift(dh_pen, lifted, height, C, lowered, far, EXIT_LOWERED_NEAR)
+    lowered_after_lift(dh_pen, lifted, height, C, lowered, far, EXIT_LOWERED_NEAR, np.inf)
     assert list(lowered) == [1, 0, 0, 0, 0]  # (3: not lifted; 4: lowered by S103, not lifted)
-    lowered_after_lift(dh_pen, lifted, height, np.inf, lowered, far, EXIT_LOWERED_NEAR)  # (exit_lowered False)
+    lowered_after_lift(dh_pen, lifted, height, np.inf, lowered, far, EXIT_LOWERED_NEAR, np.inf)  # (exit_lowered False)
     assert not lowered.any()
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
