@@ -135,6 +135,7 @@ class Stats:
         self.values: dict[str, float] = {}  # latest timings etc.
         self._lock = threading.Lock()
         self._last_publish = 0.0
+        self._unpublished = False  # the last put failed (logged once until one goes through)
 
     def add(self, name: str, n: int = 1) -> None:
         with self._lock:
@@ -169,13 +170,24 @@ class Stats:
             return {"service": self.service, "counts": dict(self.counts), "rejections": dict(self.rejections),
                     "values": dict(self.values)}
 
-    def publish(self, bus: zenoh.Session, force: bool = False, period: float = 1.0) -> None:
+    def publish(self, bus: zenoh.Session, force: bool = False, period: float = 1.0) -> bool:
+        """Put the counters (at most once a period unless forced). Stats are best effort: where
+        the bus can take no message (closed under a service that is still stopping), that is
+        logged once and the service goes on. Returns whether they were put."""
         now = time.monotonic()
         if not force and now - self._last_publish < period:
-            return
+            return False
         self._last_publish = now
         msg = Message("stats", self.session, meta=self.snapshot())
-        bus.put(key(self.session, "stats", self.service), encode(msg))
+        try:
+            bus.put(key(self.session, "stats", self.service), encode(msg))
+        except zenoh.ZError as err:
+            if not self._unpublished:
+                log.warning("%s: stats of session %s not published: %s", self.service, self.session, err)
+            self._unpublished = True
+            return False
+        self._unpublished = False
+        return True
 
 
 def put_reliably(bus: zenoh.Session, key_expr: str, payload: bytes) -> None:

@@ -335,6 +335,29 @@ def test_a_recording_whose_write_fails_is_finished_with_what_it_had(hub, tmp_pat
         bus.close()
 
 
+def test_a_viewer_bridge_whose_bus_closes_under_it_logs_it_and_stops_cleanly(tmp_path, caplog):
+    """The bus closed while the viewer bridge's thread still serves (a display shut down out of
+    order): its stats, best effort, are not put, which is logged once; the thread goes on until
+    stopped, and stopping finishes the recording."""
+    bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
+    sink = RecordingSink("closing", rrd=tmp_path / "closing.rrd")
+    bridge = ViewerBridge(bus, "closing", sink).start()
+    failures = []
+    hook, threading.excepthook = threading.excepthook, failures.append
+    try:
+        with caplog.at_level(logging.WARNING, logger="tryon.bus"):
+            bus.close()
+            time.sleep(1.5)  # past the bridge's once-a-second stats
+            assert bridge._thread.is_alive() and not failures
+            bridge.stop()
+            assert not bridge._thread.is_alive() and not failures
+        assert caplog.text.count("stats of session closing not published") == 1
+        assert not bridge.stats.publish(bus, force=True)
+        assert sink.close() == tmp_path / "closing.rrd"
+    finally:
+        threading.excepthook = hook
+
+
 def test_an_rrd_on_a_disk_running_low_is_finished_while_the_served_viewers_go_on(tmp_path):
     import rerun as rr
 
