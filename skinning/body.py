@@ -131,7 +131,7 @@ def load_body(data: str | Path | None = None) -> Body:
 # form a crease, and a walk over one leg stops on the thigh while a detailed cloth vertex
 # is inside the calf (walk, jeans: detailed vertex-frames deeper than 1 mm 29,563 -> 22,940).
 # The arms are split at the elbow for the same reason: in the walk's crouch, a hand at the face,
-# the forearm folds onto the upper arm inside the sleeve (see the README, "Detailed surface").
+# the forearm folds onto the upper arm inside the sleeve (docs/surface.md).
 # And the feet at the ankle: in a squat the flexed ankle folds the top of the foot into the
 # shin, under a trouser leg's hem, where a walk over the shin stops outside it.
 # One bit each, in 16-bit masks (REGION_DTYPE).

@@ -5,8 +5,8 @@ skin: a skirt's hem swinging out with the legs reaches a tenth; the run's sprint
 blouse off the torso, 23 %, before the thirty-ninth session), on every frame (independent signed
 distance, tests/signed_distance.py: exact closest points, the sign from the skin's winding number).
 
-Edge stretch is measured by the same module (python -m tests.cloth_acceptance) and reported in the
-README; it does not meet the issue's bound yet on every garment (see the README)."""
+Edge stretch is measured by the same module (python -m tests.cloth_acceptance) and reported in
+docs/cloth.md; it does not meet the issue's bound yet on every garment (see there)."""
 
 import pytest
 
