@@ -8,6 +8,7 @@ vertices (all of base.obj, helpers included: the mhclo files reference them).
 
 from __future__ import annotations
 
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,14 @@ from .geometry import nearest_vertices
 from .topology import boundary_loops, connected_components, orient_faces
 
 MAKEHUMAN_UNIT_M = 0.1  # mhclo offsets and OBJ coordinates are decimetres
+# what a garment mesh of a user's may come as (trimesh reads them; OBJ through our reader, which keeps quads)
+MESH_SUFFIXES = (".obj", ".ply", ".glb", ".gltf", ".stl", ".off")
+# m: a garment mesh lies on the rest body when half its vertices are within this of the skin (the
+# shipped garments, fitted: 9-16 mm; a file in other units or another frame is off by far more)
+PLACED_MEDIAN = 0.05
+# of the body's height above its lowest vertex: a garment that reaches no higher is worn from the
+# waist, and its highest boundary loop grips the body (shipped: bottoms 0.57-0.60, tops 0.84-0.85)
+WAIST_SHARE = 0.7
 
 
 class GarmentError(ValueError):
@@ -215,6 +224,8 @@ def split_garments(name: str, vertices: np.ndarray, faces: np.ndarray, min_verti
         f = np.where(faces[mine] >= 0, remap[faces[mine]], -1).astype(np.int32)
         parts.append((vertices[ids, 1].mean(), ids, f))
     parts.sort(key=lambda p: -p[0])
+    if len(parts) == 1:  # one garment: its own name
+        return [Garment(name, vertices[parts[0][1]].copy(), parts[0][2], parts[0][1])]
     if len(parts) == 2:
         suffixes = ["top", "bottom"]
     else:
@@ -261,3 +272,81 @@ def load_garment_file(path: str | Path, scale: float = 1.0) -> list[Garment]:
         faces = np.full((len(mesh.faces), 4), -1, dtype=np.int32)
         faces[:, :3] = mesh.faces
     return split_garments(path.stem, vertices * scale, faces)
+
+
+def skin_distances(points: np.ndarray, skin: np.ndarray, rows: int = 256) -> np.ndarray:
+    """(k,) each point's distance to the nearest skin vertex (setup only: blocks of `rows` points
+    against every vertex, no index to build)."""
+    skin = np.asarray(skin, dtype=np.float64)
+    s2 = np.einsum("ij,ij->i", skin, skin)
+    out = np.empty(len(points))
+    for a in range(0, len(points), rows):
+        p = np.asarray(points[a: a + rows], dtype=np.float64)
+        d2 = np.einsum("ij,ij->i", p, p)[:, None] + s2[None, :] - 2.0 * p @ skin.T
+        out[a: a + rows] = np.sqrt(np.maximum(d2.min(axis=1), 0.0))
+    return out
+
+
+def check_placed(garment: Garment, skin: np.ndarray, source: str | Path, samples: int = 2000) -> None:
+    """GarmentError unless the garment lies on the rest body (`PLACED_MEDIAN`): a mesh a user
+    brings is used where it is, so one in other units or another frame is refused, naming the
+    file and what is expected, rather than simulated falling from where it floats."""
+    v = garment.vertices[np.linspace(0, len(garment.vertices) - 1, min(samples, len(garment.vertices))).astype(int)]
+    median = float(np.median(skin_distances(v, skin)))
+    if not median <= PLACED_MEDIAN:
+        raise GarmentError(
+            f"{source}: garment {garment.name!r} does not lie on the rest body: half its vertices are more than "
+            f"{median * 100:.0f} cm from the skin (a fitted garment's are within a few cm). A garment mesh must be "
+            f"in metres, in the rest body's frame: Y up, feet on the floor y = 0, facing +Z (MakeHuman exports "
+            f"decimetres about the body's middle unless told otherwise)")
+
+
+def worn_from_waist(garment: Garment, skin: np.ndarray) -> bool:
+    """Whether a garment hangs from the waist (trousers, a skirt; not a top or a dress): it
+    reaches no higher than WAIST_SHARE of the body's height. Its highest boundary loop is then a
+    waistband that grips the body."""
+    floor, top = float(skin[:, 1].min()), float(skin[:, 1].max())
+    return float(garment.vertices[:, 1].max()) < floor + WAIST_SHARE * (top - floor)
+
+
+def garment_meshes(folder: Path) -> list[Path]:
+    """The garment mesh files in a folder (`MESH_SUFFIXES`), in name order."""
+    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
+
+
+def outfit_source(path: str | Path) -> str:
+    """What an outfit path holds: "mhclo" (a MakeHuman outfit folder), "meshes" (a folder of
+    garment mesh files), "mesh" (one garment mesh file); GarmentError naming what was expected."""
+    path = Path(path)
+    if path.is_dir():
+        if any(path.glob("*.mhclo")):
+            return "mhclo"
+        if garment_meshes(path):
+            return "meshes"
+        raise GarmentError(f"{path}: no .mhclo file and no garment mesh ({', '.join(MESH_SUFFIXES)})")
+    if path.is_file():
+        if path.suffix.lower() in MESH_SUFFIXES:
+            return "mesh"
+        raise GarmentError(f"{path}: not a garment mesh (one of {', '.join(MESH_SUFFIXES)}) or an outfit folder")
+    raise GarmentError(f"{path}: no such file or folder")
+
+
+def load_garments(path: str | Path, base_vertices_m: np.ndarray, skin: np.ndarray) -> list[Garment]:
+    """An outfit's garments on the rest body (metres, world frame): a MakeHuman outfit folder
+    (`load_outfit`, fitted on base_vertices_m, helpers included), or garment meshes already placed
+    on the rest body (`load_garment_file`: one file, or every one in a folder), each checked to lie
+    on the skin (`check_placed`; skin: the rest body's visible vertices)."""
+    path = Path(path)
+    kind = outfit_source(path)
+    if kind == "mhclo":
+        return load_outfit(path, base_vertices_m)
+    garments: list[Garment] = []
+    for f in [path] if kind == "mesh" else garment_meshes(path):
+        for g in load_garment_file(f):
+            # named after the file: a bus key, so letters, digits, '_', '.' and '-' only
+            g.name = re.sub(r"[^A-Za-z0-9_.\-]", "_", g.name)
+            if any(h.name == g.name for h in garments):
+                raise GarmentError(f"{f}: a garment named {g.name!r} came from another file of {path} already")
+            check_placed(g, skin, f)
+            garments.append(g)
+    return garments

@@ -439,10 +439,15 @@ def cmd_router(args) -> int:
 
 
 def _outfit_arguments(p, level_default: int = 6) -> None:
-    p.add_argument("--outfit", default="female_casualsuit01", help="outfit folder in <data>/garments or a path")
+    p.add_argument("--outfit", default="female_casualsuit01", help=OUTFIT_HELP)
     p.add_argument("--fabric", help="one fabric preset for every garment (default: a preset per garment)")
     p.add_argument("--level", type=_level, default=level_default, help="PN tessellation level (default 6)")
     p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
+
+
+OUTFIT_HELP = ("outfit folder in <data>/garments, or a path: a MakeHuman outfit folder (.mhclo), a garment mesh "
+               "(OBJ, PLY, GLB, ...) in metres already on the rest body (Y up, feet at y = 0, facing +Z), or a folder "
+               "of those")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -464,7 +469,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--level", type=_level, default=6,
                    help="PN tessellation level of the detailed surface (default 6)")
     p.add_argument("--coarse-only", action="store_true", help="only the coarse cloth (S101), no detailed surface")
-    p.add_argument("--outfit", action="append", help="outfit folder name in <data>/garments or a path (default all)")
+    p.add_argument("--outfit", action="append", help=OUTFIT_HELP + " (default all)")
     p.add_argument("--clip", action="append", help="clip name in <data>/mocap or a BVH path (default all)")
     p.add_argument("--fabric", help="one fabric for every garment (default: a preset per garment)")
     p.add_argument("--fabrics", help="TOML file of fabrics (default: the presets, cloth/fabrics.toml)")
@@ -526,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_ingest)
 
     p = sub.add_parser("outfit", help="change the outfit of a running session (its ingest announces it again)")
-    p.add_argument("name", help="outfit folder in the session's <data>/garments")
+    p.add_argument("name", help="outfit in the session's <data>/garments, or a path the cloth service can read (as --outfit)")
     p.add_argument("--session", default="demo")
     p.add_argument("--fabric", help="one fabric preset for every garment (default: the session's)")
     p.add_argument("--level", type=_level, default=None, help="PN tessellation level (default: the session's)")

@@ -18,7 +18,7 @@ import pinocchio as pin
 
 from cloth.collision import BodyMesh, BodyPose
 from cloth.fabric import Fabric, fabric as fabric_preset
-from cloth.garment import Garment, load_outfit
+from cloth.garment import Garment, load_garments, outfit_source, worn_from_waist
 from cloth.geometry import vertex_normals as geometry_vertex_normals
 from cloth.layers import LayerModel, LayerState, layer_outfit, stack_layer
 from cloth.model import ClothModel, SimSettings
@@ -50,13 +50,16 @@ START_FRAME = 1
 
 
 def find_outfit(data: Path, name: str | Path) -> Path:
-    """An outfit's folder: a path to one, or a folder name in <data>/garments. FileNotFoundError
-    naming where it looked and which outfits there are."""
-    folder = Path(name) if Path(name).is_dir() else Path(data) / "garments" / str(name)
-    if not folder.is_dir():
+    """An outfit: a path to a MakeHuman outfit folder, to a garment mesh file already placed on the
+    rest body, or to a folder of such files, or the name of one in <data>/garments.
+    FileNotFoundError naming where it looked and which outfits there are; GarmentError where what
+    is there holds no outfit (`cloth.garment.outfit_source`)."""
+    path = Path(name) if Path(name).exists() else Path(data) / "garments" / str(name)
+    if not path.exists():
         there = sorted(p.name for p in (Path(data) / "garments").glob("*") if p.is_dir())
-        raise FileNotFoundError(f"outfit {str(name)!r} not found (looked for {folder}); available: {there}")
-    return folder
+        raise FileNotFoundError(f"outfit {str(name)!r} not found (looked for {path}); available: {there}")
+    outfit_source(path)
+    return path
 
 
 def outfit_checker(data: Path) -> Callable[[dict], None]:
@@ -105,9 +108,13 @@ def outfit_layers(outfit: "Outfit", surface_models: list, n_visible: int) -> lis
 def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
                        fabrics: dict[str, Fabric] | Fabric | None = None,
                        settings: SimSettings | None = None) -> Outfit:
-    """Fit an outfit on the rest body (world frame: floor at y = 0) and build each garment's coarse model."""
+    """Fit an outfit on the rest body (world frame: floor at y = 0) and build each garment's coarse
+    model. outfit_dir: a MakeHuman outfit folder, or garment meshes already on the rest body (a
+    file or a folder of them; `find_outfit`). A garment worn from the waist (`worn_from_waist`:
+    trousers, a skirt) is held up by its waistband (elastic or buttoned), which grips the body."""
     rest_body = animator.pose(animator.rest_configuration()).vertices.copy()
-    garments = load_outfit(outfit_dir, body.vertices + animator.world_offset)
+    skin = rest_body[: body.n_visible]
+    garments = load_garments(outfit_dir, body.vertices + animator.world_offset, skin)
     models = []
     for g in garments:
         if isinstance(fabrics, Fabric):
@@ -116,9 +123,13 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
             fab = fabrics[g.name]
         else:
             fab = fabric_preset(DEFAULT_FABRICS.get(g.name, "cotton"))
-        # bottoms are held up by their waistband (elastic or buttoned): it grips the body
-        models.append(prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=g.name.endswith(".bottom")))
-    return Outfit(outfit_dir.name, garments, models, rest_body)
+        models.append(prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=worn_from_waist(g, skin)))
+    return Outfit(outfit_name(outfit_dir), garments, models, rest_body)
+
+
+def outfit_name(path: Path) -> str:
+    """An outfit's name: its folder's, or its garment file's without the suffix."""
+    return Path(path).stem if Path(path).is_file() else Path(path).name
 
 
 def build_outfit(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
@@ -142,7 +153,7 @@ def build_outfit(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit
         return build()
     rest = animator.pose(animator.rest_configuration()).vertices  # what the garments are fitted on
     parts = ("outfit models", body_digest or object_digest(body), object_digest((rest, animator.world_offset)),
-             outfit_dir.name, folder_digest(outfit_dir), fabrics, settings, surface)
+             outfit_name(outfit_dir), folder_digest(outfit_dir), fabrics, settings, surface)
     return cache.get(parts, build)
 
 

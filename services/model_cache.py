@@ -83,10 +83,14 @@ def code_digest() -> str:
 
 
 def folder_digest(folder: Path) -> str:
-    """A digest of every file in a folder (names and bytes), e.g. an outfit's."""
+    """A digest of every file in a folder (names and bytes), e.g. an outfit's; of a file, its
+    name and bytes (an outfit of one garment mesh)."""
     h = hashlib.sha256()
-    for p in sorted(q for q in Path(folder).rglob("*") if q.is_file()):
-        h.update(p.relative_to(folder).as_posix().encode() + b"\0" + p.read_bytes() + b"\0")
+    folder = Path(folder)
+    files = [folder] if folder.is_file() else sorted(q for q in folder.rglob("*") if q.is_file())
+    for p in files:
+        name = p.name if p == folder else p.relative_to(folder).as_posix()
+        h.update(name.encode() + b"\0" + p.read_bytes() + b"\0")
     return h.hexdigest()
 
 

@@ -36,6 +36,11 @@ from .wire import body_vertices, garment_mesh
 EMBEDDED_WAIT_READY = 1800.0
 
 
+class SessionFailed(ValueError):
+    """The session's own cloth service cannot serve its outfit (the message says why): there is
+    nothing to try on, so the session stops after its first frame, its recordings finished."""
+
+
 class SessionTap:
     """Sees every body and garment message of a session (in order, none dropped): per-stage timings,
     end-to-end latency, and copies of the frames wanted as snapshots."""
@@ -212,7 +217,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
     serve = serve_port is not None
     bus = (bus_config or BusConfig()).open()
     t_start = time.perf_counter()
-    cloth = viewer = recorder = tap = None
+    cloth = viewer = sink = recorder = tap = None
     try:
         # live (--serve): frames come at the clip's pace, and the service polls between them as
         # `tryon cloth-service` does; offline they come back to back and it never waits
@@ -235,8 +240,12 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         # one description + the body topology are latched before the first frame
 
         streaming_since = []  # when the first frame was out (the setup waits before it)
+        failed: list[str] = []
 
         def before_frame(index: int) -> bool:
+            if ingest.frames == 1 and ingest.cloth_failed is not None:
+                failed.append(ingest.cloth_failed)  # the outfit the session was started with cannot be worn
+                return False
             if ingest.frames and not streaming_since:
                 streaming_since.append(time.perf_counter())
             if not serve:  # flow control: stay at most `window` frames ahead of the cloth
@@ -251,6 +260,8 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
                        wait_ready=EMBEDDED_WAIT_READY)
         except KeyboardInterrupt:
             ingest.end()
+        if failed:
+            raise SessionFailed(f"session {session}: the cloth service cannot serve it: {failed[0]}")
         # everything published so far is simulated, shown and recorded before the files close
         cloth.wait_processed(ingest.frames + 1, timeout=120)
         deadline = time.monotonic() + 10
@@ -284,6 +295,9 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         return SessionResult(session, ingest.frames, seconds, rrd, rec_path, snap, stats, timings,
                              (float(np.percentile(lat, 50)), float(np.percentile(lat, 99))), min(setup, seconds))
     finally:
+        if viewer is not None:  # (done already unless the session failed: both may be called again)
+            viewer.stop()
+            sink.close()
         if tap is not None:
             tap.close()
         if cloth is not None:

@@ -167,3 +167,83 @@ def test_a_garment_wound_inwards_is_turned_to_face_away_from_the_body(outfits, b
     for outfit in OUTFITS:
         for g in outfits[outfit]:
             assert face_outward(g, body.vertices[: body.n_visible]) is g, g.name
+
+
+def _write_obj(path, vertices, faces):
+    """An OBJ of quads and triangles (faces padded with -1), coordinates as Python writes floats."""
+    with open(path, "w") as f:
+        f.writelines(f"v {x!r} {y!r} {z!r}\n" for x, y, z in vertices.tolist())
+        f.writelines("f " + " ".join(str(i + 1) for i in row if i >= 0) + "\n" for row in faces.tolist())
+
+
+@pytest.fixture(scope="module")
+def rest_world(body):
+    """The body at rest in the world frame (feet on y = 0) as the garments are fitted: all of
+    base.obj's vertices, and the visible skin's."""
+    from skinning.animate import BodyAnimator
+
+    base = body.vertices + BodyAnimator(body, contact=None).world_offset
+    return base, base[: body.n_visible]
+
+
+def test_an_outfit_is_a_makehuman_folder_a_garment_mesh_or_a_folder_of_them(data, rest_world, tmp_path):
+    """A user's garments, already on the rest body: one mesh file (one garment, named after the
+    file, or a garment per connected piece), or a folder of them, load where they are; the casual
+    outfit's T-shirt written as an OBJ of quads and its jeans as a PLY of triangles come back as
+    the .mhclo fitting gives them. A garment that reaches no higher than the waist hangs from it
+    (its waistband grips): the jeans, every shipped bottom, and no shipped top."""
+    import trimesh
+
+    from cloth.garment import load_garments, worn_from_waist
+
+    base, skin = rest_world
+    tee, jeans = load_outfit(data / "garments" / "female_casualsuit01", base)
+    _write_obj(tmp_path / "tee.obj", tee.vertices, tee.faces)
+    quads = jeans.faces[:, 3] >= 0
+    tris = np.concatenate([jeans.faces[:, :3], jeans.faces[quads][:, [0, 2, 3]]])
+    trimesh.Trimesh(jeans.vertices, tris, process=False).export(tmp_path / "jeans.ply")
+
+    (one,) = load_garments(tmp_path / "tee.obj", base, skin)
+    assert one.name == "tee"
+    np.testing.assert_array_equal(one.vertices, tee.vertices)
+    np.testing.assert_array_equal(one.faces, tee.faces)  # quads kept
+    both = load_garments(tmp_path, base, skin)
+    assert [g.name for g in both] == ["jeans", "tee"]  # the files in name order
+    np.testing.assert_allclose(both[0].vertices[np.argsort(both[0].source_ids)], jeans.vertices, atol=1e-6)
+    assert [worn_from_waist(g, skin) for g in both] == [True, False]
+    fitted = load_garments(data / "garments" / "female_casualsuit01", base, skin)  # the .mhclo: fitted as before
+    np.testing.assert_array_equal(fitted[1].vertices, jeans.vertices)
+    for outfit in OUTFITS:
+        for g in load_outfit(data / "garments" / outfit, base):
+            assert worn_from_waist(g, skin) == g.name.endswith(".bottom"), g.name
+
+
+def test_a_garment_mesh_off_the_rest_body_or_no_outfit_at_all_is_refused_naming_it(data, rest_world, tmp_path):
+    """A garment mesh in other units or another frame is refused, naming the file and the frame
+    expected, rather than simulated from where it floats; so is a path that holds no outfit. A
+    file's name becomes the garment's (a bus key: letters, digits, '_', '.' and '-'), and two
+    files giving one name are refused."""
+    from cloth.garment import load_garments
+
+    base, skin = rest_world
+    tee = load_outfit(data / "garments" / "female_casualsuit01", base)[0]
+    for name, vertices in (("decimetres", tee.vertices * 10.0), ("beside", tee.vertices + [0.5, 0.0, 0.0])):
+        _write_obj(tmp_path / f"{name}.obj", vertices, tee.faces)
+        with pytest.raises(GarmentError, match=rf"{name}\.obj: garment '{name}' does not lie on the rest body"
+                                               r".* in metres, in the rest body's frame"):
+            load_garments(tmp_path / f"{name}.obj", base, skin)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(GarmentError, match="empty: no .mhclo file and no garment mesh"):
+        load_garments(tmp_path / "empty", base, skin)
+    (tmp_path / "notes.txt").write_text("a shirt")
+    with pytest.raises(GarmentError, match=r"notes\.txt: not a garment mesh"):
+        load_garments(tmp_path / "notes.txt", base, skin)
+    with pytest.raises(GarmentError, match="missing: no such file or folder"):
+        load_garments(tmp_path / "missing", base, skin)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    _write_obj(mine / "my shirt.obj", tee.vertices, tee.faces)
+    assert [g.name for g in load_garments(mine, base, skin)] == ["my_shirt"]
+    _write_obj(mine / "my_shirt.obj", tee.vertices, tee.faces)
+    with pytest.raises(GarmentError, match="a garment named 'my_shirt' came from another file"):
+        load_garments(mine, base, skin)

@@ -190,3 +190,43 @@ def test_recordings_on_a_disk_running_low_are_finished_complete_and_the_session_
 def test_keep_free_must_not_be_negative(tmp_path, capsys):
     assert main(["session", "--keep-free", "-1", "--out", str(tmp_path)]) != 0
     assert "--keep-free must be >= 0 GB, got -1" in capsys.readouterr().err
+
+
+def test_a_session_wears_a_garment_mesh_of_the_users_and_refuses_one_off_the_body(data, tmp_path, capsys):
+    """`tryon session --outfit FILE`: a garment mesh a user brings, already on the rest body, is
+    simulated and published like a shipped garment (one garment: the file's); one off the body
+    stops the session after its first frame with why, exit 2, its recordings finished; a folder
+    with no garment in it is named before anything starts."""
+    import trimesh
+
+    from cloth.garment import load_outfit
+    from skinning.animate import BodyAnimator
+    from skinning.body import load_body
+
+    body = load_body(data)
+    base = body.vertices + BodyAnimator(body, contact=None).world_offset
+    jeans = load_outfit(data / "garments" / "female_casualsuit01", base)[1]
+    quads = jeans.faces[:, 3] >= 0
+    tris = np.concatenate([jeans.faces[:, :3], jeans.faces[quads][:, [0, 2, 3]]])
+    trimesh.Trimesh(jeans.vertices, tris, process=False).export(tmp_path / "jeans.ply")
+    out = tmp_path / "worn"
+    assert main(["session", "--session", "mine", "--outfit", str(tmp_path / "jeans.ply"), "--max-frames", "6",
+                 "--level", "2", "--no-png", "--out", str(out)]) == 0
+    assert re.search(r"cloth: received 5, published 5, rejected 0", capsys.readouterr().out)
+    published = {"/".join(parse_key(k)[1]) for k, _, _ in read_recording(out / "mine.mcap")}
+    assert {k for k in published if k.startswith("garment/")} == {"garment/jeans"}
+
+    trimesh.Trimesh(jeans.vertices + [0.0, 0.0, 0.3], tris, process=False).export(tmp_path / "beside.ply")
+    out = tmp_path / "refused"
+    assert main(["session", "--session", "off", "--outfit", str(tmp_path / "beside.ply"), "--max-frames", "60",
+                 "--no-png", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "tryon: session off: the cloth service cannot serve it" in err
+    assert "beside.ply: garment 'beside' does not lie on the rest body" in err
+    assert sorted(p.name for p in out.iterdir()) == ["off.mcap", "off.rrd"]  # finished, no .part
+    assert [decode(p, k).frame for k, p, _ in read_recording(out / "off.mcap") if parse_key(k)[1] == ("body",)] == [1]
+
+    (tmp_path / "nothing").mkdir()
+    assert main(["session", "--outfit", str(tmp_path / "nothing"), "--out", str(tmp_path / "none")]) == 2
+    assert "nothing: no .mhclo file and no garment mesh" in capsys.readouterr().err
+    assert not (tmp_path / "none").exists()
