@@ -62,14 +62,18 @@ def fabric_from_table(name: str, table: dict, source: str = "<table>") -> Fabric
     return Fabric(name=name, **values)
 
 
-def load_fabrics(path: str | Path = PRESETS_PATH) -> dict[str, Fabric]:
-    path = Path(path)
+def _read_toml(path: Path) -> dict:
     try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        return tomllib.loads(path.read_text(encoding="utf-8"))
     except OSError as exc:
         raise FabricError(f"{path}: cannot read: {exc}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise FabricError(f"{path}: not valid TOML: {exc}") from exc
+
+
+def load_fabrics(path: str | Path = PRESETS_PATH) -> dict[str, Fabric]:
+    path = Path(path)
+    data = _read_toml(path)
     out = {}
     for name, table in data.items():
         if not isinstance(table, dict):
@@ -84,3 +88,29 @@ def fabric(name: str, path: str | Path | None = None) -> Fabric:
     if name not in table:
         raise FabricError(f"{path or PRESETS_PATH}: no fabric {name!r}; available: {sorted(table)}")
     return table[name]
+
+
+OUTFIT_FABRICS = "fabrics.toml"  # in an outfit's folder: which fabric each of its garments is made of
+
+
+def outfit_fabrics(path: str | Path) -> dict[str, Fabric]:
+    """The fabric of each garment of an outfit, from its folder's fabrics.toml: a table
+    `[garments]` naming each garment's fabric (`jeans = "denim"`), a preset's or one the same file
+    defines in a table of its own with the preset keys. FabricError naming the file and the key."""
+    path = Path(path)
+    data = _read_toml(path)
+    garments = data.pop("garments", None)
+    if not isinstance(garments, dict) or not garments:
+        raise FabricError(f'{path}: needs a table [garments] naming each garment\'s fabric (jeans = "denim")')
+    known = load_fabrics()
+    for name, table in data.items():
+        if not isinstance(table, dict):
+            raise FabricError(f"{path}: {name!r} must be a table [{name}] of fabric keys, or a garment under [garments]")
+        known[name] = fabric_from_table(name, table, str(path))
+    out = {}
+    for garment, name in garments.items():
+        if not isinstance(name, str) or name not in known:
+            raise FabricError(f"{path}: [garments].{garment}: no fabric {name!r}; available: {sorted(known)}")
+        out[garment] = known[name]
+    return out
+

@@ -17,7 +17,7 @@ import numpy as np
 import pinocchio as pin
 
 from cloth.collision import BodyMesh, BodyPose
-from cloth.fabric import Fabric, fabric as fabric_preset
+from cloth.fabric import OUTFIT_FABRICS, Fabric, FabricError, fabric as fabric_preset, outfit_fabrics
 from cloth.garment import Garment, load_garments, outfit_source, worn_from_waist
 from cloth.geometry import vertex_normals as geometry_vertex_normals
 from cloth.layers import LayerModel, LayerState, layer_outfit, stack_layer
@@ -115,6 +115,13 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
     rest_body = animator.pose(animator.rest_configuration()).vertices.copy()
     skin = rest_body[: body.n_visible]
     garments = load_garments(outfit_dir, body.vertices + animator.world_offset, skin)
+    own = Path(outfit_dir) / OUTFIT_FABRICS
+    if fabrics is None and own.is_file():  # the outfit's own fabrics, where no one fabric is asked for
+        fabrics = outfit_fabrics(own)
+        names = [g.name for g in garments]
+        stray = sorted(set(fabrics) - set(names))
+        if stray:
+            raise FabricError(f"{own}: [garments] names {stray}, which the outfit does not have; it has {names}")
     models = []
     for g in garments:
         if isinstance(fabrics, Fabric):

@@ -247,3 +247,36 @@ def test_a_garment_mesh_off_the_rest_body_or_no_outfit_at_all_is_refused_naming_
     _write_obj(mine / "my_shirt.obj", tee.vertices, tee.faces)
     with pytest.raises(GarmentError, match="a garment named 'my_shirt' came from another file"):
         load_garments(mine, base, skin)
+
+
+def test_an_outfit_folder_names_its_garments_fabrics(body, data, rest_world, tmp_path):
+    """fabrics.toml in an outfit's folder: each garment named under [garments] is made of that
+    fabric (a preset, or one the file defines); one not named keeps the default; a name the outfit
+    lacks, a fabric nobody defines, or no [garments] table is refused naming the file and key."""
+    import trimesh
+
+    from cloth.fabric import FabricError, fabric, outfit_fabrics
+    from services.cloth_job import collision_body, load_outfit_models
+    from skinning.animate import BodyAnimator
+
+    base, _ = rest_world
+    tee, jeans = load_outfit(data / "garments" / "female_casualsuit01", base)
+    _write_obj(tmp_path / "tee.obj", tee.vertices, tee.faces)
+    _write_obj(tmp_path / "jeans.obj", jeans.vertices, jeans.faces)
+    stiff = "\n".join(f"{k} = {v!r}" for k, v in vars(fabric("denim")).items() if k != "name")
+    (tmp_path / "fabrics.toml").write_text(f'[garments]\njeans = "raw_denim"\n\n[raw_denim]\n{stiff}\n')
+    outfit = load_outfit_models(body, BodyAnimator(body, contact=None), collision_body(body), tmp_path)
+    made = {m.name: m.fabric for m in outfit.models}
+    assert made["jeans"].name == "raw_denim" and made["jeans"].stretch_stiffness == fabric("denim").stretch_stiffness
+    assert made["tee"] == fabric("cotton")
+    assert {m.name: bool(m.grip.any()) for m in outfit.models} == {"jeans": True, "tee": False}  # the waistband
+
+    (tmp_path / "fabrics.toml").write_text('[garments]\nskirt = "silk"\n')
+    with pytest.raises(FabricError, match=r"fabrics\.toml: \[garments\] names \['skirt'\], which the outfit does not"):
+        load_outfit_models(body, BodyAnimator(body, contact=None), collision_body(body), tmp_path)
+    for text, says in (('[garments]\njeans = "tweed"\n', r"\[garments\]\.jeans: no fabric 'tweed'; available: \["),
+                       ('jeans = "denim"\n', r"needs a table \[garments\]"),
+                       ('[garments\n', "not valid TOML")):
+        (tmp_path / "fabrics.toml").write_text(text)
+        with pytest.raises(FabricError, match=says):
+            outfit_fabrics(tmp_path / "fabrics.toml")
