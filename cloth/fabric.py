@@ -105,7 +105,8 @@ def outfit_fabrics(path: str | Path) -> dict[str, Fabric]:
     known = load_fabrics()
     for name, table in data.items():
         if not isinstance(table, dict):
-            raise FabricError(f"{path}: {name!r} must be a table [{name}] of fabric keys, or a garment under [garments]")
+            raise FabricError(f"{path}: {name!r} must be a table [{name}] of fabric keys, or a garment under "
+                              f"[garments]")
         known[name] = fabric_from_table(name, table, str(path))
     out = {}
     for garment, name in garments.items():

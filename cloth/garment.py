@@ -207,7 +207,10 @@ def face_outward(garment: Garment, body_vertices: np.ndarray) -> Garment:
     return Garment(garment.name, garment.vertices, flipped, garment.source_ids)
 
 
-def split_garments(name: str, vertices: np.ndarray, faces: np.ndarray, min_vertices: int = 16) -> list[Garment]:
+MIN_PIECE = 16  # vertices: a smaller connected piece is stray loose geometry (buttons, labels), not cloth
+
+
+def split_garments(name: str, vertices: np.ndarray, faces: np.ndarray, min_vertices: int = MIN_PIECE) -> list[Garment]:
     """One Garment per connected component, named top to bottom (`name.top`, `name.bottom`)."""
     faces = orient_faces(faces)
     labels = connected_components(len(vertices), faces)
@@ -217,7 +220,7 @@ def split_garments(name: str, vertices: np.ndarray, faces: np.ndarray, min_verti
     for k in range(labels.max() + 1):
         ids = np.flatnonzero((labels == k) & used)
         if len(ids) < min_vertices:
-            continue  # stray loose geometry (buttons, labels) is not cloth
+            continue  # (stray loose geometry)
         remap = np.full(len(vertices), -1, dtype=np.int32)
         remap[ids] = np.arange(len(ids), dtype=np.int32)
         mine = labels[faces[:, 0]] == k
@@ -342,7 +345,11 @@ def load_garments(path: str | Path, base_vertices_m: np.ndarray, skin: np.ndarra
         return load_outfit(path, base_vertices_m)
     garments: list[Garment] = []
     for f in [path] if kind == "mesh" else garment_meshes(path):
-        for g in load_garment_file(f):
+        pieces = load_garment_file(f)
+        if not pieces:
+            raise GarmentError(f"{f}: no piece of cloth in it (every connected piece has fewer than {MIN_PIECE} "
+                               f"vertices)")
+        for g in pieces:
             # named after the file: a bus key, so letters, digits, '_', '.' and '-' only
             g.name = re.sub(r"[^A-Za-z0-9_.\-]", "_", g.name)
             if any(h.name == g.name for h in garments):

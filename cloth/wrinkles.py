@@ -496,12 +496,12 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                 kept = -1
                 for attempt in range(2 if recheck else 1):
                     # (a walk in another part starts where its own ended the frame before, if it ended near)
-                    dk, mx, my, mz, ax, ay, az, ok, ik = _detail_signed_distance(
+                    dk, mx, my, mz, _, _, _, ok, ik = _detail_signed_distance(
                         p, vid, seed, x, corners, parts, groups, group_reach, n_groups, part_face[vid], body_x,
                         nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face,
                         near_vertex, face_n, q)
                     if abs(dk) < abs(d) or attempt == 0:
-                        d, bx, by, bz, qx, qy, qz, other[vid], inside_part = dk, mx, my, mz, ax, ay, az, ok, ik
+                        d, bx, by, bz, other[vid], inside_part = dk, mx, my, mz, ok, ik
                         kept = body_face[vid]
                     # Decision (the Lipschitz check): the distance to the body changes no faster than the
                     # position, so a reading farther than a tested parent's plus their distance apart is a

@@ -531,7 +531,8 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=cmd_ingest)
 
     p = sub.add_parser("outfit", help="change the outfit of a running session (its ingest announces it again)")
-    p.add_argument("name", help="outfit in the session's <data>/garments, or a path the cloth service can read (as --outfit)")
+    p.add_argument("name", help="outfit in the session's <data>/garments, or a path the cloth service can read "
+                               "(as --outfit)")
     p.add_argument("--session", default="demo")
     p.add_argument("--fabric", help="one fabric preset for every garment (default: the session's)")
     p.add_argument("--level", type=_level, default=None, help="PN tessellation level (default: the session's)")

@@ -240,6 +240,9 @@ def test_a_garment_mesh_off_the_rest_body_or_no_outfit_at_all_is_refused_naming_
         load_garments(tmp_path / "notes.txt", base, skin)
     with pytest.raises(GarmentError, match="missing: no such file or folder"):
         load_garments(tmp_path / "missing", base, skin)
+    _write_obj(tmp_path / "button.obj", tee.vertices[:3], np.array([[0, 1, 2, -1]]))
+    with pytest.raises(GarmentError, match=r"button\.obj: no piece of cloth in it"):
+        load_garments(tmp_path / "button.obj", base, skin)
     mine = tmp_path / "mine"
     mine.mkdir()
     _write_obj(mine / "my shirt.obj", tee.vertices, tee.faces)
@@ -253,8 +256,6 @@ def test_an_outfit_folder_names_its_garments_fabrics(body, data, rest_world, tmp
     """fabrics.toml in an outfit's folder: each garment named under [garments] is made of that
     fabric (a preset, or one the file defines); one not named keeps the default; a name the outfit
     lacks, a fabric nobody defines, or no [garments] table is refused naming the file and key."""
-    import trimesh
-
     from cloth.fabric import FabricError, fabric, outfit_fabrics
     from services.cloth_job import collision_body, load_outfit_models
     from skinning.animate import BodyAnimator
