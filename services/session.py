@@ -295,8 +295,10 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         return SessionResult(session, ingest.frames, seconds, rrd, rec_path, snap, stats, timings,
                              (float(np.percentile(lat, 50)), float(np.percentile(lat, 99))), min(setup, seconds))
     finally:
-        if viewer is not None:  # (done already unless the session failed: both may be called again)
+        # (done already unless the session failed: both may be called again)
+        if viewer is not None:
             viewer.stop()
+        if sink is not None:
             sink.close()
         if tap is not None:
             tap.close()
