@@ -56,13 +56,13 @@ class SimSettings:
     max_speed: float = 30.0  # m/s: a faster particle is treated as exploded
     max_stretch: float = 3.0  # a structural spring longer than this times rest marks an explosion
     # strain-limiting passes after the last substep (one after each other substep), and after the contact
-    # pass with its placed particles held: 8 and 6 since the seventy-fourth session (4 and 2 before): every
-    # row's strain p99 0.0-1.6 points lower, 11 of the 18 clip x garment rows within 10 % (10 before), no
-    # particle deeper than 1 mm on any, for a few per cent of S101 (docs/history.md)
-    limit_passes: int = 8
+    # pass with its placed particles held. 8 and 6 (seventy-fourth session) gave every row's strain p99
+    # 0.0-1.6 points lower (11 of the 18 clip x garment rows within 10 %, 10 with these), but a cloth service
+    # sharing its process with an ingest fell further behind a 60 Hz stream (docs/cloth.md)
+    limit_passes: int = 4
     # free strain-limiting passes after the contact pass, then a second one for what slid (0: neither)
     slide_passes: int = 1
-    contact_limit_passes: int = 6
+    contact_limit_passes: int = 2
     final_contact: bool = True  # after those, the contact pass again for the particles they moved
     # m: a contact-pass result nearer than this is checked against every clothed body face
     # (collision.FaceTree: the other sheet of a fold); 0: off. Off by default since the union
