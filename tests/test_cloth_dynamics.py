@@ -1225,7 +1225,7 @@ def test_the_nearest_vertex_grid_gives_the_brute_forces_answers():
     ties (the lowest index), region masks (none matching: left as it was), points far outside
     the vertices, NaN points, a flat cloud; and with `within`, that vertex where it is within
     the distance and nothing (left as it was) where it is not."""
-    from cloth.geometry import nearest_vertices, nearest_vertices_brute
+    from cloth.geometry import nearest_vertices, nearest_vertices_brute, nearest_vertices_in_grid
 
     rng = np.random.default_rng(5)
     for trial in range(60):
@@ -1242,10 +1242,12 @@ def test_the_nearest_vertex_grid_gives_the_brute_forces_answers():
         regions = rng.integers(1, 16, m).astype(np.uint16)
         masks = rng.integers(0, 16, n).astype(np.uint16)
         masks[2] = 0
-        brute, grid = np.full(n, -7, np.int32), np.full(n, -7, np.int32)
+        brute, grid, chosen = np.full(n, -7, np.int32), np.full(n, -7, np.int32), np.full(n, -7, np.int32)
         nearest_vertices_brute(p, v, brute, regions, masks)
-        nearest_vertices(p, v, grid, regions, masks)
+        nearest_vertices_in_grid(p, v, grid, regions, masks)
         np.testing.assert_array_equal(grid, brute, err_msg=f"trial {trial}")
+        nearest_vertices(p, v, chosen, regions, masks)  # (brute force, so few pairs: BRUTE_PAIRS)
+        np.testing.assert_array_equal(chosen, brute, err_msg=f"trial {trial}")
         assert brute[0] == brute[1] == brute[2] == -7
         within, near = 0.2, np.full(n, -7, np.int32)
         nearest_vertices(p, v, near, regions, masks, within)
