@@ -199,8 +199,7 @@ def test_an_outfit_is_a_makehuman_folder_a_garment_mesh_or_a_folder_of_them(data
     base, skin = rest_world
     tee, jeans = load_outfit(data / "garments" / "female_casualsuit01", base)
     _write_obj(tmp_path / "tee.obj", tee.vertices, tee.faces)
-    quads = jeans.faces[:, 3] >= 0
-    tris = np.concatenate([jeans.faces[:, :3], jeans.faces[quads][:, [0, 2, 3]]])
+    tris, _ = triangulate(jeans.faces, jeans.vertices)
     trimesh.Trimesh(jeans.vertices, tris, process=False).export(tmp_path / "jeans.ply")
 
     (one,) = load_garments(tmp_path / "tee.obj", base, skin)

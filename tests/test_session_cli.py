@@ -200,14 +200,14 @@ def test_a_session_wears_a_garment_mesh_of_the_users_and_refuses_one_off_the_bod
     import trimesh
 
     from cloth.garment import load_outfit
+    from cloth.topology import triangulate
     from skinning.animate import BodyAnimator
     from skinning.body import load_body
 
     body = load_body(data)
     base = body.vertices + BodyAnimator(body, contact=None).world_offset
     jeans = load_outfit(data / "garments" / "female_casualsuit01", base)[1]
-    quads = jeans.faces[:, 3] >= 0
-    tris = np.concatenate([jeans.faces[:, :3], jeans.faces[quads][:, [0, 2, 3]]])
+    tris, _ = triangulate(jeans.faces, jeans.vertices)
     trimesh.Trimesh(jeans.vertices, tris, process=False).export(tmp_path / "jeans.ply")
     out = tmp_path / "worn"
     assert main(["session", "--session", "mine", "--outfit", str(tmp_path / "jeans.ply"), "--max-frames", "6",
