@@ -321,7 +321,8 @@ def test_the_cloth_winding_number_counts_the_whole_hands(body):
 
 def reference_columns(x, tris, lo):
     """The winding grid's columns built the plain way (face order in each column), from the grid
-    corner, counts and side the kernel chose: start, ids, span, extent."""
+    corner, counts and side the kernel chose: start, ids, span (each entry's face's box: low and
+    high along the ray, then across it; exact, where the grid's is widened to single precision), extent."""
     u0, v0, nu, nv, cell = lo[0], lo[1], int(lo[2]), int(lo[3]), lo[4]
     col = np.minimum(((x[:, :2] - [u0, v0]) * (1.0 / cell)).astype(np.int64), [nu - 1, nv - 1])
     lists = [[] for _ in range(nu * nv)]
@@ -332,7 +333,8 @@ def reference_columns(x, tris, lo):
     start = np.concatenate([[0], np.cumsum([len(c) for c in lists])])
     ids = np.array([t for c in lists for t in c], dtype=np.int64)
     z = x[tris, 2]
-    span = np.stack([z.min(axis=1)[ids], z.max(axis=1)[ids]], axis=1)
+    span = np.stack([x[tris, a].min(axis=1)[ids] if low else x[tris, a].max(axis=1)[ids]
+                     for a in (2, 0, 1) for low in (True, False)], axis=1)  # along the ray, then across it
     extent = np.array([[z[c].min(), z[c].max()] if c else [np.inf, -np.inf] for c in lists])
     return start, ids, span, extent
 
@@ -342,7 +344,7 @@ def test_the_winding_grid_holds_each_face_in_every_column_its_box_covers(body, c
     """The grid's build writes a face within 2 x 2 columns (nearly all of the body's at 2 cm)
     without a loop, and larger ones (all at 4 mm, and the caps' long fans) with one: either way
     each column lists exactly the faces whose box across the ray overlaps it, in face order, with
-    their spans and the column's extent along the ray, on the body at rest and turned about
+    their boxes and the column's extent along the ray, on the body at rest and turned about
     every axis; the overlapping boxes (faces 40 cm across in 5 cm columns) too."""
     from services.cloth_job import collision_body
 
@@ -366,8 +368,41 @@ def test_the_winding_grid_holds_each_face_in_every_column_its_box_covers(body, c
         want = reference_columns(x, np.asarray(tris), lo)
         np.testing.assert_array_equal(start[: n + 1], want[0])
         np.testing.assert_array_equal(ids[: start[n]], want[1])
-        np.testing.assert_array_equal(span[: start[n]], want[2])
+        # each entry's box (single precision) holds its face's, and is hardly wider
+        box = span[: start[n]].astype(np.float64)
+        assert span.dtype == np.float32
+        assert (box[:, 0::2] <= want[2][:, 0::2]).all() and (box[:, 1::2] >= want[2][:, 1::2]).all()
+        np.testing.assert_allclose(box, want[2], rtol=0, atol=1e-5)
         np.testing.assert_array_equal(extent[:n], want[3])
         sizes = np.diff(want[0])
         if tris is faces and side == 0.02:
             assert start[n] > 2 * len(tris) and sizes.max() > 30  # most faces in several columns
+
+
+def test_winding_numbers_are_the_same_whatever_the_columns_hold(body):
+    """Near the skin, where most queries are, the winding number skips a column's faces by their
+    entries (span along the ray, box across it) and crosses only those left, 64 entries at a
+    time: the same answer from 2 cm columns (~23 faces), 4 mm ones (a few) and 40 cm ones (more
+    than 64 entries, several rounds of the mask), and the brute-force solid angle's on a sample;
+    the same 500 m from the origin."""
+    from services.cloth_job import collision_body
+
+    mesh = collision_body(body)
+    x = np.ascontiguousarray(mesh.internal(body.vertices), dtype=np.float64)
+    faces = mesh.winding_faces
+    used = np.unique(faces)
+    rng = np.random.default_rng(11)
+    corners = x[used[rng.choice(len(used), 4000)]]
+    points = corners + rng.normal(scale=0.004, size=corners.shape)  # within a few mm of the skin
+    wide = WindingGrid(faces, len(x), cell=0.4)
+    wide.update(x)
+    lo, start = wide.arrays()[:2]
+    assert np.diff(start[: int(lo[2] * lo[3]) + 1]).max() > 3 * 64
+    got = {cell: windings(x, faces, points, cell=cell) for cell in (0.02, 0.004, 0.4)}
+    assert 500 < (got[0.02] >= 1).sum() < 3500
+    np.testing.assert_array_equal(got[0.004], got[0.02])
+    np.testing.assert_array_equal(got[0.4], got[0.02])
+    np.testing.assert_array_equal(got[0.02][:150], np.round(solid_angle_winding(x, faces, points[:150])))
+    # far from the origin too, where single precision's steps are wider than the box's fixed slack
+    far = np.array([400.0, 0.0, -300.0])
+    np.testing.assert_array_equal(windings(x + far, faces, points + far), got[0.02])
