@@ -90,6 +90,44 @@ def fabric(name: str, path: str | Path | None = None) -> Fabric:
     return table[name]
 
 
+def fabric_choice(text: str, path: str | Path | None = None) -> Fabric | dict[str, Fabric]:
+    """What `--fabric` (and an outfit request's "fabric") names: one fabric for every garment (a
+    preset's name, or one from the file `path`), or one per garment, `garment=fabric` pairs
+    separated by commas ("top=silk,bottom=denim"; a garment by its name, or the part of it after
+    its outfit's name: `garment_fabrics`), the garments it does not name keeping theirs.
+    FabricError naming the pair and the problem."""
+    text = str(text).strip()
+    if "=" not in text:
+        return fabric(text, path)
+    out: dict[str, Fabric] = {}
+    for pair in text.split(","):
+        garment, sep, name = (part.strip() for part in pair.partition("="))
+        if not sep or not garment or not name:
+            raise FabricError(f"fabric choice {text!r}: {pair.strip()!r} is not garment=fabric "
+                              f'(e.g. "top=silk,bottom=denim", or one fabric for every garment: "denim")')
+        if garment in out:
+            raise FabricError(f"fabric choice {text!r}: garment {garment!r} is named twice")
+        try:
+            out[garment] = fabric(name, path)
+        except FabricError as err:
+            raise FabricError(f"fabric choice {text!r}: {garment}={name}: {err}") from None
+    return out
+
+
+def garment_fabrics(choice: dict[str, Fabric], names: list[str], source: str = "fabric choice") -> dict[str, Fabric]:
+    """A per-garment choice (`fabric_choice`) keyed by the outfit's garment names: a key is a
+    garment's name, or what follows its outfit's name and a dot ("top" for
+    "female_casualsuit01.top"). FabricError naming a key no garment answers to, and the names."""
+    out = {}
+    for key, fab in choice.items():
+        hits = [n for n in names if n == key] or [n for n in names if n.rsplit(".", 1)[-1] == key]
+        if len(hits) != 1:
+            raise FabricError(f"{source}: no garment {key!r} in the outfit; it has {names}" if not hits else
+                              f"{source}: {key!r} names several garments {hits}; give the whole name")
+        out[hits[0]] = fab
+    return out
+
+
 OUTFIT_FABRICS = "fabrics.toml"  # in an outfit's folder: which fabric each of its garments is made of
 
 

@@ -126,7 +126,7 @@ def cmd_body(args) -> int:
 
 
 def cmd_cloth(args) -> int:
-    from cloth.fabric import fabric as fabric_by_name
+    from cloth.fabric import fabric_choice
     from cloth.surface import SurfaceSettings
     from skinning.body import load_body
 
@@ -136,7 +136,7 @@ def cmd_cloth(args) -> int:
     ik = _ik(args)
     data, out_dir, renderer = _start(args)
     body = load_body(data)
-    fabrics = fabric_by_name(args.fabric, args.fabrics) if args.fabric else None
+    fabrics = fabric_choice(args.fabric, args.fabrics) if args.fabric else None
     surface = None if args.coarse_only else SurfaceSettings(level=args.level)
     outfits = [find_outfit(data, outfit) for outfit in args.outfit or list(OUTFITS)]  # all checked first
     for outfit_dir in outfits:
@@ -165,7 +165,7 @@ def _logging(args) -> None:
 def _spec(args, data: Path | None = None):
     """The outfit, fabric and level the options name; with `data`, checked first (an unknown outfit
     or fabric stops the command with a message, before any service starts)."""
-    from cloth.fabric import fabric as fabric_by_name
+    from cloth.fabric import fabric_choice
 
     from .cloth_job import find_outfit
     from .cloth_service import OutfitSpec
@@ -173,7 +173,7 @@ def _spec(args, data: Path | None = None):
     if data is not None:
         find_outfit(data, args.outfit)
         if args.fabric:
-            fabric_by_name(args.fabric)
+            fabric_choice(args.fabric)
     return OutfitSpec(args.outfit, args.fabric, None if args.coarse_only else args.level)
 
 
@@ -440,11 +440,14 @@ def cmd_router(args) -> int:
 
 def _outfit_arguments(p, level_default: int = 6) -> None:
     p.add_argument("--outfit", default="female_casualsuit01", help=OUTFIT_HELP)
-    p.add_argument("--fabric", help="one fabric preset for every garment (default: a preset per garment)")
+    p.add_argument("--fabric", help=FABRIC_HELP)
     p.add_argument("--level", type=_level, default=level_default, help="PN tessellation level (default 6)")
     p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
 
 
+FABRIC_HELP = ("a fabric preset for every garment, or one per garment: garment=preset pairs, "
+               "\"top=silk,bottom=denim\" (a garment by its name or the part after its outfit's; default: a preset "
+               "per garment)")
 OUTFIT_HELP = ("outfit folder in <data>/garments, or a path: a MakeHuman outfit folder (.mhclo), a garment mesh "
                "(OBJ, PLY, GLB, ...) in metres already on the rest body (Y up, feet at y = 0, facing +Z), or a folder "
                "of those")
@@ -471,7 +474,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--coarse-only", action="store_true", help="only the coarse cloth (S101), no detailed surface")
     p.add_argument("--outfit", action="append", help=OUTFIT_HELP + " (default all)")
     p.add_argument("--clip", action="append", help="clip name in <data>/mocap or a BVH path (default all)")
-    p.add_argument("--fabric", help="one fabric for every garment (default: a preset per garment)")
+    p.add_argument("--fabric", help=FABRIC_HELP + "; the fabrics from --fabrics")
     p.add_argument("--fabrics", help="TOML file of fabrics (default: the presets, cloth/fabrics.toml)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
     p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
@@ -534,7 +537,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("name", help="outfit in the session's <data>/garments, or a path the cloth service can read "
                                "(as --outfit)")
     p.add_argument("--session", default="demo")
-    p.add_argument("--fabric", help="one fabric preset for every garment (default: the session's)")
+    p.add_argument("--fabric", help=FABRIC_HELP.replace("a preset per garment", "the session's"))
     p.add_argument("--level", type=_level, default=None, help="PN tessellation level (default: the session's)")
     p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the session's ingest to answer")

@@ -17,7 +17,8 @@ import numpy as np
 import pinocchio as pin
 
 from cloth.collision import BodyMesh, BodyPose
-from cloth.fabric import OUTFIT_FABRICS, Fabric, FabricError, fabric as fabric_preset, outfit_fabrics
+from cloth.fabric import (OUTFIT_FABRICS, Fabric, FabricError, fabric as fabric_preset, fabric_choice,
+                          garment_fabrics, outfit_fabrics)
 from cloth.garment import Garment, load_garments, outfit_source, worn_from_waist
 from cloth.geometry import vertex_normals as geometry_vertex_normals
 from cloth.layers import LayerModel, LayerState, layer_outfit, stack_layer
@@ -64,11 +65,12 @@ def find_outfit(data: Path, name: str | Path) -> Path:
 
 def outfit_checker(data: Path) -> Callable[[dict], None]:
     """`IngestService.check_outfit` for a data folder: a requested outfit must be there, and a
-    fabric must be a preset (each refusal names what is wrong and what there is)."""
+    fabric must be a preset, or garment=preset pairs (`fabric_choice`; each refusal names what is
+    wrong and what there is)."""
     def check(change: dict) -> None:
         find_outfit(data, change["outfit"])
         if change.get("fabric") is not None:
-            fabric_preset(change["fabric"])
+            fabric_choice(change["fabric"])
     return check
 
 
@@ -116,12 +118,16 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
     skin = rest_body[: body.n_visible]
     garments = load_garments(outfit_dir, body.vertices + animator.world_offset, skin)
     own = Path(outfit_dir) / OUTFIT_FABRICS
-    if fabrics is None and own.is_file():  # the outfit's own fabrics, where no one fabric is asked for
-        fabrics = outfit_fabrics(own)
-        names = [g.name for g in garments]
-        stray = sorted(set(fabrics) - set(names))
-        if stray:
-            raise FabricError(f"{own}: [garments] names {stray}, which the outfit does not have; it has {names}")
+    names = [g.name for g in garments]
+    if not isinstance(fabrics, Fabric):
+        chosen = garment_fabrics(fabrics, names) if fabrics else {}  # a fabric per garment: these garments'
+        fabrics = {}
+        if own.is_file():  # the outfit's own fabrics, where no one fabric is asked for
+            fabrics = outfit_fabrics(own)
+            stray = sorted(set(fabrics) - set(names))
+            if stray:
+                raise FabricError(f"{own}: [garments] names {stray}, which the outfit does not have; it has {names}")
+        fabrics.update(chosen)
     models = []
     for g in garments:
         if isinstance(fabrics, Fabric):
@@ -190,7 +196,8 @@ class ClothReport:
                 for k, v in self.surface_ms.items())
         if self.layer_ms:
             ms += f" | layering {np.median(self.layer_ms):.2f}"
-        return (f"{self.clip} × {self.outfit}: {self.frames} frames, substeps {self.substeps} | "
+        made = ", ".join(f"{m.name} {m.fabric.name}" for m in self.models)
+        return (f"{self.clip} × {self.outfit} ({made}): {self.frames} frames, substeps {self.substeps} | "
                 f"median ms per garment-frame: {ms} | NaN frames {self.nan_frames} | resets {self.resets}")
 
 

@@ -41,7 +41,7 @@ import numba
 import numpy as np
 import zenoh
 
-from cloth.fabric import fabric as fabric_preset
+from cloth.fabric import fabric_choice
 from cloth.geometry import vertex_normals
 from cloth.surface import SurfaceSettings
 from skinning.animate import BodyAnimator
@@ -96,7 +96,7 @@ def _yielding_thread() -> None:
 @dataclass(frozen=True)
 class OutfitSpec:
     outfit: str
-    fabric: str | None = None  # one preset for every garment; None: a preset per garment
+    fabric: str | None = None  # a preset for every garment, or garment=preset pairs (`fabric_choice`); None: defaults
     level: int | None = 6  # PN tessellation level; None: coarse cloth only
 
     @staticmethod
@@ -107,7 +107,8 @@ class OutfitSpec:
         if not isinstance(outfit, str) or not outfit:
             raise MessageError(key_expr, f"session 'outfit' must be a name, got {outfit!r}")
         if fabric is not None and not isinstance(fabric, str):
-            raise MessageError(key_expr, f"session 'fabric' must be a preset name or null, got {fabric!r}")
+            raise MessageError(key_expr, f"session 'fabric' must be a preset name, garment=preset pairs or null, "
+                                            f"got {fabric!r}")
         if level is not None and (isinstance(level, bool) or not isinstance(level, int) or not 1 <= level <= MAX_LEVEL):
             raise MessageError(key_expr, f"session 'level' must be an integer 1-{MAX_LEVEL} or null, got {level!r}")
         return OutfitSpec(outfit, fabric, level)
@@ -442,7 +443,7 @@ class ClothService:
     def _outfit_models(self, spec: OutfitSpec):
         if spec not in self._models:
             outfit_dir = find_outfit(self.data, spec.outfit)
-            fabrics = fabric_preset(spec.fabric) if spec.fabric else None
+            fabrics = fabric_choice(spec.fabric) if spec.fabric else None
             if self._body_digest is None and self.model_cache.folder is not None:
                 self._body_digest = object_digest(self.body)
             with self.animator_lock:  # (fitting poses the rest body: not while a pre-roll reads the animator)

@@ -11,7 +11,7 @@ Live pose stream (what a capture system publishes; see README "Bus contract"):
   tryon/<s>/control   {"event": "end", "from": "capture"} ends the stream.
 
 Changing clothes during a session: a `get` on tryon/<s>/outfit whose payload is a control message
-with meta {"outfit": name, "fabric": preset or null, "level": 1-16 or null} (fabric and level
+with meta {"outfit": name, "fabric": preset, "garment=preset,..." or null, "level": 1-16 or null} (fabric and level
 optional: the session's stay) is answered at once, {"accepted": true} or {"accepted": false,
 "reason": ...}. An accepted change takes effect at the next frame: the ingest announces the
 session again with the new outfit and that frame's pose (`first_q`; `restart_frame`,

@@ -280,3 +280,46 @@ def test_an_outfit_folder_names_its_garments_fabrics(body, data, rest_world, tmp
         (tmp_path / "fabrics.toml").write_text(text)
         with pytest.raises(FabricError, match=says):
             outfit_fabrics(tmp_path / "fabrics.toml")
+
+
+def test_a_fabric_per_garment_from_the_command_line(body, data, rest_world, tmp_path):
+    """`--fabric top=silk,bottom=denim` (`fabric_choice`): one fabric per garment, a garment by its
+    whole name or by what follows its outfit's name; the garments it does not name keep theirs
+    (the outfit folder's fabrics.toml, else the default); one name alone is a fabric for every
+    garment. A malformed pair, an unknown fabric, a garment named twice or one the outfit lacks is
+    refused, naming it."""
+    from cloth.fabric import Fabric, FabricError, fabric, fabric_choice, garment_fabrics
+    from services.cloth_job import collision_body, load_outfit_models
+    from skinning.animate import BodyAnimator
+
+    assert fabric_choice("denim") == fabric("denim")
+    choice = fabric_choice(" top = silk ,female_casualsuit01.bottom=jersey")
+    assert choice == {"top": fabric("silk"), "female_casualsuit01.bottom": fabric("jersey")}
+    for text, says in (("top=silk,bottom", r"'bottom' is not garment=fabric"), ("top=", "is not garment=fabric"),
+                       ("top=velvet", r"top=velvet: .*no fabric 'velvet'; available: \["),
+                       ("top=silk,top=denim", "garment 'top' is named twice"), ("velvet", "no fabric 'velvet'")):
+        with pytest.raises(FabricError, match=says):
+            fabric_choice(text)
+    names = ["female_casualsuit01.top", "female_casualsuit01.bottom"]
+    assert garment_fabrics(choice, names) == {"female_casualsuit01.top": fabric("silk"),
+                                              "female_casualsuit01.bottom": fabric("jersey")}
+    with pytest.raises(FabricError, match=r"no garment 'legs' in the outfit; it has \['female_casualsuit01.top'"):
+        garment_fabrics({"legs": fabric("silk")}, names)
+    with pytest.raises(FabricError, match=r"'top' names several garments"):
+        garment_fabrics({"top": fabric("silk")}, ["a.top", "b.top"])
+
+    animator, mesh = BodyAnimator(body, contact=None), collision_body(body)
+    shipped = load_outfit_models(body, animator, mesh, data / "garments" / "female_casualsuit01",
+                                 fabric_choice("top=silk"))
+    assert {m.name: m.fabric.name for m in shipped.models} == {"female_casualsuit01.top": "silk",
+                                                               "female_casualsuit01.bottom": "denim"}
+    assert isinstance(shipped.models[0].fabric, Fabric)
+    base, _ = rest_world
+    tee, jeans = load_outfit(data / "garments" / "female_casualsuit01", base)
+    _write_obj(tmp_path / "tee.obj", tee.vertices, tee.faces)
+    _write_obj(tmp_path / "jeans.obj", jeans.vertices, jeans.faces)
+    (tmp_path / "fabrics.toml").write_text('[garments]\njeans = "jersey"\ntee = "silk"\n')
+    mine = load_outfit_models(body, animator, mesh, tmp_path, fabric_choice("tee=denim"))
+    assert {m.name: m.fabric.name for m in mine.models} == {"tee": "denim", "jeans": "jersey"}
+    with pytest.raises(FabricError, match=r"no garment 'top' in the outfit; it has \['"):
+        load_outfit_models(body, animator, mesh, tmp_path, fabric_choice("top=denim"))

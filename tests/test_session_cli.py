@@ -230,3 +230,21 @@ def test_a_session_wears_a_garment_mesh_of_the_users_and_refuses_one_off_the_bod
     assert main(["session", "--outfit", str(tmp_path / "nothing"), "--out", str(tmp_path / "none")]) == 2
     assert "nothing: no .mhclo file and no garment mesh" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()
+
+
+def test_a_session_wears_a_fabric_per_garment(tmp_path, capsys):
+    """`tryon session --fabric top=silk`: the T-shirt is silk, the jeans keep their denim, as the
+    garments' topology on the bus says; a garment the outfit lacks stops the session after its
+    first frame, naming it and the garments there are, exit 2."""
+    out = tmp_path / "silk"
+    assert main(["session", "--session", "silk", "--fabric", "top=silk", "--max-frames", "4", "--level", "2",
+                 "--no-png", "--out", str(out)]) == 0
+    capsys.readouterr()
+    made = {parse_key(k)[1][-1]: decode(p, k).meta["fabric"] for k, p, _ in read_recording(out / "silk.mcap")
+            if parse_key(k)[1][:2] == ("topology", "garment")}
+    assert made == {"female_casualsuit01.top": "silk", "female_casualsuit01.bottom": "denim"}
+    out = tmp_path / "legs"
+    assert main(["session", "--session", "legs", "--fabric", "legs=silk", "--max-frames", "30", "--no-png",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "no garment 'legs' in the outfit; it has ['female_casualsuit01.top'" in err, err
