@@ -85,7 +85,8 @@ def test_cli_cloth_close_up_snapshots_of_chosen_frames(tmp_path, capsys):
     rc = main(["cloth", "--outfit", "female_sportsuit01", "--clip", "cmu_npybvh_example_75f", "--max-frames", "6",
                "--frames", "2,5", "--close-up", "--out", str(tmp_path)])
     assert rc == 0
-    assert "cmu_npybvh_example_75f × female_sportsuit01: 5 frames" in capsys.readouterr().out  # frame 0 is skipped
+    assert ("cmu_npybvh_example_75f × female_sportsuit01 (female_sportsuit01.top jersey, female_sportsuit01.bottom "
+            "jersey): 5 frames") in capsys.readouterr().out  # frame 0 is skipped; each garment's fabric
     img = np.asarray(Image.open(tmp_path / "cloth_cmu_npybvh_example_75f_female_sportsuit01_close.png"))
     assert img.shape[:2] == (800, 4 * 600)  # two frames, each from two sides
     assert img.std() > 10
