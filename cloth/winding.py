@@ -63,9 +63,9 @@ def build_winding_grid(body_x, tris, cell, lo, start, ids, span, vertex_column, 
     over the vertices' extent. lo (5,) float64, written: the grid's corner (u0, v0), its columns
     along u and along v, and their side: cell, widened until the columns fit in len(start) - 2.
     span (len(ids), SPAN) float32, written: each entry's face's lowest and highest coordinate along
-    the ray, then across it on u and on v (widened a little: `_down`, `_up`); extent (len(start) - 1, 2) float64,
-    written: the lowest and highest along the ray over each column's faces (`winding_number`
-    reads them to skip faces, and whole columns).
+    the ray, then across it on u and on v (widened a little: `_down`, `_up`); extent
+    (len(start) - 1, 2) float64, written: the lowest and highest along the ray over each column's
+    entries (`winding_number` reads them to skip whole columns, and to choose a side).
     vertex_column (n_vertices, 2), face_columns (n_faces, 4) int32: scratch. Returns the entries
     needed (one more than the columns hold: see below); when that exceeds len(ids) nothing is
     filled (grow ids and call again).
@@ -123,9 +123,6 @@ def build_winding_grid(body_x, tris, cell, lo, start, ids, span, vertex_column, 
     total = start[n]  # the spare column's one entry: ids[total] (its count stays 0)
     if total + 1 > ids.shape[0]:
         return total + 1
-    for c in range(n + 1):
-        extent[c, 0] = np.inf
-        extent[c, 1] = -np.inf
     for t in range(tris.shape[0]):  # fill: start[c] runs up to the next column's start
         a, b, d = tris[t, 0], tris[t, 1], tris[t, 2]
         w0 = min(body_x[a, W], min(body_x[b, W], body_x[d, W]))
@@ -140,17 +137,24 @@ def build_winding_grid(body_x, tris, cell, lo, start, ids, span, vertex_column, 
         if i1 - i0 <= 1 and k1 - k0 <= 1:
             wi, wk = i1 - i0, k1 - k0
             c00 = i0 * nv + k0
-            _put(t, c00, 1, w0, w1, b0, b1, b2, b3, b4, b5, start, ids, span, extent)
-            _put(t, spare + wk * (c00 + 1 - spare), wk, w0, w1, b0, b1, b2, b3, b4, b5, start, ids, span, extent)
-            _put(t, spare + wi * (c00 + nv - spare), wi, w0, w1, b0, b1, b2, b3, b4, b5, start, ids, span, extent)
-            _put(t, spare + wi * wk * (c00 + nv + 1 - spare), wi * wk, w0, w1, b0, b1, b2, b3, b4, b5, start, ids, span, extent)
+            _put(t, c00, 1, b0, b1, b2, b3, b4, b5, start, ids, span)
+            _put(t, spare + wk * (c00 + 1 - spare), wk, b0, b1, b2, b3, b4, b5, start, ids, span)
+            _put(t, spare + wi * (c00 + nv - spare), wi, b0, b1, b2, b3, b4, b5, start, ids, span)
+            _put(t, spare + wi * wk * (c00 + nv + 1 - spare), wi * wk, b0, b1, b2, b3, b4, b5, start, ids, span)
             continue
         for i in range(i0, i1 + 1):
             for k in range(k0, k1 + 1):
-                _put(t, i * nv + k, 1, w0, w1, b0, b1, b2, b3, b4, b5, start, ids, span, extent)
+                _put(t, i * nv + k, 1, b0, b1, b2, b3, b4, b5, start, ids, span)
     for c in range(n, 0, -1):  # back to each column's first entry
         start[c] = start[c - 1]
     start[0] = 0
+    for c in range(n):  # each column's extent along the ray, from its entries (in order: one pass over them)
+        lo_w, hi_w = np.inf, -np.inf
+        for e in range(start[c], start[c + 1]):
+            lo_w = min(lo_w, span[e, 0])
+            hi_w = max(hi_w, span[e, 1])
+        extent[c, 0] = lo_w
+        extent[c, 1] = hi_w
     return total + 1
 
 
@@ -173,11 +177,10 @@ def _up(x):
 
 
 @helper
-def _put(t, c, taken, w0, w1, b0, b1, b2, b3, b4, b5, start, ids, span, extent):
+def _put(t, c, taken, b0, b1, b2, b3, b4, b5, start, ids, span):
     """Face t into column c's next entry, which is kept if `taken` (1) and overwritten by the
-    next one put there if not (0: the spare column): b0 ... b5 its box (float32, widened
-    a little) along the ray, then across it on u and on v, each low, high; w0, w1 its span along
-    the ray (for the column's extent)."""
+    next one put there if not (0: the spare column): b0 ... b5 its box (float32, widened a
+    little) along the ray, then across it on u and on v, each low, high."""
     e = start[c]
     ids[e] = t
     span[e, 0] = b0
@@ -187,8 +190,6 @@ def _put(t, c, taken, w0, w1, b0, b1, b2, b3, b4, b5, start, ids, span, extent):
     span[e, 4] = b4
     span[e, 5] = b5
     start[c] = e + taken
-    extent[c, 0] = min(extent[c, 0], w0)
-    extent[c, 1] = max(extent[c, 1], w1)
 
 
 @helper
