@@ -8,7 +8,7 @@ from cloth.collision import (FACE_TREE_STACK, UNION_HITS, UNION_REACH, BodyMesh,
                              leave_body_union)
 from cloth.fabric import fabric
 from cloth.topology import boundary_loops
-from cloth.winding import WindingGrid, closed_faces, winding_numbers
+from cloth.winding import WindingGrid, closed_faces, lowest_bit, winding_numbers
 from tests.test_cloth_dynamics import box
 from tests.test_signed_distance import solid_angle_winding
 
@@ -409,3 +409,14 @@ def test_winding_numbers_are_the_same_whatever_the_columns_hold(body):
     # far from the origin too, where single precision's steps are wider than the box's fixed slack
     far = np.array([400.0, 0.0, -300.0])
     np.testing.assert_array_equal(windings(x + far, faces, points + far), got[0.02])
+
+
+def test_lowest_bit_finds_the_lowest_set_bit_of_every_word():
+    """The winding number's mask is read from its lowest set bit up (de Bruijn's multiply): every
+    position 0-63, with any higher bits set or not."""
+    rng = np.random.default_rng(3)
+    for k in range(64):
+        low = np.uint64(1) << np.uint64(k)
+        for high in (0, int(rng.integers(0, 2**63)), 2**64 - 1):
+            word = (np.uint64(high) & ~(low - np.uint64(1))) | low  # bits below k cleared, bit k set
+            assert lowest_bit(word) == k
