@@ -299,6 +299,45 @@ def cmd_outfit(args) -> int:
     return 0
 
 
+def cmd_catalog(args) -> int:
+    """What there is to wear: each outfit (in <data>/garments, or the ones --outfit names), its
+    garments (the names `--fabric garment=preset` takes) with the fabric each is made of by
+    default and whether it hangs from a waistband; then the fabrics (the presets, or --fabrics)."""
+    from cloth.fabric import PRESETS_PATH, load_fabrics
+    from cloth.garment import GarmentError, load_garments, outfit_source, worn_from_waist
+    from skinning.animate import BodyAnimator
+    from skinning.body import load_body
+
+    from .cloth_job import find_outfit, garment_fabric_list, outfit_name
+
+    data = data_dir(args.data)
+    if args.outfit:
+        paths = [find_outfit(data, name) for name in args.outfit]
+    else:
+        paths = []
+        for path in sorted((data / "garments").iterdir()):
+            with contextlib.suppress(GarmentError):
+                outfit_source(path)
+                paths.append(path)
+    body = load_body(data)
+    animator = BodyAnimator(body, contact=None)
+    skin = animator.pose(animator.rest_configuration()).vertices[: body.n_visible]
+    print(f"outfits ({len(paths)}; --outfit NAME, --fabric GARMENT=FABRIC,...):")
+    for path in paths:
+        garments = load_garments(path, body.vertices + animator.world_offset, skin)
+        worn = [f"{g.name} ({fab.name}{', waistband' if worn_from_waist(g, skin) else ''})"
+                for g, fab in zip(garments, garment_fabric_list(path, garments))]
+        print(f"  {outfit_name(path)}: {', '.join(worn)}")
+    source = Path(args.fabrics) if args.fabrics else PRESETS_PATH
+    fabrics = load_fabrics(source)
+    print(f"fabrics ({source}; --fabric NAME):")
+    for name, f in fabrics.items():
+        print(f"  {name}: stretch {f.stretch_stiffness:g} N/m, compression {f.compression_stiffness:g} N/m, "
+              f"bending {f.bending_stiffness:g} N/m, density {f.density:g} kg/m², friction {f.friction:g}, "
+              f"thickness {f.thickness * 1000:g} mm, strain limit {f.max_strain * 100:g} %")
+    return 0
+
+
 def cmd_cloth_service(args) -> int:
     from skinning.body import load_body
 
@@ -546,6 +585,11 @@ def main(argv: list[str] | None = None) -> int:
                         "settles them; 0: return once accepted)")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_outfit)
+
+    p = sub.add_parser("catalog", help="the outfits (their garments and fabrics) and the fabric presets")
+    p.add_argument("--outfit", action="append", help=OUTFIT_HELP + " (default: every one in <data>/garments)")
+    p.add_argument("--fabrics", help="TOML file of fabrics to list (default: the presets, cloth/fabrics.toml)")
+    p.set_defaults(func=cmd_catalog)
 
     p = sub.add_parser("cloth-service", help="cloth service: tryon/*/body -> tryon/<s>/garment/<name>, every session")
     _outfit_arguments(p)

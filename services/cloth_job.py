@@ -117,27 +117,31 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
     rest_body = animator.pose(animator.rest_configuration()).vertices.copy()
     skin = rest_body[: body.n_visible]
     garments = load_garments(outfit_dir, body.vertices + animator.world_offset, skin)
-    own = Path(outfit_dir) / OUTFIT_FABRICS
-    names = [g.name for g in garments]
-    if not isinstance(fabrics, Fabric):
-        chosen = garment_fabrics(fabrics, names) if fabrics else {}  # a fabric per garment: these garments'
-        fabrics = {}
-        if own.is_file():  # the outfit's own fabrics, where no one fabric is asked for
-            fabrics = outfit_fabrics(own)
-            stray = sorted(set(fabrics) - set(names))
-            if stray:
-                raise FabricError(f"{own}: [garments] names {stray}, which the outfit does not have; it has {names}")
-        fabrics.update(chosen)
-    models = []
-    for g in garments:
-        if isinstance(fabrics, Fabric):
-            fab = fabrics
-        elif fabrics and g.name in fabrics:
-            fab = fabrics[g.name]
-        else:
-            fab = fabric_preset(DEFAULT_FABRICS.get(g.name, "cotton"))
-        models.append(prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=worn_from_waist(g, skin)))
+    models = [prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=worn_from_waist(g, skin))
+              for g, fab in zip(garments, garment_fabric_list(outfit_dir, garments, fabrics))]
     return Outfit(outfit_name(outfit_dir), garments, models, rest_body)
+
+
+def garment_fabric_list(outfit_dir: Path, garments: list[Garment],
+                        fabrics: dict[str, Fabric] | Fabric | None = None) -> list[Fabric]:
+    """Each garment's fabric: `fabrics` where it is one fabric for all; else the garment's in
+    `fabrics` (a per-garment choice, `fabric_choice`: by name or the part after the outfit's),
+    else the outfit folder's fabrics.toml's, else the shipped garment's default
+    (DEFAULT_FABRICS), else cotton. FabricError naming a garment the choice or the file names that
+    the outfit lacks."""
+    if isinstance(fabrics, Fabric):
+        return [fabrics] * len(garments)
+    names = [g.name for g in garments]
+    chosen = garment_fabrics(fabrics, names) if fabrics else {}
+    own = Path(outfit_dir) / OUTFIT_FABRICS
+    made = {}
+    if own.is_file():  # the outfit's own fabrics
+        made = outfit_fabrics(own)
+        stray = sorted(set(made) - set(names))
+        if stray:
+            raise FabricError(f"{own}: [garments] names {stray}, which the outfit does not have; it has {names}")
+    made.update(chosen)
+    return [made[n] if n in made else fabric_preset(DEFAULT_FABRICS.get(n, "cotton")) for n in names]
 
 
 def outfit_name(path: Path) -> str:

@@ -248,3 +248,27 @@ def test_a_session_wears_a_fabric_per_garment(tmp_path, capsys):
                  "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert "no garment 'legs' in the outfit; it has ['female_casualsuit01.top'" in err, err
+
+
+def test_the_catalog_lists_each_outfits_garments_and_the_fabrics(tmp_path, capsys):
+    """`tryon catalog`: every outfit in the data folder with its garments (the names `--fabric
+    garment=preset` takes), each one's default fabric and which hang from a waistband; then the
+    fabric presets with their values; --outfit and --fabrics narrow it to those; an unknown outfit
+    is named with what there is."""
+    assert main(["catalog"]) == 0
+    out = capsys.readouterr().out
+    assert "  female_casualsuit01: female_casualsuit01.top (cotton), female_casualsuit01.bottom (denim, waistband)" in out
+    assert "  female_elegantsuit01: female_elegantsuit01.top (silk), female_elegantsuit01.bottom (cotton, waistband)" in out
+    assert "female_sportsuit01.bottom (jersey, waistband)" in out
+    for preset in ("cotton", "denim", "silk", "jersey"):
+        assert re.search(rf"^  {preset}: stretch [\d.]+ N/m, .* strain limit [\d.]+ %$", out, re.M), preset
+    from cloth.fabric import fabric
+
+    stiff = "\n".join(f"{k} = {v!r}" for k, v in vars(fabric("denim")).items() if k != "name")
+    (tmp_path / "mine.toml").write_text(f"[raw_denim]\n{stiff}\n")
+    assert main(["catalog", "--outfit", "female_sportsuit01", "--fabrics", str(tmp_path / "mine.toml")]) == 0
+    out = capsys.readouterr().out
+    assert "outfits (1;" in out and "female_casualsuit01" not in out
+    assert f"  raw_denim: stretch {fabric('denim').stretch_stiffness:g} N/m" in out and "cotton:" not in out
+    assert main(["catalog", "--outfit", "no-such-outfit"]) == 2
+    assert "outfit 'no-such-outfit' not found" in capsys.readouterr().err
