@@ -114,7 +114,7 @@ def fabric_choice(text: str, path: str | Path | None = None) -> Fabric | dict[st
     return out
 
 
-def garment_fabrics(choice: dict[str, Fabric], names: list[str], source: str = "fabric choice") -> dict[str, Fabric]:
+def garment_fabrics(choice: dict[str, Fabric], names: list[str]) -> dict[str, Fabric]:
     """A per-garment choice (`fabric_choice`) keyed by the outfit's garment names: a key is a
     garment's name, or what follows its outfit's name and a dot ("top" for
     "female_casualsuit01.top"). FabricError naming a key no garment answers to, and the names."""
@@ -122,8 +122,8 @@ def garment_fabrics(choice: dict[str, Fabric], names: list[str], source: str = "
     for key, fab in choice.items():
         hits = [n for n in names if n == key] or [n for n in names if n.rsplit(".", 1)[-1] == key]
         if len(hits) != 1:
-            raise FabricError(f"{source}: no garment {key!r} in the outfit; it has {names}" if not hits else
-                              f"{source}: {key!r} names several garments {hits}; give the whole name")
+            raise FabricError(f"fabric choice: no garment {key!r} in the outfit; it has {names}" if not hits else
+                              f"fabric choice: {key!r} names several garments {hits}; give the whole name")
         out[hits[0]] = fab
     return out
 
