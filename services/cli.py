@@ -304,11 +304,11 @@ def cmd_catalog(args) -> int:
     garments (the names `--fabric garment=preset` takes) with the fabric each is made of by
     default and whether it hangs from a waistband; then the fabrics (the presets, or --fabrics)."""
     from cloth.fabric import PRESETS_PATH, load_fabrics
-    from cloth.garment import GarmentError, load_garments, outfit_source, worn_from_waist
+    from cloth.garment import GarmentError, outfit_source, worn_from_waist
     from skinning.animate import BodyAnimator
     from skinning.body import load_body
 
-    from .cloth_job import find_outfit, garment_fabric_list, outfit_name
+    from .cloth_job import find_outfit, garment_fabric_list, outfit_garments, outfit_name
 
     data = data_dir(args.data)
     if args.outfit:
@@ -321,10 +321,9 @@ def cmd_catalog(args) -> int:
                 paths.append(path)
     body = load_body(data)
     animator = BodyAnimator(body, contact=None)
-    skin = animator.pose(animator.rest_configuration()).vertices[: body.n_visible]
     print(f"outfits ({len(paths)}; --outfit NAME, --fabric GARMENT=FABRIC,...):")
     for path in paths:
-        garments = load_garments(path, body.vertices + animator.world_offset, skin)
+        garments, _, skin = outfit_garments(body, animator, path)
         worn = [f"{g.name} ({fab.name}{', waistband' if worn_from_waist(g, skin) else ''})"
                 for g, fab in zip(garments, garment_fabric_list(path, garments))]
         print(f"  {outfit_name(path)}: {', '.join(worn)}")

@@ -114,12 +114,19 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
     model. outfit_dir: a MakeHuman outfit folder, or garment meshes already on the rest body (a
     file or a folder of them; `find_outfit`). A garment worn from the waist (`worn_from_waist`:
     trousers, a skirt) is held up by its waistband (elastic or buttoned), which grips the body."""
-    rest_body = animator.pose(animator.rest_configuration()).vertices.copy()
-    skin = rest_body[: body.n_visible]
-    garments = load_garments(outfit_dir, body.vertices + animator.world_offset, skin)
+    garments, rest_body, skin = outfit_garments(body, animator, outfit_dir)
     models = [prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=worn_from_waist(g, skin))
               for g, fab in zip(garments, garment_fabric_list(outfit_dir, garments, fabrics))]
     return Outfit(outfit_name(outfit_dir), garments, models, rest_body)
+
+
+def outfit_garments(body: Body, animator: BodyAnimator, outfit_dir: Path) -> tuple[list[Garment], np.ndarray,
+                                                                                   np.ndarray]:
+    """An outfit's garments on the rest body (world frame: floor at y = 0; `load_garments`), with the
+    skinned rest body they lie on and its visible vertices (the skin)."""
+    rest_body = animator.pose(animator.rest_configuration()).vertices.copy()
+    skin = rest_body[: body.n_visible]
+    return load_garments(outfit_dir, body.vertices + animator.world_offset, skin), rest_body, skin
 
 
 def garment_fabric_list(outfit_dir: Path, garments: list[Garment],
