@@ -447,6 +447,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
         other[i] = np.inf
         behind[i] = 0
     tested = 0
+    g0 = g1 = g2 = 0.0  # a particle's distances from its parents
     for f in range(face_ids.shape[0]):
         near = False
         n_groups = 0  # the body parts near the face's corners: their nearest vertices, and the other parts'
@@ -482,8 +483,15 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                         # than the position, so the particle can be within the clearance only if
                         # each parent is within the clearance plus its distance from it
                         gx, gy, gz = p[vid, 0] - p[pid, 0], p[vid, 1] - p[pid, 1], p[vid, 2] - p[pid, 2]
+                        g = math.sqrt(gx * gx + gy * gy + gz * gz)
+                        if m == 0:  # (kept for the Lipschitz check below)
+                            g0 = g
+                        elif m == 1:
+                            g1 = g
+                        else:
+                            g2 = g
                         bound += 1
-                        if sd[pid] < clearance + math.sqrt(gx * gx + gy * gy + gz * gz):
+                        if sd[pid] < clearance + g:
                             room += 1
                 if bound > 0 and room == bound:
                     hit = True
@@ -514,8 +522,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                         pid = face_ids[f, par]
                         if sd[pid] == UNTESTED or body_face[pid] < 0:
                             continue
-                        gx, gy, gz = p[vid, 0] - p[pid, 0], p[vid, 1] - p[pid, 1], p[vid, 2] - p[pid, 2]
-                        reach_p = abs(sd[pid]) + math.sqrt(gx * gx + gy * gy + gz * gz) + RECHECK_SLACK
+                        reach_p = abs(sd[pid]) + (g0 if m == 0 else (g1 if m == 1 else g2)) + RECHECK_SLACK
                         if abs(d) > reach_p and reach_p < best:
                             start, best = body_face[pid], reach_p
                     if start < 0 or start == body_face[vid]:
