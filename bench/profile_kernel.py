@@ -1,0 +1,227 @@
+"""Where a numba kernel's time goes, source line by source line (Linux `perf`, sampling).
+
+    .venv/bin/python bench/profile_kernel.py avoid_penetration [--outfit female_casualsuit01]
+        [--clip cmu_131_01_walk_3dsmax] [--frame 60] [--seconds 8] [--depth 2]
+
+1. Runs the outfit through the clip (60 Hz) to --frame and keeps the arguments of every call of
+   the kernel in that frame (a kernel the pipeline calls from Python: `cloth.surface`,
+   `cloth.sim`, `cloth.layers`, ...; one inlined into another is profiled as part of it).
+2. In a child process, with numba's profiling build (`NUMBA_ENABLE_PROFILING=1`: line tables in
+   the machine code; its own cache folder, so the project's cache stays as it is), calls the
+   kernel on fresh copies of those arguments for --seconds under `perf record -e cpu-clock`.
+3. Maps each sample inside the kernel to its source line and the chain of helpers inlined there
+   (`addr2line` on the kernel's object code from numba's cache) and prints the shares: at depth 1
+   the kernel's own lines, at depth 2 each of those split by the line of the helper it runs, ...
+
+The first run compiles the kernel's profiling build (20-60 s for the S103 kernels). Needs `perf`
+(software clock events suffice: this works in a VM without hardware counters) and binutils
+(`addr2line`, `nm`). Timings in the child are of one core with warm caches: compare lines within
+one profile, not with `bench_surface.py`'s in-pipeline figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import importlib
+import linecache
+import os
+import pickle
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+PROFILE_CACHE = Path(tempfile.gettempdir()) / "tryon-numba-profile-cache"
+
+
+def find_kernel(name: str):
+    """The dispatcher called `name` in one of the cloth modules."""
+    for mod in ("cloth.wrinkles", "cloth.collision", "cloth.creases", "cloth.pn", "cloth.layers", "cloth.dynamics",
+                "cloth.geometry", "cloth.winding", "cloth.sim", "cloth.surface"):
+        f = getattr(importlib.import_module(mod), name, None)
+        if f is not None and hasattr(f, "py_func"):
+            return mod, f
+    raise SystemExit(f"profile_kernel: no numba kernel called {name!r} in cloth/")
+
+
+def capture(name: str, outfit: str, clip: str, frame: int, data: str | None) -> list:
+    """The arguments of every call of kernel `name` (from Python) in walk frame `frame`."""
+    sys.path.insert(0, str(ROOT))
+    from services.cloth_job import run_cloth_clip
+    from skinning.body import load_body
+    from skinning.data import data_dir
+    from cloth.surface import SurfaceSettings
+
+    _, kernel = find_kernel(name)
+    current = {"frame": 0}
+    calls: list = []
+
+    def wrapper(*args):
+        if current["frame"] == frame:
+            calls.append([a.copy() if isinstance(a, np.ndarray) else a for a in args])
+        return kernel(*args)
+
+    patched = []
+    for mod in list(sys.modules.values()):
+        if getattr(mod, "__name__", "").startswith(("cloth.", "services.", "skinning.")) \
+                and getattr(mod, name, None) is kernel:
+            setattr(mod, name, wrapper)
+            patched.append(mod)
+    if not patched:
+        raise SystemExit(f"profile_kernel: {name} is not called from Python by the pipeline")
+
+    class Captured(Exception):
+        pass
+
+    def on_frame(i, session, body_frame, positions):
+        current["frame"] += 1
+        if current["frame"] > frame:
+            raise Captured
+
+    root = data_dir(data)
+    try:
+        run_cloth_clip(load_body(root), root / "garments" / outfit, root / "mocap" / f"{clip}.bvh", every=2,
+                       on_frame=on_frame, surface=SurfaceSettings())
+    except Captured:
+        pass
+    finally:
+        for mod in patched:
+            setattr(mod, name, kernel)
+    if not calls:
+        raise SystemExit(f"profile_kernel: {name} was not called in frame {frame}")
+    return calls
+
+
+def child(name: str, calls_file: str, seconds: float, out_dir: str) -> None:
+    """Run in the profiling build: write the kernel's object code and entry address, then call it
+    on copies of the captured arguments for `seconds`."""
+    from numba.core import codegen
+
+    objects = {}
+    unserialize = codegen.JITCodeLibrary._unserialize.__func__
+
+    def keep_object(cls, cg, state):  # the object code numba loads from its cache (then drops)
+        if state[1] == "object":
+            objects[state[0]] = state[2][0]
+        return unserialize(cls, cg, state)
+
+    codegen.JITCodeLibrary._unserialize = classmethod(keep_object)
+    sys.path.insert(0, str(ROOT))
+    _, kernel = find_kernel(name)
+    calls = pickle.load(open(calls_file, "rb"))
+    for args in calls:  # compiles (first run) or loads from the profiling cache
+        kernel(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
+    if name not in objects:
+        print("compiled", flush=True)  # a first run: the parent runs this again, from the cache
+        return
+    signature = tuple(kernel.typeof_pyval(a) for a in calls[0])
+    cres = kernel.overloads[signature]
+    if len(kernel.overloads) > 1:
+        print(f"note: {name} has {len(kernel.overloads)} compiled versions in the profiling cache; "
+              f"the line table may be another's", flush=True)
+    address = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
+    Path(out_dir, "kernel.o").write_bytes(objects[name])
+    Path(out_dir, "address").write_text(f"{address} {cres.fndesc.llvm_func_name}\n")
+    spent, n, t0 = 0.0, 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        for args in calls:
+            copies = [a.copy() if isinstance(a, np.ndarray) else a for a in args]
+            t = time.perf_counter()
+            kernel(*copies)
+            spent += time.perf_counter() - t
+            n += 1
+    print(f"{n} calls, {spent / n * 1e6:.0f} us per call", flush=True)
+
+
+def symbol_size(obj: Path, symbol: str) -> int:
+    out = subprocess.run(["nm", "-S", str(obj)], capture_output=True, text=True, check=True).stdout
+    for line in out.splitlines():
+        parts = line.split()
+        if len(parts) == 4 and parts[3] == symbol:
+            return int(parts[1], 16)
+    raise SystemExit(f"profile_kernel: {symbol} not in the kernel's object code")
+
+
+def line_chains(obj: Path, offsets: list[int]) -> dict[int, list[str]]:
+    """offset -> [innermost source line, ..., the kernel's own line] (inlined helpers between)."""
+    out = subprocess.run(["addr2line", "-a", "-i", "-e", str(obj)] + [hex(o) for o in offsets],
+                         capture_output=True, text=True, check=True).stdout.splitlines()
+    chains: dict[int, list[str]] = {}
+    current = None
+    for line in out:
+        if line.startswith("0x"):
+            current = int(line, 16)
+            chains[current] = []
+        elif current is not None:
+            chains[current].append(line.replace(str(ROOT) + "/", ""))
+    return chains
+
+
+def report(out_dir: Path, depth: int) -> None:
+    address, symbol = (out_dir / "address").read_text().split()
+    base = int(address)
+    obj = out_dir / "kernel.o"
+    size = symbol_size(obj, symbol)
+    ips = subprocess.run(["perf", "script", "-i", str(out_dir / "perf.data"), "-F", "ip"], capture_output=True,
+                         text=True, check=True).stdout.split()
+    inside = collections.Counter(int(ip, 16) - base for ip in ips if base <= int(ip, 16) < base + size)
+    total = sum(inside.values())
+    print(f"{len(ips)} samples, {total} in the kernel ({size:,} bytes of machine code)")
+    if not total:
+        return
+    chains = line_chains(obj, sorted(inside))
+    for d in range(1, depth + 1):
+        shares = collections.Counter()
+        for offset, count in inside.items():
+            chain = chains.get(offset) or ["?"]
+            shares[" <- ".join(reversed(chain[-d:]))] += count
+        print(f"\n== the kernel's lines{' and the helpers they run, ' + str(d) + ' deep' if d > 1 else ''}")
+        for where, count in shares.most_common(25):
+            file, _, line = where.rsplit(" <- ", 1)[-1].rpartition(":")
+            text = linecache.getline(str(ROOT / file), int(line)).strip() if line.isdigit() else ""
+            print(f"{count / total * 100:5.1f} %  {where:60s}  {text[:70]}")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("kernel", help="a per-frame kernel's name, e.g. avoid_penetration, apply_constraints")
+    ap.add_argument("--outfit", default="female_casualsuit01")
+    ap.add_argument("--clip", default="cmu_131_01_walk_3dsmax")
+    ap.add_argument("--frame", type=int, default=60, help="the 60 Hz frame whose calls are profiled")
+    ap.add_argument("--seconds", type=float, default=8.0)
+    ap.add_argument("--depth", type=int, default=2, help="how many levels of inlined helpers to split by")
+    ap.add_argument("--data")
+    ap.add_argument("--child", nargs=3, metavar=("CALLS", "SECONDS", "OUT"), help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        child(args.kernel, args.child[0], float(args.child[1]), args.child[2])
+        return
+    for tool in ("perf", "addr2line", "nm"):
+        if shutil.which(tool) is None:
+            raise SystemExit(f"profile_kernel: `{tool}` is not installed (perf: linux-perf; addr2line, nm: binutils)")
+    calls = capture(args.kernel, args.outfit, args.clip, args.frame, args.data)
+    print(f"{args.kernel}: {len(calls)} calls in frame {args.frame} ({args.outfit}, {args.clip})", flush=True)
+    env = {**os.environ, "NUMBA_ENABLE_PROFILING": "1", "NUMBA_CACHE_DIR": str(PROFILE_CACHE)}
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp)
+        pickle.dump(calls, open(out / "calls.pkl", "wb"))
+        me = [sys.executable, str(Path(__file__).resolve()), args.kernel, "--child", str(out / "calls.pkl")]
+        first = subprocess.run(me + ["0", str(out)], env=env, capture_output=True, text=True)
+        if first.returncode != 0:
+            raise SystemExit(f"profile_kernel: the profiling build failed:\n{first.stderr[-2000:]}")
+        rec = subprocess.run(["perf", "record", "-q", "-e", "cpu-clock", "-F", "4000", "-o", str(out / "perf.data"),
+                              "--"] + me + [str(args.seconds), str(out)], env=env, capture_output=True, text=True)
+        if rec.returncode != 0 or not (out / "address").exists():
+            raise SystemExit(f"profile_kernel: perf record failed:\n{(rec.stderr or rec.stdout)[-2000:]}")
+        print(rec.stdout.strip())
+        report(out, args.depth)
+
+
+if __name__ == "__main__":
+    main()
