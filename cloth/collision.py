@@ -224,6 +224,8 @@ def face_normals(body_x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 def walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, mask):
     """Nearest body vertex to p by a local walk from `start` (S101: repeat while a neighbour is nearer),
     through vertices of the particle's body regions only (regions[u] & mask)."""
+    if mask == ALL_REGIONS:  # (every vertex has a region bit, BodyMesh.build: none to read)
+        return walk_nearest_any(px, py, pz, body_x, nbr_start, nbr_ids, start)
     best = start
     bd = (body_x[best, 0] - px) ** 2 + (body_x[best, 1] - py) ** 2 + (body_x[best, 2] - pz) ** 2
     moved = True
@@ -233,6 +235,25 @@ def walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, mask):
             u = nbr_ids[k]
             if not (regions[u] & mask):
                 continue
+            d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
+            if d < bd:
+                bd = d
+                best = u
+                moved = True
+    return best
+
+
+@helper
+def walk_nearest_any(px, py, pz, body_x, nbr_start, nbr_ids, start):
+    """`walk_nearest` through every vertex (S103 walks a particle's own nearest vertex so, for each
+    of its ten thousand particles: a sixth of its time)."""
+    best = start
+    bd = (body_x[best, 0] - px) ** 2 + (body_x[best, 1] - py) ** 2 + (body_x[best, 2] - pz) ** 2
+    moved = True
+    while moved:
+        moved = False
+        for k in range(nbr_start[best], nbr_start[best + 1]):
+            u = nbr_ids[k]
             d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
             if d < bd:
                 bd = d
