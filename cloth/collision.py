@@ -282,6 +282,24 @@ def deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
     return best, best_t
 
 
+@helper
+def behind_every_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
+    """Whether p lies behind the plane of every usable face incident to `vertex` (and there is
+    one): `deepest_plane`'s "distance < 0", which stops at the first face p is in front of."""
+    found = False
+    for k in range(tri_start[vertex], tri_start[vertex + 1]):
+        t = tri_ids[k]
+        if face_n[t, 3] == 0.0:
+            continue
+        a = tris[t, 0]
+        d = ((px - body_x[a, 0]) * face_n[t, 0] + (py - body_x[a, 1]) * face_n[t, 1]
+             + (pz - body_x[a, 2]) * face_n[t, 2])
+        if d >= 0.0:
+            return False
+        found = found or d > -np.inf  # (as deepest_plane: a face at -inf or NaN is no face)
+    return found
+
+
 # a particle this many thicknesses in front of the faces it was last tested against, less how
 # far it moved since, is not tested again in the frame (see collide_particles)
 SKIP_CLEARANCE = 2.0

@@ -11,7 +11,8 @@ import math
 
 import numpy as np
 
-from .collision import ALL_REGIONS, deepest_plane, face_walk_distance, grid_nearest_per_part, walk_nearest
+from .collision import (ALL_REGIONS, behind_every_plane, deepest_plane, face_walk_distance, grid_nearest_per_part,
+                        walk_nearest)
 from .geometry import add_face_normal
 from .jit import FAST_ARITHMETIC, helper, kernel
 
@@ -71,10 +72,11 @@ def other_part_distance(px, py, pz, start, face, bound, body_x, nbr_start, nbr_i
     if face < 0:
         vtx = walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, regions[start])
         d2 = (body_x[vtx, 0] - px) ** 2 + (body_x[vtx, 1] - py) ** 2 + (body_x[vtx, 2] - pz) ** 2
-        plane, face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
         if d2 > (bound + PART_SLACK) ** 2:
             # -inf: p is behind every face around the part's nearest vertex, as deep in a limb
-            return -np.inf if face >= 0 and plane < 0.0 else np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
+            deep = behind_every_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)
+            return -np.inf if deep else np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
+        face = deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vtx, face_n)[1]
         if face < 0:
             return np.inf, 0.0, 0.0, 0.0, px, py, pz, -1
     return face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions,
