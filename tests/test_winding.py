@@ -369,7 +369,7 @@ def test_the_winding_grid_holds_each_face_in_every_column_its_box_covers(body, c
         np.testing.assert_array_equal(start[: n + 1], want[0])
         np.testing.assert_array_equal(ids[: start[n]], want[1])
         # each entry's box (single precision) holds its face's, and is hardly wider
-        box = span[: start[n]].astype(np.float64)
+        box = span[:, : start[n]].T.astype(np.float64)  # (one row per box side)
         assert span.dtype == np.float32
         assert (box[:, 0::2] <= want[2][:, 0::2]).all() and (box[:, 1::2] >= want[2][:, 1::2]).all()
         np.testing.assert_allclose(box, want[2], rtol=0, atol=1e-5)
@@ -420,3 +420,58 @@ def test_lowest_bit_finds_the_lowest_set_bit_of_every_word():
         for high in (0, int(rng.integers(0, 2**63)), 2**64 - 1):
             word = (np.uint64(high) & ~(low - np.uint64(1))) | low  # bits below k cleared, bit k set
             assert lowest_bit(word) == k
+
+
+def column_winding(x, tris, grid, p):
+    """The winding number of p as `winding_number` counts it, but crossing every face of p's
+    column (no entry skipped by its box)."""
+    from cloth.winding import U, V, W, ray_crossing
+
+    lo, start, ids, span, extent = grid.arrays()
+    i, k = np.floor((p[U] - lo[0]) / lo[4]), np.floor((p[V] - lo[1]) / lo[4])
+    if i < 0 or k < 0 or i >= lo[2] or k >= lo[3]:
+        return 0
+    c = int(i) * int(lo[3]) + int(k)
+    if p[W] >= extent[c, 1] or p[W] < extent[c, 0]:
+        return 0
+    beyond = 2.0 * p[W] >= extent[c, 0] + extent[c, 1]
+    w = 0
+    for e in range(start[c], start[c + 1]):
+        h, s = ray_crossing(x, tris, ids[e], p[U], p[V], U, V, W)
+        if beyond and h > p[W]:
+            w += s
+        elif not beyond and h < p[W]:
+            w -= s
+    return w
+
+
+def test_the_box_tests_skip_only_faces_the_ray_cannot_cross(body):
+    """The winding number skips a column's entries by their single-precision boxes, compared with p
+    rounded to single precision: the same count as crossing every face of the column, near the
+    skin and at points on the boxes' bounds, within a float64 step of them, where that rounding
+    meets the bound (the boxes are widened by more than it)."""
+    from cloth.winding import U, V, W
+    from services.cloth_job import collision_body
+
+    mesh = collision_body(body)
+    x = np.ascontiguousarray(mesh.internal(body.vertices), dtype=np.float64)
+    faces = mesh.winding_faces
+    g = WindingGrid(faces, len(x))
+    g.update(x)
+    lo, start, ids, span, extent = g.arrays()
+    rng = np.random.default_rng(5)
+    used = np.unique(faces)
+    points = list(x[used[rng.choice(len(used), 1500)]] + rng.normal(scale=0.004, size=(1500, 3)))
+    for e in rng.choice(int(start[int(lo[2] * lo[3])]), 1500):
+        w_lo, w_hi, u_lo, u_hi, v_lo, v_hi = (float(b) for b in span[:, e])
+        p = np.zeros(3)
+        p[U] = rng.choice([u_lo, u_hi, np.nextafter(u_lo, -np.inf), np.nextafter(u_hi, np.inf), (u_lo + u_hi) / 2])
+        p[V] = rng.choice([v_lo, v_hi, np.nextafter(v_lo, -np.inf), np.nextafter(v_hi, np.inf), (v_lo + v_hi) / 2])
+        p[W] = rng.choice([w_lo, w_hi, np.nextafter(w_lo, -np.inf), np.nextafter(w_hi, np.inf), (w_lo + w_hi) / 2])
+        points.append(p)
+    points = np.array(points)
+    out = np.zeros(len(points), dtype=np.int64)
+    winding_numbers(points, x, g.tris, *g.arrays(), out)
+    want = np.array([column_winding(x, g.tris, g, p) for p in points])
+    np.testing.assert_array_equal(out, want)
+    assert (want[:1500] >= 1).sum() > 200  # some near-skin points inside
