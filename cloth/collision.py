@@ -252,12 +252,13 @@ def walk_nearest_any(px, py, pz, body_x, nbr_start, nbr_ids, start):
     moved = True
     while moved:
         moved = False
-        for k in range(nbr_start[best], nbr_start[best + 1]):
-            u = nbr_ids[k]
+        # (unsigned indices: no wrap-around of a negative one to compute, 2 % of S103)
+        for k in range(np.uint64(nbr_start[best]), np.uint64(nbr_start[best + 1])):
+            u = np.uint64(nbr_ids[k])
             d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
             if d < bd:
                 bd = d
-                best = u
+                best = nbr_ids[k]
                 moved = True
     return best
 
