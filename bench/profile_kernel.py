@@ -15,13 +15,14 @@
 
 The first run compiles the kernel's profiling build (20-60 s for the S103 kernels). Needs `perf`
 (software clock events suffice: this works in a VM without hardware counters) and binutils
-(`addr2line`, `nm`). Timings in the child are of one core with warm caches: compare lines within
+(`addr2line`, `objdump`). Timings in the child are of one core with warm caches: compare lines within
 one profile, not with `bench_surface.py`'s in-pipeline figures.
 """
 
 from __future__ import annotations
 
 import argparse
+import bisect
 import collections
 import importlib
 import linecache
@@ -99,17 +100,19 @@ def capture(name: str, outfit: str, clip: str, frame: int, data: str | None) -> 
 
 
 def child(name: str, calls_file: str, seconds: float, out_dir: str) -> None:
-    """Run in the profiling build: write the kernel's object code and entry address, then call it
-    on copies of the captured arguments for `seconds`."""
+    """Run in the profiling build: write the object code and load address of the kernel and of every
+    other kernel of cloth/ loaded with it (those it calls), then call it on copies of the captured
+    arguments for `seconds`."""
     from numba.core import codegen
 
-    objects = {}
+    loaded = []  # (library, its object code) of every kernel numba loads from its cache (it then drops the code)
     unserialize = codegen.JITCodeLibrary._unserialize.__func__
 
-    def keep_object(cls, cg, state):  # the object code numba loads from its cache (then drops)
+    def keep_object(cls, cg, state):
+        library = unserialize(cls, cg, state)
         if state[1] == "object":
-            objects[state[0]] = state[2][0]
-        return unserialize(cls, cg, state)
+            loaded.append((library, state[2][0]))
+        return library
 
     codegen.JITCodeLibrary._unserialize = classmethod(keep_object)
     sys.path.insert(0, str(ROOT))
@@ -117,19 +120,35 @@ def child(name: str, calls_file: str, seconds: float, out_dir: str) -> None:
     calls = pickle.load(open(calls_file, "rb"))
     for args in calls:  # compiles (first run) or loads from the profiling cache
         kernel(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
-    if name not in objects:
+    entry = kernel.overloads[tuple(kernel.typeof_pyval(a) for a in calls[0])]
+    if not any(library is entry.library for library, _ in loaded):
         print("compiled", flush=True)  # a first run: the parent runs this again, from the cache
         return
-    signature = tuple(kernel.typeof_pyval(a) for a in calls[0])
-    cres = kernel.overloads[signature]
-    if len(kernel.overloads) > 1:
-        print(f"note: {name} has {len(kernel.overloads)} compiled versions in the profiling cache; "
-              f"the line table may be another's", flush=True)
-    address = cres.library.get_pointer_to_function(cres.fndesc.llvm_func_name)
-    Path(out_dir, "kernel.o").write_bytes(objects[name])
-    Path(out_dir, "address").write_text(f"{address} {cres.fndesc.llvm_func_name}\n")
+    # where each library's code sections were loaded: from a global function's address (a weak one
+    # may resolve to another library's copy)
+    index = []
+    for k, (library, code) in enumerate(loaded):
+        obj = Path(out_dir, f"{k}.o")
+        obj.write_bytes(code)
+        functions = function_symbols(obj)
+        for section in {f[1] for f in functions}:
+            mine = [f for f in functions if f[1] == section]
+            anchor = next((f for f in mine if f[0] == "g"), None)
+            if anchor is None:
+                continue
+            address = library.get_pointer_to_function(anchor[4])
+            if not address:
+                continue
+            base = address - anchor[2]
+            lo, hi = min(f[2] for f in mine), max(f[2] + f[3] for f in mine)
+            entry_size = next((f[3] for f in mine if f[4] == entry.fndesc.llvm_func_name), 0) \
+                if library is entry.library else 0
+            index.append(f"{base + lo} {base + hi} {base} {obj} {section} {entry_size}")
+    Path(out_dir, "index").write_text("\n".join(index) + "\n")
+    if seconds <= 0:
+        return  # (the parent's first call: the profiling build is in the cache)
     spent, n, t0 = 0.0, 0, time.perf_counter()
-    while time.perf_counter() - t0 < seconds:
+    while n == 0 or time.perf_counter() - t0 < seconds:
         for args in calls:
             copies = [a.copy() if isinstance(a, np.ndarray) else a for a in args]
             t = time.perf_counter()
@@ -139,18 +158,22 @@ def child(name: str, calls_file: str, seconds: float, out_dir: str) -> None:
     print(f"{n} calls, {spent / n * 1e6:.0f} us per call", flush=True)
 
 
-def symbol_size(obj: Path, symbol: str) -> int:
-    out = subprocess.run(["nm", "-S", str(obj)], capture_output=True, text=True, check=True).stdout
+def function_symbols(obj: Path) -> list[tuple[str, str, int, int, str]]:
+    """(binding "g"/"w"/"l", section, offset, size, name) of every function in an object file."""
+    out = subprocess.run(["objdump", "-t", str(obj)], capture_output=True, text=True, check=True).stdout
+    functions = []
     for line in out.splitlines():
         parts = line.split()
-        if len(parts) == 4 and parts[3] == symbol:
-            return int(parts[1], 16)
-    raise SystemExit(f"profile_kernel: {symbol} not in the kernel's object code")
+        if len(parts) >= 6 and "F" in parts[1:-3]:
+            binding = parts[1] if parts[1] in ("g", "w", "l") else "l"
+            functions.append((binding, parts[-3], int(parts[0], 16), int(parts[-2], 16), parts[-1]))
+    return functions
 
 
-def line_chains(obj: Path, offsets: list[int]) -> dict[int, list[str]]:
-    """offset -> [innermost source line, ..., the kernel's own line] (inlined helpers between)."""
-    out = subprocess.run(["addr2line", "-a", "-i", "-e", str(obj)] + [hex(o) for o in offsets],
+def line_chains(obj: Path, section: str, offsets: list[int]) -> dict[int, list[str]]:
+    """offset in `section` -> [innermost source line, ..., the function's own line] (inlined helpers
+    between)."""
+    out = subprocess.run(["addr2line", "-a", "-i", "-j", section, "-e", str(obj)] + [hex(o) for o in offsets],
                          capture_output=True, text=True, check=True).stdout.splitlines()
     chains: dict[int, list[str]] = {}
     current = None
@@ -164,24 +187,37 @@ def line_chains(obj: Path, offsets: list[int]) -> dict[int, list[str]]:
 
 
 def report(out_dir: Path, depth: int) -> None:
-    address, symbol = (out_dir / "address").read_text().split()
-    base = int(address)
-    obj = out_dir / "kernel.o"
-    size = symbol_size(obj, symbol)
+    """The samples in the kernels' machine code, by source line (see module)."""
+    ranges = []  # (start, end, section base, object file, section) in the child's memory
+    entry_bytes = 0
+    for line in (out_dir / "index").read_text().split("\n"):
+        if line:
+            start, end, base, obj, section, size = line.split()
+            ranges.append((int(start), int(end), int(base), Path(obj), section))
+            entry_bytes = max(entry_bytes, int(size))
+    ranges.sort(key=lambda r: r[0])
+    starts = [r[0] for r in ranges]
     ips = subprocess.run(["perf", "script", "-i", str(out_dir / "perf.data"), "-F", "ip"], capture_output=True,
                          text=True, check=True).stdout.split()
-    inside = collections.Counter(int(ip, 16) - base for ip in ips if base <= int(ip, 16) < base + size)
-    total = sum(inside.values())
-    print(f"{len(ips)} samples, {total} in the kernel ({size:,} bytes of machine code)")
+    by_section: dict[tuple, collections.Counter] = collections.defaultdict(collections.Counter)
+    for ip in (int(x, 16) for x in ips):
+        k = bisect.bisect_right(starts, ip) - 1
+        if k >= 0 and ip < ranges[k][1]:
+            by_section[ranges[k][3], ranges[k][4]][ip - ranges[k][2]] += 1
+    total = sum(sum(c.values()) for c in by_section.values())
+    print(f"{len(ips)} samples, {total} in the kernel ({entry_bytes:,} bytes of machine code) and the kernels it "
+          f"calls")
     if not total:
         return
-    chains = line_chains(obj, sorted(inside))
+    samples = []  # (chain, count)
+    for (obj, section), counts in by_section.items():
+        chains = line_chains(obj, section, sorted(counts))
+        samples += [(chains.get(offset) or ["?"], count) for offset, count in counts.items()]
     for d in range(1, depth + 1):
         shares = collections.Counter()
-        for offset, count in inside.items():
-            chain = chains.get(offset) or ["?"]
+        for chain, count in samples:
             shares[" <- ".join(reversed(chain[-d:]))] += count
-        print(f"\n== the kernel's lines{' and the helpers they run, ' + str(d) + ' deep' if d > 1 else ''}")
+        print(f"\n== the kernels' own lines{' and the helpers they run, ' + str(d) + ' deep' if d > 1 else ''}")
         for where, count in shares.most_common(25):
             file, _, line = where.rsplit(" <- ", 1)[-1].rpartition(":")
             text = linecache.getline(str(ROOT / file), int(line)).strip() if line.isdigit() else ""
@@ -202,9 +238,9 @@ def main() -> None:
     if args.child:
         child(args.kernel, args.child[0], float(args.child[1]), args.child[2])
         return
-    for tool in ("perf", "addr2line", "nm"):
+    for tool in ("perf", "addr2line", "objdump"):
         if shutil.which(tool) is None:
-            raise SystemExit(f"profile_kernel: `{tool}` is not installed (perf: linux-perf; addr2line, nm: binutils)")
+            raise SystemExit(f"profile_kernel: `{tool}` is not installed (perf: linux-perf; addr2line, objdump: binutils)")
     calls = capture(args.kernel, args.outfit, args.clip, args.frame, args.data)
     print(f"{args.kernel}: {len(calls)} calls in frame {args.frame} ({args.outfit}, {args.clip})", flush=True)
     env = {**os.environ, "NUMBA_ENABLE_PROFILING": "1", "NUMBA_CACHE_DIR": str(PROFILE_CACHE)}
@@ -217,7 +253,7 @@ def main() -> None:
             raise SystemExit(f"profile_kernel: the profiling build failed:\n{first.stderr[-2000:]}")
         rec = subprocess.run(["perf", "record", "-q", "-e", "cpu-clock", "-F", "4000", "-o", str(out / "perf.data"),
                               "--"] + me + [str(args.seconds), str(out)], env=env, capture_output=True, text=True)
-        if rec.returncode != 0 or not (out / "address").exists():
+        if rec.returncode != 0 or not (out / "index").exists():
             raise SystemExit(f"profile_kernel: perf record failed:\n{(rec.stderr or rec.stdout)[-2000:]}")
         print(rec.stdout.strip())
         report(out, args.depth)
