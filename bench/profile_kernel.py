@@ -68,6 +68,11 @@ def capture(name: str, outfit: str, clip: str, frame: int, data: str | None) -> 
             calls.append([a.copy() if isinstance(a, np.ndarray) else a for a in args])
         return kernel(*args)
 
+    root = data_dir(data)
+    body = load_body(root)
+    # every kernel compiled first: one that calls this kernel would otherwise be compiled against the wrapper
+    run_cloth_clip(body, root / "garments" / outfit, root / "mocap" / f"{clip}.bvh", every=2, max_frames=3,
+                   surface=SurfaceSettings())
     patched = []
     for mod in list(sys.modules.values()):
         if getattr(mod, "__name__", "").startswith(("cloth.", "services.", "skinning.")) \
@@ -85,9 +90,8 @@ def capture(name: str, outfit: str, clip: str, frame: int, data: str | None) -> 
         if current["frame"] > frame:
             raise Captured
 
-    root = data_dir(data)
     try:
-        run_cloth_clip(load_body(root), root / "garments" / outfit, root / "mocap" / f"{clip}.bvh", every=2,
+        run_cloth_clip(body, root / "garments" / outfit, root / "mocap" / f"{clip}.bvh", every=2,
                        on_frame=on_frame, surface=SurfaceSettings())
     except Captured:
         pass

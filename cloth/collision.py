@@ -231,14 +231,14 @@ def walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, mask):
     moved = True
     while moved:
         moved = False
-        for k in range(nbr_start[best], nbr_start[best + 1]):
-            u = nbr_ids[k]
+        for k in range(np.uint64(nbr_start[best]), np.uint64(nbr_start[best + 1])):
+            u = np.uint64(nbr_ids[k])  # (unsigned: no wrap-around of a negative index)
             if not (regions[u] & mask):
                 continue
             d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
             if d < bd:
                 bd = d
-                best = u
+                best = nbr_ids[k]
                 moved = True
     return best
 
@@ -270,16 +270,16 @@ def deepest_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, face_n):
     p is inside (behind every face incident to `vertex`) exactly when the distance is < 0."""
     best = -np.inf
     best_t = -1
-    for k in range(tri_start[vertex], tri_start[vertex + 1]):
-        t = tri_ids[k]
+    for k in range(np.uint64(tri_start[vertex]), np.uint64(tri_start[vertex + 1])):
+        t = np.uint64(tri_ids[k])  # (unsigned: no wrap-around of a negative index)
         if face_n[t, 3] == 0.0:
             continue
-        a = tris[t, 0]
+        a = np.uint64(tris[t, 0])
         d = ((px - body_x[a, 0]) * face_n[t, 0] + (py - body_x[a, 1]) * face_n[t, 1]
              + (pz - body_x[a, 2]) * face_n[t, 2])
         if d > best:
             best = d
-            best_t = t
+            best_t = tri_ids[k]
     return best, best_t
 
 
@@ -288,11 +288,11 @@ def behind_every_plane(px, py, pz, body_x, tris, tri_start, tri_ids, vertex, fac
     """Whether p lies behind the plane of every usable face incident to `vertex` (and there is
     one): `deepest_plane`'s "distance < 0", which stops at the first face p is in front of."""
     found = False
-    for k in range(tri_start[vertex], tri_start[vertex + 1]):
-        t = tri_ids[k]
+    for k in range(np.uint64(tri_start[vertex]), np.uint64(tri_start[vertex + 1])):
+        t = np.uint64(tri_ids[k])  # (unsigned: no wrap-around of a negative index)
         if face_n[t, 3] == 0.0:
             continue
-        a = tris[t, 0]
+        a = np.uint64(tris[t, 0])
         d = ((px - body_x[a, 0]) * face_n[t, 0] + (py - body_x[a, 1]) * face_n[t, 1]
              + (pz - body_x[a, 2]) * face_n[t, 2])
         if d >= 0.0:

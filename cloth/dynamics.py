@@ -36,8 +36,8 @@ def spring_geometry(x, v, pairs, work):
     The loads by particle index (vector gathers were no faster than scalar loads here), kept
     apart from the arithmetic, which vectorises."""
     for s in range(pairs.shape[0]):
-        i = pairs[s, 0]
-        j = pairs[s, 1]
+        i = np.uint64(pairs[s, 0])  # (unsigned: no wrap-around of a negative index)
+        j = np.uint64(pairs[s, 1])
         dx = x[i, 0] - x[j, 0]
         dy = x[i, 1] - x[j, 1]
         dz = x[i, 2] - x[j, 2]
@@ -81,8 +81,8 @@ def spring_forces(x, v, pairs, params, work, force):
     spring_geometry(x, v, pairs, work)
     spring_magnitudes(params, work)
     for s in range(pairs.shape[0]):
-        i = pairs[s, 0]
-        j = pairs[s, 1]
+        i = np.uint64(pairs[s, 0])
+        j = np.uint64(pairs[s, 1])
         m = work[5, s]
         fx = m * work[0, s]
         fy = m * work[1, s]
@@ -171,8 +171,8 @@ def limit_stretch(x, v, carried, inv_mass, si, sj, rest, n_springs, max_strain):
     springs soft enough for a few substeps would otherwise let loose cloth sag and flutter
     far beyond what woven fabric allows."""
     for s in range(n_springs):
-        i = si[s]
-        j = sj[s]
+        i = np.uint64(si[s])  # (unsigned: no wrap-around of a negative index)
+        j = np.uint64(sj[s])
         wi = inv_mass[i]
         wj = inv_mass[j]
         w = wi + wj
