@@ -663,13 +663,13 @@ def ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
     best_t = -1
     feature = INSIDE_FACE
     qx = qy = qz = 0.0
-    for k in range(tri_start[vtx], tri_start[vtx + 1]):
-        t = tri_ids[k]
+    for k in range(np.uint64(tri_start[vtx]), np.uint64(tri_start[vtx + 1])):
+        t = np.uint64(tri_ids[k])  # (unsigned: no wrap-around of a negative index)
         bv, bw = closest_point_triangle(px, py, pz, body_x, tris[t, 0], tris[t, 1], tris[t, 2], q)
         d = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
         if d < best:
             best = d
-            best_t = t
+            best_t = tri_ids[k]
             qx, qy, qz = q[0], q[1], q[2]
             feature = closest_feature(bv, bw)
     if best_t < 0:
@@ -1370,7 +1370,7 @@ def grid_nearest_per_part(px, py, pz, grid_x, grid_regions, parts, cell, start, 
                 c = _cell_hash(i, j, k, mask)
                 if (parts[c] & ~own) == 0:
                     continue
-                for e in range(start[c], start[c + 1]):
+                for e in range(np.uint64(start[c]), np.uint64(start[c + 1])):  # (unsigned: no wrap-around)
                     g = grid_regions[e]
                     if g == own:
                         continue
@@ -1406,7 +1406,7 @@ def grid_nearest(px, py, pz, grid_x, cell, start, ids, best, best_d2):
         for j in range(j0, j1 + 1):
             for k in range(k0, k1 + 1):
                 c = _cell_hash(i, j, k, mask)
-                for e in range(start[c], start[c + 1]):
+                for e in range(np.uint64(start[c]), np.uint64(start[c + 1])):  # (unsigned: no wrap-around)
                     d = (grid_x[e, 0] - px) ** 2 + (grid_x[e, 1] - py) ** 2 + (grid_x[e, 2] - pz) ** 2
                     if d < best_d2:
                         best_d2 = d
