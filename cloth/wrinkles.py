@@ -749,7 +749,7 @@ def normal_force(p, ef, edges, vf):
     for i in range(vf.shape[0]):
         vf[i] = 0.0
     for e in range(edges.shape[0]):
-        i, j = edges[e, 0], edges[e, 1]
+        i, j = np.uint64(edges[e, 0]), np.uint64(edges[e, 1])  # (unsigned: no wrap-around of a negative index)
         dx, dy, dz = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1], p[i, 2] - p[j, 2]
         d2 = dx * dx + dy * dy + dz * dz
         if d2 > 1e-30:  # (an edge under 1e-15 m has no direction in float32: as coincident ends)
