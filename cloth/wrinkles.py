@@ -613,7 +613,7 @@ def chain_segments(p, chain_ids, seg):
     i = chain_ids[0]
     x0, y0, z0 = p[i, 0], p[i, 1], p[i, 2]
     for q in range(chain_ids.shape[0] - 1):
-        j = chain_ids[q + 1]
+        j = np.uint64(chain_ids[q + 1])  # (unsigned: no wrap-around of a negative index)
         x1, y1, z1 = p[j, 0], p[j, 1], p[j, 2]
         seg[0, q] = x1 - x0
         seg[1, q] = y1 - y0
@@ -666,7 +666,7 @@ def _interpolate_line(ids, rates, count, f1, fn, ef, weight, accumulate):
         else:  # a chain folded flat everywhere transmits nothing: split evenly
             s = (m - 0.5) / (count - 2)
         run += rates[m]
-        i = ids[m]
+        i = np.uint64(ids[m])  # (unsigned: no wrap-around of a negative index)
         if accumulate:
             ef[i, 0] += weight * (f1[0] + s * d0)
             ef[i, 1] += weight * (f1[1] + s * d1)
@@ -1071,7 +1071,7 @@ def apply_constraints(p_smoothed, n_pn, dh, floor, ceiling, face_ids, face_edges
         last_count, count = _keep_changed(moved[(r - 1) % 2], count, dh, start_h), 0
         for k in range(last_count):
             v = moved[(r - 1) % 2, k]
-            for m in range(edge_start[v], edge_start[v + 1]):
+            for m in range(np.uint64(edge_start[v]), np.uint64(edge_start[v + 1])):
                 count = _limit_edge(edge_ids[m], r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_max,
                                     allowance, moved, stamp, start_h, fold, max_height, p)
 
@@ -1115,7 +1115,7 @@ def _limit_edge(e, r, count, p_smoothed, n_pn, dh, floor, ceiling, d_edges, d_ma
     changed is listed once per round in moved[r % 2] (stamp: the round it was listed in; one
     held at its floor by an edge no height can shorten is not, or every later round would
     revisit it for nothing); returns the new length of that list."""
-    i, j = d_edges[e, 0], d_edges[e, 1]
+    i, j = np.uint64(d_edges[e, 0]), np.uint64(d_edges[e, 1])  # (unsigned: no wrap-around of a negative index)
     d2 = _dist2(p, i, j)
     if d2 <= d_max[e] * d_max[e]:
         return count  # (most edges: the limit's reference length is not needed)
@@ -1527,12 +1527,12 @@ def _settle_fold(p_smoothed, n_pn, dh, raised, count, d_edges, d_max, d_edge_sta
             p[vid, a] = p_smoothed[vid, a] + height[vid] * n_pn[vid, a]
     n_back = 0
     for q in range(count):
-        i = raised[q]
+        i = np.uint64(raised[q])  # (unsigned: no wrap-around of a negative index)
         if height[i] <= dh[i]:
             continue
-        for k in range(d_edge_start[i], d_edge_start[i + 1]):
-            e = d_edge_ids[k]
-            j = d_edges[e, 0] + d_edges[e, 1] - i
+        for k in range(np.uint64(d_edge_start[i]), np.uint64(d_edge_start[i + np.uint64(1)])):
+            e = np.uint64(d_edge_ids[k])
+            j = np.uint64(d_edges[e, 0]) + np.uint64(d_edges[e, 1]) - i
             if not _too_far(p_smoothed, p, d_max, allowance, e, i, j):
                 continue
             _set_height(p_smoothed, n_pn, height, p, i, dh[i])
@@ -1545,11 +1545,11 @@ def _settle_fold(p_smoothed, n_pn, dh, raised, count, d_edges, d_max, d_edge_sta
             break
     q = 0
     while q < n_back:  # a particle taken back moved away from its raised neighbours
-        c = back[q]
+        c = np.uint64(back[q])
         q += 1
-        for k in range(d_edge_start[c], d_edge_start[c + 1]):
-            e = d_edge_ids[k]
-            j = d_edges[e, 0] + d_edges[e, 1] - c
+        for k in range(np.uint64(d_edge_start[c]), np.uint64(d_edge_start[c + np.uint64(1)])):
+            e = np.uint64(d_edge_ids[k])
+            j = np.uint64(d_edges[e, 0]) + np.uint64(d_edges[e, 1]) - c
             if height[j] <= dh[j] or not _too_far(p_smoothed, p, d_max, allowance, e, c, j):
                 continue
             _set_height(p_smoothed, n_pn, height, p, j, dh[j])
