@@ -5,13 +5,14 @@
 
 1. Runs the outfit through the clip (60 Hz) to --frame and keeps the arguments of every call of
    the kernel in that frame (a kernel the pipeline calls from Python: `cloth.surface`,
-   `cloth.sim`, `cloth.layers`, ...; one inlined into another is profiled as part of it).
+   `cloth.sim`, `cloth.layers`, ...; one called from another kernel is profiled as part of it).
 2. In a child process, with numba's profiling build (`NUMBA_ENABLE_PROFILING=1`: line tables in
    the machine code; its own cache folder, so the project's cache stays as it is), calls the
    kernel on fresh copies of those arguments for --seconds under `perf record -e cpu-clock`.
-3. Maps each sample inside the kernel to its source line and the chain of helpers inlined there
-   (`addr2line` on the kernel's object code from numba's cache) and prints the shares: at depth 1
-   the kernel's own lines, at depth 2 each of those split by the line of the helper it runs, ...
+3. Maps each sample inside the kernel, or inside a kernel it calls, to its source line and the
+   chain of helpers inlined there (`addr2line` on the object code numba loads from its cache)
+   and prints the shares: at depth 1 the kernels' own lines, at depth 2 each of those split by
+   the line of the helper it runs, ...
 
 The first run compiles the kernel's profiling build (20-60 s for the S103 kernels). Needs `perf`
 (software clock events suffice: this works in a VM without hardware counters) and binutils
