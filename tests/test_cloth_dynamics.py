@@ -433,6 +433,50 @@ def test_body_face_normals_are_unit_normals_and_twice_the_areas():
     np.testing.assert_allclose(face_normals(verts, tris), [[0, 0, 1, 12], [0, 0, -1, 12], [0, 0, 0, 0]], atol=1e-15)
 
 
+def test_behind_every_plane_is_the_deepest_planes_inside_test(body):
+    """S103's test for a part ruled out by its nearest vertex (`behind_every_plane`, which stops
+    at the first face p is in front of) answers as `deepest_plane`'s "behind every face around
+    the vertex" does: on the body at rest, at points a few millimetres either side of the skin
+    around its vertices, inside deeper, and exactly on a face's plane; and a vertex with no
+    usable face around it (every area 0) is never one p is behind."""
+    from cloth.collision import behind_every_plane, deepest_plane
+    from services.cloth_job import collision_body
+
+    mesh = collision_body(body)
+    x = np.ascontiguousarray(mesh.internal(body.vertices), dtype=np.float64)
+    fn = face_normals(x, mesh.triangles)
+    rng = np.random.default_rng(7)
+    vertices = rng.choice(mesh.n_vertices, 3000)
+    normals = np.zeros((mesh.n_vertices, 3))
+    np.add.at(normals, mesh.triangles.ravel(), np.repeat(fn[:, :3], 3, axis=0))
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
+    offsets = rng.choice([-0.02, -0.004, -0.001, 0.001, 0.004], size=len(vertices))
+    points = x[vertices] + offsets[:, None] * normals[vertices] + rng.normal(scale=0.001, size=(len(vertices), 3))
+    got, want = [], []
+    for v, p in zip(vertices, points):
+        got.append(behind_every_plane(p[0], p[1], p[2], x, mesh.triangles, mesh.tri_start, mesh.tri_ids, v, fn))
+        d, t = deepest_plane(p[0], p[1], p[2], x, mesh.triangles, mesh.tri_start, mesh.tri_ids, v, fn)
+        want.append(t >= 0 and d < 0.0)
+    assert got == want and 300 < sum(got) < 2700
+    # at a box's corner, on one side's plane (distance 0) and behind the other two: not behind
+    # every face, as deepest_plane reads it; a little further in, behind them all
+    bv, bt = box(0.1, 2)
+    bmesh = BodyMesh.build(bt, len(bv))
+    bx = np.ascontiguousarray(bmesh.internal(bv), dtype=np.float64)
+    bfn = face_normals(bx, bmesh.triangles)
+    corner = int(np.argmax(bx.sum(axis=1)))  # (0.1, 0.1, 0.1)
+    for p, behind in (((0.1, 0.09, 0.09), False), ((0.0999, 0.09, 0.09), True), ((0.11, 0.09, 0.09), False)):
+        assert behind_every_plane(*p, bx, bmesh.triangles, bmesh.tri_start, bmesh.tri_ids, corner, bfn) == behind
+        d, t = deepest_plane(*p, bx, bmesh.triangles, bmesh.tri_start, bmesh.tri_ids, corner, bfn)
+        assert (t >= 0 and d < 0.0) == behind
+    v = int(vertices[0])
+    flat = fn.copy()
+    flat[mesh.tri_ids[mesh.tri_start[v]:mesh.tri_start[v + 1]], 3] = 0.0  # no usable face around v
+    inside = x[v] - 0.01 * normals[v]
+    assert not behind_every_plane(inside[0], inside[1], inside[2], x, mesh.triangles, mesh.tri_start, mesh.tri_ids,
+                                  v, flat)
+
+
 def test_body_regions_are_sixteen_bit_masks():
     """Region bits past the first eight (a MakeHuman forearm's is 256) are kept as they are, and
     a vertex without a region, or with a bit past the sixteenth, is refused with what is wrong."""
