@@ -223,38 +223,19 @@ def face_normals(body_x: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 @helper
 def walk_nearest(px, py, pz, body_x, nbr_start, nbr_ids, start, regions, mask):
     """Nearest body vertex to p by a local walk from `start` (S101: repeat while a neighbour is nearer),
-    through vertices of the particle's body regions only (regions[u] & mask)."""
-    if mask == ALL_REGIONS:  # (every vertex has a region bit, BodyMesh.build: none to read)
-        return walk_nearest_any(px, py, pz, body_x, nbr_start, nbr_ids, start)
+    through vertices of the particle's body regions only (regions[u] & mask). With ALL_REGIONS no
+    region is read (every vertex has a bit, BodyMesh.build; S103's own-vertex walk, a sixth of its
+    time), and the indices are unsigned (no wrap-around of a negative one to compute: 2 % of S103)."""
+    every = mask == ALL_REGIONS
     best = start
     bd = (body_x[best, 0] - px) ** 2 + (body_x[best, 1] - py) ** 2 + (body_x[best, 2] - pz) ** 2
     moved = True
     while moved:
         moved = False
-        for k in range(np.uint64(nbr_start[best]), np.uint64(nbr_start[best + 1])):
-            u = np.uint64(nbr_ids[k])  # (unsigned: no wrap-around of a negative index)
-            if not (regions[u] & mask):
-                continue
-            d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
-            if d < bd:
-                bd = d
-                best = nbr_ids[k]
-                moved = True
-    return best
-
-
-@helper
-def walk_nearest_any(px, py, pz, body_x, nbr_start, nbr_ids, start):
-    """`walk_nearest` through every vertex (S103 walks a particle's own nearest vertex so, for each
-    of its ten thousand particles: a sixth of its time)."""
-    best = start
-    bd = (body_x[best, 0] - px) ** 2 + (body_x[best, 1] - py) ** 2 + (body_x[best, 2] - pz) ** 2
-    moved = True
-    while moved:
-        moved = False
-        # (unsigned indices: no wrap-around of a negative one to compute, 2 % of S103)
         for k in range(np.uint64(nbr_start[best]), np.uint64(nbr_start[best + 1])):
             u = np.uint64(nbr_ids[k])
+            if not every and not (regions[u] & mask):
+                continue
             d = (body_x[u, 0] - px) ** 2 + (body_x[u, 1] - py) ** 2 + (body_x[u, 2] - pz) ** 2
             if d < bd:
                 bd = d
