@@ -1157,9 +1157,10 @@ class BodyPose:
     `update_surface()` (vertices, face normals: what a step needs from its start), then
     `update_queries()` (grids, face tree: needed only by the contact passes at the end of S101)
     while the garments start; `ClothSim` calls `wait_queries()` before its contact passes. The
-    tips are computed by the first garment that asks for them (`face_tips()`, before its S103):
-    usually a helper's, which started before the queries' update, not the thread that updated
-    them and stepped its own garment after them."""
+    tips are computed by the first garment that asks for them (`face_tips()`, before its S103),
+    or by a thread that would otherwise wait for the queries (`wait_queries()`): usually a
+    helper's, which started before the queries' update, not the thread that updated them and
+    stepped its own garment after them."""
 
     def __init__(self, body: BodyMesh, face_tree: bool = True, winding: bool = False, tips: bool = False):
         """face_tree: keep the face tree (the contact pass's nearest-face query and the union
@@ -1230,7 +1231,12 @@ class BodyPose:
 
     def wait_queries(self) -> None:
         """Block until the grid and the face tree are this pose's (`update_queries()` on another
-        thread)."""
+        thread). A thread that would wait computes the tips first (`face_tips()`; S103 needs them
+        later, and whichever thread asks first computes them): a helper's garment reaches its
+        contact passes before the caller has updated the queries, and otherwise spent that time
+        idle and then computed the tips at the start of its S103."""
+        if not self._queries.is_set():
+            self.face_tips()
         self._queries.wait()
         if self._queries_failed:
             raise RuntimeError("BodyPose: the vertex grid or face tree update failed for this pose")

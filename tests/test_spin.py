@@ -207,20 +207,26 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
 
 def test_a_pose_updated_in_two_parts_on_two_threads_equals_one_update(body):
     """BodyPose.update_surface, then update_queries on another thread while a garment waits
-    for them (wait_queries): the same normals, grid and tree as update(); a failed query
-    update releases the waiter with an error instead of leaving it blocked."""
+    for them (wait_queries): the same normals, grid and tree as update(); the waiting thread
+    computes the face tips meanwhile, the same as face_tips() after update(), which computes
+    none; a failed query update releases the waiter with an error instead of leaving it blocked."""
     mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
     rng = np.random.default_rng(3)
     poses = [body.vertices + rng.normal(0.0, 0.002, body.vertices.shape) for _ in range(2)]
-    whole, split = BodyPose(mesh), BodyPose(mesh)
+    whole, split = BodyPose(mesh, tips=True), BodyPose(mesh, tips=True)
     for v in poses:
         whole.update(v)
+        assert not whole.face_tip.any()  # (update() computes no tips: nobody waited)
         split.update_surface(v)
         np.testing.assert_array_equal(split.face_n, whole.face_n)
         worker = threading.Timer(0.05, split.update_queries)
         worker.start()
-        split.wait_queries()  # blocks until the other thread is done
+        split.face_tip[:] = 0.0
+        split.wait_queries()  # blocks until the other thread is done, computing the tips first
         worker.join()
+        assert split.face_tip.any()
+        np.testing.assert_array_equal(split.face_tip, whole.face_tips())
+        whole.face_tip[:] = 0.0
         for a, b in zip(split.grid.arrays()[1:], whole.grid.arrays()[1:]):
             np.testing.assert_array_equal(a, b)
         for a, b in zip(split.face_tree_arrays(), whole.face_tree_arrays()):
