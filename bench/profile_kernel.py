@@ -254,8 +254,14 @@ def main() -> None:
         pickle.dump(calls, open(out / "calls.pkl", "wb"))
         me = [sys.executable, str(Path(__file__).resolve()), args.kernel, "--child", str(out / "calls.pkl")]
         first = subprocess.run(me + ["0", str(out)], env=env, capture_output=True, text=True)
+        if first.returncode < 0:
+            # killed by a signal, silently: numba checks a cached kernel against its own file only, so a
+            # profiling build cached before a helper it inlines changed can crash. Build afresh once.
+            shutil.rmtree(PROFILE_CACHE, ignore_errors=True)
+            first = subprocess.run(me + ["0", str(out)], env=env, capture_output=True, text=True)
         if first.returncode != 0:
-            raise SystemExit(f"profile_kernel: the profiling build failed:\n{first.stderr[-2000:]}")
+            raise SystemExit(f"profile_kernel: the profiling build failed (exit status {first.returncode}):\n"
+                             f"{first.stderr[-2000:]}")
         rec = subprocess.run(["perf", "record", "-q", "-e", "cpu-clock", "-F", "4000", "-o", str(out / "perf.data"),
                               "--"] + me + [str(args.seconds), str(out)], env=env, capture_output=True, text=True)
         if rec.returncode != 0 or not (out / "index").exists():
