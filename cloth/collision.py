@@ -1184,16 +1184,19 @@ class BodyPose:
         self._tips_lock = threading.Lock()
         self._poses = 0  # poses set by update_surface, and the one the tips are of
         self._tips_of = -1
+        self._tips_wanted = False  # this pose's tips will be asked for (update_surface)
 
     def update(self, body_vertices: np.ndarray) -> None:
         """body_vertices: (>= n_vertices, 3); the first n_vertices are the collision body."""
         self.update_surface(body_vertices)
         self.update_queries()
 
-    def update_surface(self, body_vertices: np.ndarray) -> None:
+    def update_surface(self, body_vertices: np.ndarray, tips: bool = True) -> None:
         """The vertices and face normals of this pose; the grid and tree are stale until
-        `update_queries()`."""
+        `update_queries()`. tips: whether this pose's tips will be asked for (a detailed surface
+        is stepped on it): a thread that waits for the queries then computes them meanwhile."""
         self._queries.clear()
+        self._tips_wanted = tips
         self._poses += 1
         if self.body.vertex_order is None:
             self.x[:] = body_vertices[: self.body.n_vertices]
@@ -1235,7 +1238,7 @@ class BodyPose:
         later, and whichever thread asks first computes them): a helper's garment reaches its
         contact passes before the caller has updated the queries, and otherwise spent that time
         idle and then computed the tips at the start of its S103."""
-        if not self._queries.is_set():
+        if self._tips_wanted and not self._queries.is_set():
             self.face_tips()
         self._queries.wait()
         if self._queries_failed:

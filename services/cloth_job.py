@@ -280,8 +280,9 @@ class OutfitSession:
         detailed surface is `garment_surface(k)`. A garment worn over or under another
         (`self.layers`) is handed over on the calling thread once every garment is done and the
         pair's surfaces are layered."""
-        self.pose.update_surface(body_vertices)
-        self._frame = (body_vertices, dt, surface and bool(self.surfaces), surface_dt or dt, on_garment)
+        surface = surface and bool(self.surfaces)
+        self.pose.update_surface(body_vertices, tips=surface)
+        self._frame = (body_vertices, dt, surface, surface_dt or dt, on_garment)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
         order = sorted(range(len(self.sims)), key=self.garment_seconds.__getitem__)
         if order != self._order:

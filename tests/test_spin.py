@@ -105,7 +105,7 @@ def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
     session._pool, session._threads, session.sims = pool, 2, [None, None]
     session.garment_seconds, session._order, session._shares = np.zeros(2), [0, 1], {1: [[0, 1]], 2: [[0], [1]]}
     session.surfaces = []
-    session.pose = SimpleNamespace(update_surface=lambda v: None, update_queries=lambda: None)
+    session.pose = SimpleNamespace(update_surface=lambda v, tips=True: None, update_queries=lambda: None)
     calls = []
 
     def step(k):
@@ -135,7 +135,7 @@ def test_the_callers_thread_steps_the_cheapest_garment():
     session._pool, session._threads, session.sims, session.surfaces = pool, 2, [None, None], []
     session.garment_seconds, session._order = np.array([0.004, 0.003]), [0, 1]
     session._shares = session._share_out(session._order)
-    session.pose = SimpleNamespace(update_surface=lambda v: None, update_queries=lambda: None)
+    session.pose = SimpleNamespace(update_surface=lambda v, tips=True: None, update_queries=lambda: None)
     threads = {}
 
     def step(k):
@@ -208,8 +208,9 @@ def test_garments_stepped_on_helper_threads_match_one_thread_bit_for_bit(body, d
 def test_a_pose_updated_in_two_parts_on_two_threads_equals_one_update(body):
     """BodyPose.update_surface, then update_queries on another thread while a garment waits
     for them (wait_queries): the same normals, grid and tree as update(); the waiting thread
-    computes the face tips meanwhile, the same as face_tips() after update(), which computes
-    none; a failed query update releases the waiter with an error instead of leaving it blocked."""
+    computes the face tips meanwhile (where the pose's tips are wanted), the same as face_tips()
+    after update(), which computes none; a failed query update releases the waiter with an error
+    instead of leaving it blocked."""
     mesh = BodyMesh.build(body.triangles, body.n_visible, body_regions(body), body_clothed_faces(body))
     rng = np.random.default_rng(3)
     poses = [body.vertices + rng.normal(0.0, 0.002, body.vertices.shape) for _ in range(2)]
@@ -227,6 +228,13 @@ def test_a_pose_updated_in_two_parts_on_two_threads_equals_one_update(body):
         assert split.face_tip.any()
         np.testing.assert_array_equal(split.face_tip, whole.face_tips())
         whole.face_tip[:] = 0.0
+        split.update_surface(v, tips=False)  # a pose no detailed surface asks the tips of
+        split.face_tip[:] = 0.0
+        worker = threading.Timer(0.05, split.update_queries)
+        worker.start()
+        split.wait_queries()
+        worker.join()
+        assert not split.face_tip.any()
         for a, b in zip(split.grid.arrays()[1:], whole.grid.arrays()[1:]):
             np.testing.assert_array_equal(a, b)
         for a, b in zip(split.face_tree_arrays(), whole.face_tree_arrays()):
