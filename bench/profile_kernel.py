@@ -52,6 +52,16 @@ def find_kernel(name: str):
     raise SystemExit(f"profile_kernel: no numba kernel called {name!r} in cloth/")
 
 
+def copied(args) -> list:
+    """A copy of a call's arguments, arrays inside tuples included (S101's kernels take the model,
+    body and state as tuples of arrays, and write into the state's)."""
+    def copy(a):
+        if isinstance(a, np.ndarray):
+            return a.copy()
+        return tuple(copy(x) for x in a) if isinstance(a, tuple) else a
+    return [copy(a) for a in args]
+
+
 def capture(name: str, outfit: str, clip: str, frame: int, data: str | None) -> list:
     """The arguments of every call of kernel `name` (from Python) in walk frame `frame`."""
     sys.path.insert(0, str(ROOT))
@@ -66,7 +76,7 @@ def capture(name: str, outfit: str, clip: str, frame: int, data: str | None) -> 
 
     def wrapper(*args):
         if current["frame"] == frame:
-            calls.append([a.copy() if isinstance(a, np.ndarray) else a for a in args])
+            calls.append(copied(args))
         return kernel(*args)
 
     root = data_dir(data)
@@ -124,7 +134,7 @@ def child(name: str, calls_file: str, seconds: float, out_dir: str) -> None:
     _, kernel = find_kernel(name)
     calls = pickle.load(open(calls_file, "rb"))
     for args in calls:  # compiles (first run) or loads from the profiling cache
-        kernel(*[a.copy() if isinstance(a, np.ndarray) else a for a in args])
+        kernel(*copied(args))
     entry = kernel.overloads[tuple(kernel.typeof_pyval(a) for a in calls[0])]
     if not any(library is entry.library for library, _ in loaded):
         print("compiled", flush=True)  # a first run: the parent runs this again, from the cache
@@ -155,7 +165,7 @@ def child(name: str, calls_file: str, seconds: float, out_dir: str) -> None:
     spent, n, t0 = 0.0, 0, time.perf_counter()
     while n == 0 or time.perf_counter() - t0 < seconds:
         for args in calls:
-            copies = [a.copy() if isinstance(a, np.ndarray) else a for a in args]
+            copies = copied(args)
             t = time.perf_counter()
             kernel(*copies)
             spent += time.perf_counter() - t
