@@ -1035,6 +1035,64 @@ def test_messages_of_three_keys_in_any_order_give_the_same_garments(body, data, 
         bus.close()
 
 
+def test_a_cloth_service_behind_its_stream_catches_up_on_the_newest_frame(body, data):
+    """catch_up: body frames that queued up while the cloth service was busy (here every frame of a
+    short session, come during its setup) are all stepped (S101), and only the newest gets its
+    detailed surface, its step spanning the skipped frames, and is published. The garments stay
+    where a service that published every frame in order puts them: the same coarse cloth, and the
+    detailed surfaces within a few millimetres but where their wrinkles' heights differ."""
+    port = free_port()
+    capture = BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open()
+    sent: list[tuple[str, bytes]] = []
+    lock = threading.Lock()
+
+    def keep(sample):
+        with lock:
+            sent.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    frames = 12
+    subs = [capture.declare_subscriber(key("behind", k), keep) for k in ("session", "body", "control")]
+    source = BVHSource(mocap_clip(data), every=2, max_frames=START_FRAME + frames)
+    ingest = IngestService(capture, "behind", body, source, {"outfit": OUTFIT, "level": LEVEL},
+                           check_outfit=outfit_checker(data))
+    ingest.run(start_frame=START_FRAME)
+    wait_until(lambda: len(sent) == 1 + frames + 1, 30, "every message of the session")
+    for sub in subs:
+        sub.undeclare()
+    ingest.close()
+    capture.close()
+    kinds = [decode(p, k).kind for k, p in sent]
+    order = sorted(range(len(sent)), key=lambda i: ("session", "body", "control").index(kinds[i]))
+    messages = [sent[i] for i in order]  # the announcement, the frames in order, the end
+    last = max(decode(p, k).frame for k, p in messages if k.endswith("/body"))
+    meshes, counts = {}, {}
+    for catch_up in (True, False):
+        bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
+        cloth = ClothService(bus, body, data, OutfitSpec(OUTFIT, None, LEVEL), catch_up=catch_up).start()
+        worn = Collector(bus, key("behind", "garment", "*"))
+        try:
+            for k, p in messages:
+                cloth._queue.put(_Sample(k, p))
+            wait_until(lambda: "behind" in cloth.closed_stats, 120, "the session's end")
+            wait_until(lambda: len(worn.worn().get(last, ())) == 2, 10, "the newest frame's garments")
+            counts[catch_up] = cloth.closed_stats["behind"]["counts"]
+            meshes[catch_up] = {k: garment_mesh(m.arrays)[0] for k, m in worn.messages if m.frame == last}
+            published = sorted(worn.worn())
+        finally:
+            worn.close()
+            cloth.stop()
+            bus.close()
+        assert published == ([last] if catch_up else list(range(START_FRAME, last + 1)))
+    assert counts[True]["received"] == counts[False]["received"] == frames
+    assert counts[True]["skipped"] == frames - 1 and "skipped" not in counts[False]
+    for k, p in meshes[True].items():
+        assert np.isfinite(p).all()
+        gap = np.linalg.norm(p - meshes[False][k], axis=1)
+        # the same coarse cloth; the wrinkles' heights (at most max_height, 3 cm) moved on once, not 12 times
+        assert np.median(gap) < 0.002 and np.percentile(gap, 99) < 0.015 and gap.max() < 0.04, \
+            (k, np.median(gap), np.percentile(gap, 99), gap.max())
+
+
 def test_a_loop_pose_is_settled_in_the_background_as_the_session_would_settle_it(hub, body, data):
     """An outfit change's loop pose is settled on the service's background thread, after the
     session is ready, in a fresh session of the same models: handed over, every state array is
