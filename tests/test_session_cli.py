@@ -51,6 +51,19 @@ def test_session_writes_rrd_recording_and_snapshots(tmp_path, capsys):
     assert (np.abs(img[..., 2].astype(int) - img[..., 0].astype(int)) > 80).mean() > 0.005
 
 
+def test_a_coarse_only_session_without_recordings_writes_its_snapshots_alone(tmp_path, capsys):
+    """`--coarse-only --no-record --no-rrd`: S101 alone (no surface stages timed), the garments'
+    coarse meshes published every frame, and no .mcap or .rrd written."""
+    rc = main(["session", "--session", "c1", "--max-frames", "7", "--coarse-only", "--no-record", "--no-rrd",
+               "--snapshot-frames", "5", "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert "(level coarse)" in out and "session c1: 6 frames" in out
+    assert re.search(r"cloth: received 6, published 12, rejected 0, dropped 0", out), out
+    assert "s101" in out and "deformation" not in out
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c1.png"]
+
+
 @pytest.mark.parametrize("argv, says", [
     (["session", "--outfit", "no-such-outfit"], "outfit 'no-such-outfit' not found"),
     (["session", "--fabric", "tweed"], "no fabric 'tweed'"),
