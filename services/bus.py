@@ -81,7 +81,10 @@ class BusConfig:
         if path:
             if not Path(path).is_file():
                 raise FileNotFoundError(f"zenoh config {path!r} not found")
-            cfg = zenoh.Config.from_file(path)
+            try:
+                cfg = zenoh.Config.from_file(path)
+            except zenoh.ZError as exc:  # JSON5 syntax, or a key of the wrong type
+                raise BusError(f"zenoh config {path!r}: {_zenoh_reason(exc)}") from None
         else:
             cfg = zenoh.Config()
         if self.mode not in ("peer", "client", "router"):
@@ -95,7 +98,31 @@ class BusConfig:
         return cfg
 
     def open(self) -> zenoh.Session:
-        return zenoh.open(self.zenoh_config())
+        cfg = self.zenoh_config()
+        try:
+            return zenoh.open(cfg)
+        except zenoh.ZError as exc:  # an endpoint in use, an address that does not resolve, ...
+            where = ", ".join([f"listen {e}" for e in self.listen] + [f"connect {e}" for e in self.connect])
+            raise BusError(f"the bus does not open ({self.mode}{'; ' + where if where else ''}): "
+                           f"{_zenoh_reason(exc)}") from None
+
+
+class BusError(ValueError):
+    """The bus cannot be opened as configured (a malformed zenoh config file, an endpoint in use or
+    that does not resolve): the command line reports it as a bad setting, not a traceback."""
+
+
+def _zenoh_reason(exc: Exception) -> str:
+    """A zenoh error's message without the Rust source locations it ends its parts with, and a
+    config file's syntax or type error as "line L, column C: what"."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?", "", str(exc))
+    syntax = re.search(r"-->\s*(\d+):(\d+).*?=\s*(.*)", text, re.S)  # JSON5 syntax (a pest parser's report)
+    if syntax:
+        return f"line {syntax[1]}, column {syntax[2]}: {' '.join(syntax[3].split())}"
+    typed = re.search(r'msg: "((?:[^"\\]|\\.)*)", location: Some\(Location \{ line: (\d+), column: (\d+)', text)
+    if typed:  # a key of the wrong type (serde's report)
+        return f"line {typed[2]}, column {typed[3]}: {typed[1].replace(chr(92) + chr(34), chr(34))}"
+    return " ".join(text.split())
 
 
 def add_bus_arguments(parser) -> None:

@@ -1,6 +1,7 @@
 """`tryon session` (the README's main command) end to end, and the recording's integrity."""
 
 import re
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -78,6 +79,34 @@ def test_an_unknown_outfit_or_fabric_stops_the_command_before_it_starts(argv, sa
     assert says in err and "available:" in err
     assert "female_casualsuit01" in err or "denim" in err
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("config, says", [
+    ('{ mode: "peer",\n  listen: ', "line 2"),  # cut off: JSON5 syntax, where
+    ('{ scouting: { multicast: { enabled: "yes" } } }', "expected a boolean"),  # a key of the wrong type
+])
+@pytest.mark.parametrize("command", [["session", "--coarse-only", "--max-frames", "3"], ["router"]])
+def test_a_malformed_zenoh_config_is_named_with_its_problem(config, says, command, tmp_path, capsys):
+    """A zenoh config file that zenoh cannot read is reported with its path and zenoh's reason
+    (before: a traceback from inside zenoh), and nothing is written."""
+    path = tmp_path / "bus.json5"
+    path.write_text(config)
+    out = tmp_path / "out"
+    assert main([*command, "--zenoh-config", str(path)] + (["--out", str(out)] if command[0] == "session" else [])) == 2
+    err = capsys.readouterr().err
+    assert f"tryon: zenoh config '{path}'" in err and says in err and ".rs:" not in err and "Traceback" not in err
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_bus_endpoint_in_use_is_named_with_its_problem(capsys):
+    """An endpoint to listen on that another process holds: the command says which and why."""
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        endpoint = f"tcp/127.0.0.1:{held.getsockname()[1]}"
+        assert main(["router", "--listen", endpoint]) == 2
+    err = capsys.readouterr().err
+    assert f"tryon: the bus does not open (router; listen {endpoint})" in err and "in use" in err
 
 
 @pytest.mark.parametrize("command", ["session", "cloth", "cloth-service"])
