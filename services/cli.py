@@ -65,6 +65,18 @@ def _ik(args):
     return ik
 
 
+def _count(text: str) -> int:
+    """--max-frames, --every: a whole number of frames, at least 1 (0 or less would run a session of
+    no frames, or none at all, and report it as if it had run)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {n}")
+    return n
+
+
 def _level(text: str) -> int:
     """--level: a PN tessellation level the cloth service serves (1 to MAX_LEVEL)."""
     from .protocol import MAX_LEVEL
@@ -498,8 +510,8 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("body", help="retarget and skin motion clips; print timings, write PNG snapshots")
     p.add_argument("--clip", action="append", help="clip name in <data>/mocap or a BVH path (repeatable; default all)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
-    p.add_argument("--every", type=int, default=1, help="take one frame in N (2: 120 Hz clips at 60 Hz)")
-    p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
+    p.add_argument("--every", type=_count, default=1, help="take one frame in N (2: 120 Hz clips at 60 Hz)")
+    p.add_argument("--max-frames", type=_count, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
     p.add_argument("--self-contact", type=int, default=0, metavar="N",
                    help="every N-th frame, count the clothed skin vertices inside the body (where skinning makes "
@@ -515,8 +527,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fabric", help=FABRIC_HELP + "; the fabrics from --fabrics")
     p.add_argument("--fabrics", help="TOML file of fabrics (default: the presets, cloth/fabrics.toml)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
-    p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
-    p.add_argument("--max-frames", type=int, default=None, help="stop each clip after N frames")
+    p.add_argument("--every", type=_count, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--max-frames", type=_count, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
     p.add_argument("--frames", help="snapshot frames, comma-separated session frame numbers (default: a showcase "
                    "per clip)")
@@ -532,8 +544,8 @@ def main(argv: list[str] | None = None) -> int:
     _outfit_arguments(p)
     p.add_argument("--session", default="demo", help="session name (default demo)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
-    p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
-    p.add_argument("--max-frames", type=int, default=None, help="stop after N frames")
+    p.add_argument("--every", type=_count, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--max-frames", type=_count, default=None, help="stop after N frames")
     p.add_argument("--snapshot-frames", default="60,150,240,420",
                    help="frames to render as PNG (comma-separated; default 60,150,240,420)")
     p.add_argument("--serve", action="store_true", help="stay live: clip at its own pace, looped; rerun served "
@@ -557,8 +569,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wait", type=float, default=30.0, help="--live: seconds to wait for the skeleton")
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"), help="BVH pacing (default realtime)")
     p.add_argument("--loop", action="store_true", help="loop the clip")
-    p.add_argument("--every", type=int, default=2, help="take one frame in N (default 2: 60 Hz)")
-    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--every", type=_count, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--max-frames", type=_count, default=None)
     p.add_argument("--wait-subscribers", type=float, default=10.0,
                    help="wait up to this many seconds for a body subscriber (cloth service) before the first frame")
     p.add_argument("--wait-ready", type=float, default=30.0,
@@ -643,8 +655,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--session", default="demo")
     p.add_argument("--clip", default="cmu_131_01_walk_3dsmax")
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"))
-    p.add_argument("--every", type=int, default=2)
-    p.add_argument("--max-frames", type=int, default=None)
+    p.add_argument("--every", type=_count, default=2)
+    p.add_argument("--max-frames", type=_count, default=None)
     p.add_argument("--wait-subscribers", type=float, default=10.0,
                    help="wait up to this many seconds for a pose subscriber (mocap-ingest) before the first pose")
     add_bus_arguments(p)

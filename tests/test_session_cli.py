@@ -98,6 +98,18 @@ def test_a_malformed_zenoh_config_is_named_with_its_problem(config, says, comman
     assert not out.exists() or not any(out.iterdir())
 
 
+@pytest.mark.parametrize("option, value", [("--max-frames", "0"), ("--max-frames", "-3"), ("--every", "0"),
+                                           ("--every", "x")])
+@pytest.mark.parametrize("command", ["session", "cloth", "ingest", "capture"])
+def test_a_frame_count_below_one_is_refused_at_once(command, option, value, tmp_path, capsys):
+    """--max-frames 0 or less ran a session of no frames and reported it as run."""
+    with pytest.raises(SystemExit) as stop:
+        main([command, option, value, "--out", str(tmp_path)])
+    assert stop.value.code == 2
+    assert f"argument {option}: must be a whole number >= 1, got" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
+
+
 def test_a_bus_endpoint_in_use_is_named_with_its_problem(capsys):
     """An endpoint to listen on that another process holds: the command says which and why."""
     with socket.socket() as held:
