@@ -138,13 +138,18 @@ def cmd_body(args) -> int:
 
 
 def cmd_cloth(args) -> int:
-    from cloth.fabric import fabric_choice
+    from cloth.fabric import FabricError, fabric_choice, load_fabrics
     from cloth.surface import SurfaceSettings
     from skinning.body import load_body
 
     from .body_job import showcase_frames
     from .cloth_job import OUTFITS, START_FRAME, find_outfit, render_cloth_snapshots, run_cloth_clip
 
+    if args.fabrics and not args.fabric:  # (it was read by nobody: the garments kept their presets)
+        names = sorted(load_fabrics(args.fabrics))  # (a malformed file is named first)
+        raise FabricError(f"--fabrics {args.fabrics} is the file --fabric picks from ({', '.join(names)}): name "
+                          f'the fabric too, e.g. --fabric {names[0] if names else "NAME"} or '
+                          f'--fabric "top=NAME,bottom=NAME"')
     ik = _ik(args)
     data, out_dir, renderer = _start(args)
     body = load_body(data)

@@ -110,6 +110,24 @@ def test_a_frame_count_below_one_is_refused_at_once(command, option, value, tmp_
     assert not any(tmp_path.iterdir())
 
 
+def test_a_fabrics_file_without_a_fabric_named_is_refused_not_ignored(tmp_path, capsys):
+    """`tryon cloth --fabrics FILE` alone used to run with the outfit's presets, the file unread;
+    now it is read (a malformed one is named) and the command asks which of its fabrics to wear."""
+    from cloth.fabric import PRESETS_PATH
+
+    mine = tmp_path / "mine.toml"
+    mine.write_text(PRESETS_PATH.read_text().replace("[cotton]", "[my_cotton]"))
+    out = tmp_path / "out"
+    assert main(["cloth", "--fabrics", str(mine), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"--fabrics {mine} is the file --fabric picks from" in err and "my_cotton" in err
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[my_cotton\n")
+    assert main(["cloth", "--fabrics", str(broken), "--out", str(out)]) == 2
+    assert f"{broken}: not valid TOML" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_a_bus_endpoint_in_use_is_named_with_its_problem(capsys):
     """An endpoint to listen on that another process holds: the command says which and why."""
     with socket.socket() as held:
