@@ -130,7 +130,8 @@ def run_ingest(bus, session, body, data, clip=SHORT, max_frames=None, pace="fast
 
 
 def test_full_session_across_processes(data, tmp_path, cli_env):
-    """router, cloth service and mocap-ingest in three OS processes; this process records and watches."""
+    """router, cloth service, mocap-ingest and a viewer bridge (saving an .rrd, `--until-end`) in four OS
+    processes; this process records and watches."""
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     cli = [sys.executable, "-m", "services.cli", "--data", str(data)]
@@ -156,6 +157,9 @@ def test_full_session_across_processes(data, tmp_path, cli_env):
             bodies = Collector(bus, key("procs", "body"))
             stats = Collector(bus, key("procs", "stats", "*"))
             recorder = Recorder(bus, "procs", tmp_path / "procs.mcap")
+            # a display in a fourth process: saves what it shows, and stops by itself when the session ends
+            viewer, viewer_log = start(["viewer", "--session", "procs", "--save", str(tmp_path / "procs.rrd"),
+                                        "--until-end", "--mode", "client", "--connect", endpoint], None)
             ingest, log = start(["ingest", "--session", "procs", "--clip", SHORT, "--pace", "realtime", "--loop",
                                  "--mode", "client", "--connect", endpoint, "--level", str(LEVEL),
                                  "--arm-clearance", "12", "--no-hand-clearance", "--no-skin-contact"], None)
@@ -182,9 +186,13 @@ def test_full_session_across_processes(data, tmp_path, cli_env):
             wait_until(lambda: any(m.meta["service"] == "cloth" and m.meta["counts"]["received"] == len(frames)
                                    for _, m in stats.messages), 10, "the cloth service's final stats")
             path = recorder.close()
+            assert viewer.wait(timeout=60) == 0, viewer_log.read_text()  # --until-end: the ingest's end message
         finally:
             bus.close()
         assert path.exists() and not path.with_name(path.name + ".part").exists()
+        shown = viewer_log.read_text()
+        assert f"wrote {tmp_path / 'procs.rrd'}" in shown and "'received'" in shown, shown
+        assert (tmp_path / "procs.rrd").stat().st_size > 0 and not (tmp_path / "procs.rrd.part").exists()
         kinds = [parse_key(k)[1][0] for k, _, _ in read_recording(path)]
         assert kinds.count("body") == len(frames) and kinds.count("garment") == 2 * len(frames)
         assert "session" in kinds and "topology" in kinds
