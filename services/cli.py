@@ -77,6 +77,18 @@ def _count(text: str) -> int:
     return n
 
 
+def _seconds(text: str) -> float:
+    """A duration, a pace or a wait: a number >= 0 (a negative one was taken as 0 here and there, or
+    failed deep inside with "sleep length must be non-negative")."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text!r}") from None
+    if not x >= 0.0:  # (NaN too)
+        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {text}")
+    return x
+
+
 def _level(text: str) -> int:
     """--level: a PN tessellation level the cloth service serves (1 to MAX_LEVEL)."""
     from .protocol import MAX_LEVEL
@@ -456,9 +468,8 @@ def cmd_replay(args) -> int:
     _logging(args)
     kinds = set(args.only.split(",")) if args.only else None
     with bus_config_from_args(args).open() as bus:
-        if args.wait_subscribers:
-            time.sleep(args.wait_subscribers)
-        n = replay(bus, args.recording, session=args.session, speed=args.speed, kinds=kinds, linger=args.linger)
+        n = replay(bus, args.recording, session=args.session, speed=args.speed, kinds=kinds, linger=args.linger,
+                   wait_subscribers=args.wait_subscribers)
         print(f"replay: {n} messages from {args.recording}")
     return 0
 
@@ -571,14 +582,14 @@ def main(argv: list[str] | None = None) -> int:
     src = p.add_mutually_exclusive_group()
     src.add_argument("--clip", default="cmu_131_01_walk_3dsmax", help="BVH clip (name or path)")
     src.add_argument("--live", action="store_true", help="read tryon/<s>/skeleton + tryon/<s>/pose from the bus")
-    p.add_argument("--wait", type=float, default=30.0, help="--live: seconds to wait for the skeleton")
+    p.add_argument("--wait", type=_seconds, default=30.0, help="--live: seconds to wait for the skeleton")
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"), help="BVH pacing (default realtime)")
     p.add_argument("--loop", action="store_true", help="loop the clip")
     p.add_argument("--every", type=_count, default=2, help="take one frame in N (default 2: 60 Hz)")
     p.add_argument("--max-frames", type=_count, default=None)
-    p.add_argument("--wait-subscribers", type=float, default=10.0,
+    p.add_argument("--wait-subscribers", type=_seconds, default=10.0,
                    help="wait up to this many seconds for a body subscriber (cloth service) before the first frame")
-    p.add_argument("--wait-ready", type=float, default=30.0,
+    p.add_argument("--wait-ready", type=_seconds, default=30.0,
                    help="wait up to this many seconds for the cloth service to fit the outfit (pre-roll)")
     p.add_argument("--float32-meshes", action="store_true",
                    help="publish the body's vertices as float32 (12 bytes a vertex) rather than on a 16-bit grid "
@@ -595,8 +606,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fabric", help=FABRIC_HELP.replace("a preset per garment", "the session's"))
     p.add_argument("--level", type=_level, default=None, help="PN tessellation level (default: the session's)")
     p.add_argument("--coarse-only", action="store_true", help="coarse cloth only (S101), no detailed surface")
-    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the session's ingest to answer")
-    p.add_argument("--wait", type=float, default=60.0,
+    p.add_argument("--timeout", type=_seconds, default=5.0, help="seconds to wait for the session's ingest to answer")
+    p.add_argument("--wait", type=_seconds, default=60.0,
                    help="seconds to wait, once accepted, until the garments are on (the cloth service fits and "
                         "settles them; 0: return once accepted)")
     add_bus_arguments(p)
@@ -609,7 +620,7 @@ def main(argv: list[str] | None = None) -> int:
 
     p = sub.add_parser("cloth-service", help="cloth service: tryon/*/body -> tryon/<s>/garment/<name>, every session")
     _outfit_arguments(p)
-    p.add_argument("--idle", type=float, default=60.0, help="drop a session silent for this many seconds")
+    p.add_argument("--idle", type=_seconds, default=60.0, help="drop a session silent for this many seconds")
     p.add_argument("--catch-up", action="store_true",
                    help="when behind, simulate every body frame but build and publish the detailed surface only "
                         "for the newest (live displays stay current; output no longer bit-reproducible)")
@@ -617,7 +628,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="keep the serving thread on the first of these cores and a garment thread on each of the "
                         "others, e.g. 0,1; 'auto' (default): the process's cores, where there are two or more "
                         "and the platform pins threads (Linux); 'none': unpinned, one garment thread per core")
-    p.add_argument("--spin-ms", type=float, default=1000.0 * LIVE_SPIN,
+    p.add_argument("--spin-ms", type=_seconds, default=1000.0 * LIVE_SPIN,
                    help="after each frame, poll this long for the next before sleeping (default 20: a 60 Hz "
                         "session keeps the cores awake; an idle core can wake a millisecond late; 0: never poll)")
     p.add_argument("--float32-meshes", action="store_true",
@@ -641,7 +652,7 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("record", help="record every bus message of a session to an MCAP file")
     p.add_argument("--session", default="demo")
     p.add_argument("--out", required=True, help="the .mcap file")
-    p.add_argument("--linger", type=float, default=2.0, help="seconds to keep recording after the body stream ends")
+    p.add_argument("--linger", type=_seconds, default=2.0, help="seconds to keep recording after the body stream ends")
     _keep_free_argument(p)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_record)
@@ -649,10 +660,11 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("replay", help="replay an MCAP recording onto the bus")
     p.add_argument("recording")
     p.add_argument("--session", help="publish under this session name (default: the recorded one)")
-    p.add_argument("--speed", type=float, default=1.0, help="1 original pace, 2 twice as fast, 0 as fast as possible")
+    p.add_argument("--speed", type=_seconds, default=1.0, help="1 original pace, 2 twice as fast, 0 as fast as possible")
     p.add_argument("--only", help="only these kinds, e.g. session,topology,body (feeds a fresh cloth service)")
-    p.add_argument("--linger", type=float, default=2.0, help="keep answering topology queries this long at the end")
-    p.add_argument("--wait-subscribers", type=float, default=0.0, help="seconds to wait before the first message")
+    p.add_argument("--linger", type=_seconds, default=2.0, help="keep answering topology queries this long at the end")
+    p.add_argument("--wait-subscribers", type=_seconds, default=0.0,
+                   help="wait up to this many seconds for a subscriber on each key before its first message")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_replay)
 
@@ -662,7 +674,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"))
     p.add_argument("--every", type=_count, default=2)
     p.add_argument("--max-frames", type=_count, default=None)
-    p.add_argument("--wait-subscribers", type=float, default=10.0,
+    p.add_argument("--wait-subscribers", type=_seconds, default=10.0,
                    help="wait up to this many seconds for a pose subscriber (mocap-ingest) before the first pose")
     add_bus_arguments(p)
     p.set_defaults(func=cmd_capture)

@@ -186,6 +186,48 @@ def test_a_schema_1_recording_still_replays_and_an_unknown_one_is_refused(tmp_pa
         list(read_recording(tmp_path / "v9.mcap"))
 
 
+def test_tryon_replay_puts_a_recording_back_on_the_bus_under_another_session(tmp_path, capsys):
+    """`tryon replay` (the command; `recorder.replay` has its own tests): every recorded frame, in
+    order, under the session name asked for, to a subscriber on another bus endpoint; a pace below
+    0 is refused before anything is published."""
+    import threading
+
+    from mcap.writer import Writer
+
+    from services.bus import BusConfig
+    from services.protocol import Message, encode
+
+    path = tmp_path / "old.mcap"
+    with open(path, "wb") as f:
+        w = Writer(f)
+        w.start()
+        ch = w.register_channel("tryon/old/body", "tryon/2", 0)
+        for frame in (1, 2, 3):
+            msg = Message("body", "old", frame, frame / 60, {"vertices": np.full((4, 3), frame, np.float32),
+                                                             "q": np.zeros(7)})
+            w.add_message(ch, log_time=frame * 16_666_667, data=encode(msg), publish_time=frame * 16_666_667)
+        w.finish()
+    with socket.socket() as s_:
+        s_.bind(("127.0.0.1", 0))
+        port = s_.getsockname()[1]
+    got, lock = [], threading.Lock()
+    with BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open() as bus:
+        def on(sample):
+            with lock:
+                got.append((str(sample.key_expr), decode(sample.payload.to_bytes(), str(sample.key_expr))))
+
+        sub = bus.declare_subscriber("tryon/**", on)
+        rc = main(["replay", str(path), "--session", "new", "--speed", "4", "--linger", "0", "--wait-subscribers", "20",
+                   "--connect", f"tcp/127.0.0.1:{port}"])
+        sub.undeclare()
+    assert rc == 0 and f"replay: 3 messages from {path}" in capsys.readouterr().out
+    assert [(k, m.session, m.frame) for k, m in got] == [("tryon/new/body", "new", f) for f in (1, 2, 3)]
+    assert [float(m.arrays["vertices"][0, 0]) for _, m in got] == [1.0, 2.0, 3.0]
+    with pytest.raises(SystemExit):
+        main(["replay", str(path), "--speed", "-1"])
+    assert "argument --speed: must be a number >= 0, got -1" in capsys.readouterr().err
+
+
 def test_a_session_stopped_with_sigterm_closes_its_files(tmp_path, cli_env):
     """`tryon session` stopped half-way by SIGTERM (a service manager, `kill`) ends the stream
     between frames and closes its files as at the clip's end: the .rrd and a complete MCAP
