@@ -219,6 +219,7 @@ def test_tryon_replay_puts_a_recording_back_on_the_bus_under_another_session(tmp
         sub = bus.declare_subscriber("tryon/**", on)
         rc = main(["replay", str(path), "--session", "new", "--speed", "4", "--linger", "0", "--wait-subscribers", "20",
                    "--connect", f"tcp/127.0.0.1:{port}"])
+        _wait_for(lambda: len(got) >= 3, 10)  # (delivered on zenoh's threads, maybe after the command ended)
         sub.undeclare()
     assert rc == 0 and f"replay: 3 messages from {path}" in capsys.readouterr().out
     assert [(k, m.session, m.frame) for k, m in got] == [("tryon/new/body", "new", f) for f in (1, 2, 3)]
@@ -226,6 +227,47 @@ def test_tryon_replay_puts_a_recording_back_on_the_bus_under_another_session(tmp
     with pytest.raises(SystemExit):
         main(["replay", str(path), "--speed", "-1"])
     assert "argument --speed: must be a number >= 0, got -1" in capsys.readouterr().err
+
+
+def test_tryon_capture_publishes_a_clip_as_a_live_pose_stream(capsys):
+    """`tryon capture` (the reference capture publisher, as a command): one pose a frame to a
+    subscriber on another bus endpoint, then the end (its latched skeleton is tested with the
+    live ingest, tests/test_services.py)."""
+    import threading
+
+    from services.bus import BusConfig
+
+    with socket.socket() as s_:
+        s_.bind(("127.0.0.1", 0))
+        port = s_.getsockname()[1]
+    got, lock = [], threading.Lock()
+    with BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open() as bus:
+        def on(sample):
+            with lock:
+                got.append(decode(sample.payload.to_bytes(), str(sample.key_expr)))
+
+        subs = [bus.declare_subscriber(f"tryon/cap/{k}", on) for k in ("pose", "control")]
+        rc = main(["capture", "--session", "cap", "--clip", "cmu_npybvh_example_75f", "--pace", "fast",
+                   "--max-frames", "6", "--wait-subscribers", "20", "--connect", f"tcp/127.0.0.1:{port}"])
+        _wait_for(lambda: len(got) >= 6, 10)  # (delivered on zenoh's threads, maybe after the command ended)
+        for sub in subs:
+            sub.undeclare()
+    assert rc == 0 and "capture cap: 5 poses published" in capsys.readouterr().out
+    poses = [m for m in got if m.kind == "pose"]
+    assert [m.frame for m in poses] == [1, 2, 3, 4, 5]  # (frame 0, the converter's T-pose, is not sent)
+    assert all(m.arrays["local_rotations"].shape[1] == 4 and np.isfinite(m.arrays["local_rotations"]).all()
+               for m in poses)
+    # (another key than the poses': zenoh keeps one key's order, not two keys')
+    [end] = [m for m in got if m.kind == "control"]
+    assert end.meta["event"] == "end" and end.meta["last_frame"] == 5
+
+
+def _wait_for(cond, seconds: float) -> None:
+    import time
+
+    deadline = time.monotonic() + seconds
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.01)
 
 
 def test_a_session_stopped_with_sigterm_closes_its_files(tmp_path, cli_env):
