@@ -100,6 +100,31 @@ class Collector:
         self._sub.undeclare()
 
 
+def ingest_messages(body, data, session: str, source, outfit: str, count: int) -> list[tuple[str, bytes]]:
+    """The session, body and control messages an ingest puts for `source`, as (key, payload), taken
+    off a bus of their own (`count` of them, waited for): to be fed to a cloth service in any order."""
+    capture = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
+    sent: list[tuple[str, bytes]] = []
+    lock = threading.Lock()
+
+    def keep(sample):
+        with lock:
+            sent.append((str(sample.key_expr), sample.payload.to_bytes()))
+
+    subs = [capture.declare_subscriber(key(session, k), keep) for k in ("session", "body", "control")]
+    ingest = IngestService(capture, session, body, source, {"outfit": outfit, "level": LEVEL},
+                           check_outfit=outfit_checker(data))
+    try:
+        ingest.run(start_frame=START_FRAME)
+        wait_until(lambda: len(sent) == count, 30, "every message of the session")
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        ingest.close()
+        capture.close()
+    return sent
+
+
 def mocap_clip(data, name=SHORT) -> Path:
     return data / "mocap" / f"{name}.bvh"
 
@@ -976,25 +1001,8 @@ def test_messages_of_three_keys_in_any_order_give_the_same_garments(body, data, 
     announcement does not join the session from a latched description that is another run's.
     In every order the loop's garments are the first pass's, bit for bit."""
     # a looped session's messages as its ingest puts them, taken off a bus of their own
-    port = free_port()
-    capture = BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open()
-    sent: list[tuple[str, bytes]] = []
-    lock = threading.Lock()
-
-    def keep(sample):
-        with lock:
-            sent.append((str(sample.key_expr), sample.payload.to_bytes()))
-
-    subs = [capture.declare_subscriber(key("replayed", k), keep) for k in ("session", "body", "control")]
     source = BVHSource(mocap_clip(data), every=2, loop=True, loop_from=START_FRAME, max_frames=38 + 8)
-    ingest = IngestService(capture, "replayed", body, source, {"outfit": "female_elegantsuit01", "level": LEVEL},
-                           check_outfit=outfit_checker(data))
-    ingest.run(start_frame=START_FRAME)
-    wait_until(lambda: len(sent) == 2 + (38 + 8 - START_FRAME) + 1, 30, "every message of the session")
-    for sub in subs:
-        sub.undeclare()
-    ingest.close()
-    capture.close()
+    sent = ingest_messages(body, data, "replayed", source, "female_elegantsuit01", 2 + (38 + 8 - START_FRAME) + 1)
     msgs = [(k, p, decode(p, k)) for k, p in sent]
     first, again = sorted((m for m in msgs if m[2].kind == "session"), key=lambda m: m[2].stamp_ns)
     assert again[2].meta["restart_frame"] == 38 and again[2].meta["after_frame"] == 37
@@ -1049,26 +1057,9 @@ def test_a_cloth_service_behind_its_stream_catches_up_on_the_newest_frame(body, 
     detailed surface, its step spanning the skipped frames, and is published. The garments stay
     where a service that published every frame in order puts them: the same coarse cloth, and the
     detailed surfaces within a few millimetres but where their wrinkles' heights differ."""
-    port = free_port()
-    capture = BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open()
-    sent: list[tuple[str, bytes]] = []
-    lock = threading.Lock()
-
-    def keep(sample):
-        with lock:
-            sent.append((str(sample.key_expr), sample.payload.to_bytes()))
-
     frames = 12
-    subs = [capture.declare_subscriber(key("behind", k), keep) for k in ("session", "body", "control")]
     source = BVHSource(mocap_clip(data), every=2, max_frames=START_FRAME + frames)
-    ingest = IngestService(capture, "behind", body, source, {"outfit": OUTFIT, "level": LEVEL},
-                           check_outfit=outfit_checker(data))
-    ingest.run(start_frame=START_FRAME)
-    wait_until(lambda: len(sent) == 1 + frames + 1, 30, "every message of the session")
-    for sub in subs:
-        sub.undeclare()
-    ingest.close()
-    capture.close()
+    sent = ingest_messages(body, data, "behind", source, OUTFIT, 1 + frames + 1)
     kinds = [decode(p, k).kind for k, p in sent]
     order = sorted(range(len(sent)), key=lambda i: ("session", "body", "control").index(kinds[i]))
     messages = [sent[i] for i in order]  # the announcement, the frames in order, the end

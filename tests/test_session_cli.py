@@ -1,9 +1,11 @@
 """`tryon session` (the README's main command) end to end, and the recording's integrity."""
 
+import contextlib
 import re
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -190,11 +192,8 @@ def test_tryon_replay_puts_a_recording_back_on_the_bus_under_another_session(tmp
     """`tryon replay` (the command; `recorder.replay` has its own tests): every recorded frame, in
     order, under the session name asked for, to a subscriber on another bus endpoint; a pace below
     0 is refused before anything is published."""
-    import threading
-
     from mcap.writer import Writer
 
-    from services.bus import BusConfig
     from services.protocol import Message, encode
 
     path = tmp_path / "old.mcap"
@@ -207,20 +206,10 @@ def test_tryon_replay_puts_a_recording_back_on_the_bus_under_another_session(tmp
                                                              "q": np.zeros(7)})
             w.add_message(ch, log_time=frame * 16_666_667, data=encode(msg), publish_time=frame * 16_666_667)
         w.finish()
-    with socket.socket() as s_:
-        s_.bind(("127.0.0.1", 0))
-        port = s_.getsockname()[1]
-    got, lock = [], threading.Lock()
-    with BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open() as bus:
-        def on(sample):
-            with lock:
-                got.append((str(sample.key_expr), decode(sample.payload.to_bytes(), str(sample.key_expr))))
-
-        sub = bus.declare_subscriber("tryon/**", on)
+    with _bus_collecting(["tryon/**"]) as (endpoint, got):
         rc = main(["replay", str(path), "--session", "new", "--speed", "4", "--linger", "0", "--wait-subscribers", "20",
-                   "--connect", f"tcp/127.0.0.1:{port}"])
+                   "--connect", endpoint])
         _wait_for(lambda: len(got) >= 3, 10)  # (delivered on zenoh's threads, maybe after the command ended)
-        sub.undeclare()
     assert rc == 0 and f"replay: 3 messages from {path}" in capsys.readouterr().out
     assert [(k, m.session, m.frame) for k, m in got] == [("tryon/new/body", "new", f) for f in (1, 2, 3)]
     assert [float(m.arrays["vertices"][0, 0]) for _, m in got] == [1.0, 2.0, 3.0]
@@ -233,26 +222,12 @@ def test_tryon_capture_publishes_a_clip_as_a_live_pose_stream(capsys):
     """`tryon capture` (the reference capture publisher, as a command): one pose a frame to a
     subscriber on another bus endpoint, then the end (its latched skeleton is tested with the
     live ingest, tests/test_services.py)."""
-    import threading
-
-    from services.bus import BusConfig
-
-    with socket.socket() as s_:
-        s_.bind(("127.0.0.1", 0))
-        port = s_.getsockname()[1]
-    got, lock = [], threading.Lock()
-    with BusConfig(listen=[f"tcp/127.0.0.1:{port}"]).open() as bus:
-        def on(sample):
-            with lock:
-                got.append(decode(sample.payload.to_bytes(), str(sample.key_expr)))
-
-        subs = [bus.declare_subscriber(f"tryon/cap/{k}", on) for k in ("pose", "control")]
+    with _bus_collecting(["tryon/cap/pose", "tryon/cap/control"]) as (endpoint, got):
         rc = main(["capture", "--session", "cap", "--clip", "cmu_npybvh_example_75f", "--pace", "fast",
-                   "--max-frames", "6", "--wait-subscribers", "20", "--connect", f"tcp/127.0.0.1:{port}"])
+                   "--max-frames", "6", "--wait-subscribers", "20", "--connect", endpoint])
         _wait_for(lambda: len(got) >= 6, 10)  # (delivered on zenoh's threads, maybe after the command ended)
-        for sub in subs:
-            sub.undeclare()
     assert rc == 0 and "capture cap: 5 poses published" in capsys.readouterr().out
+    got = [m for _, m in got]
     poses = [m for m in got if m.kind == "pose"]
     assert [m.frame for m in poses] == [1, 2, 3, 4, 5]  # (frame 0, the converter's T-pose, is not sent)
     assert all(m.arrays["local_rotations"].shape[1] == 4 and np.isfinite(m.arrays["local_rotations"]).all()
@@ -268,6 +243,30 @@ def _wait_for(cond, seconds: float) -> None:
     deadline = time.monotonic() + seconds
     while not cond() and time.monotonic() < deadline:
         time.sleep(0.01)
+
+
+@contextlib.contextmanager
+def _bus_collecting(key_exprs: list[str]):
+    """A bus listening on a free loopback port, collecting every message on key_exprs, decoded:
+    yields (its endpoint, the (key, Message) list, filled on zenoh's threads)."""
+    from services.bus import BusConfig
+
+    with socket.socket() as free:
+        free.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{free.getsockname()[1]}"
+    got, lock = [], threading.Lock()
+
+    def on(sample):
+        with lock:
+            got.append((str(sample.key_expr), decode(sample.payload.to_bytes(), str(sample.key_expr))))
+
+    with BusConfig(listen=[endpoint]).open() as bus:
+        subs = [bus.declare_subscriber(k, on) for k in key_exprs]
+        try:
+            yield endpoint, got
+        finally:
+            for sub in subs:
+                sub.undeclare()
 
 
 def test_a_session_stopped_with_sigterm_closes_its_files(tmp_path, cli_env):
