@@ -16,6 +16,7 @@ from services.bus import parse_key
 from services.cli import main
 from services.protocol import decode
 from services.recorder import read_recording
+from tests.test_services import free_port, wait_until
 
 
 def test_session_writes_rrd_recording_and_snapshots(tmp_path, capsys):
@@ -209,7 +210,7 @@ def test_tryon_replay_puts_a_recording_back_on_the_bus_under_another_session(tmp
     with _bus_collecting(["tryon/**"]) as (endpoint, got):
         rc = main(["replay", str(path), "--session", "new", "--speed", "4", "--linger", "0", "--wait-subscribers", "20",
                    "--connect", endpoint])
-        _wait_for(lambda: len(got) >= 3, 10)  # (delivered on zenoh's threads, maybe after the command ended)
+        wait_until(lambda: len(got) >= 3, 10, "the replayed frames")  # (on zenoh's threads, maybe later)
     assert rc == 0 and f"replay: 3 messages from {path}" in capsys.readouterr().out
     assert [(k, m.session, m.frame) for k, m in got] == [("tryon/new/body", "new", f) for f in (1, 2, 3)]
     assert [float(m.arrays["vertices"][0, 0]) for _, m in got] == [1.0, 2.0, 3.0]
@@ -225,7 +226,7 @@ def test_tryon_capture_publishes_a_clip_as_a_live_pose_stream(capsys):
     with _bus_collecting(["tryon/cap/pose", "tryon/cap/control"]) as (endpoint, got):
         rc = main(["capture", "--session", "cap", "--clip", "cmu_npybvh_example_75f", "--pace", "fast",
                    "--max-frames", "6", "--wait-subscribers", "20", "--connect", endpoint])
-        _wait_for(lambda: len(got) >= 6, 10)  # (delivered on zenoh's threads, maybe after the command ended)
+        wait_until(lambda: len(got) >= 6, 10, "the poses and the end")  # (on zenoh's threads, maybe later)
     assert rc == 0 and "capture cap: 5 poses published" in capsys.readouterr().out
     got = [m for _, m in got]
     poses = [m for m in got if m.kind == "pose"]
@@ -237,23 +238,13 @@ def test_tryon_capture_publishes_a_clip_as_a_live_pose_stream(capsys):
     assert end.meta["event"] == "end" and end.meta["last_frame"] == 5
 
 
-def _wait_for(cond, seconds: float) -> None:
-    import time
-
-    deadline = time.monotonic() + seconds
-    while not cond() and time.monotonic() < deadline:
-        time.sleep(0.01)
-
-
 @contextlib.contextmanager
 def _bus_collecting(key_exprs: list[str]):
     """A bus listening on a free loopback port, collecting every message on key_exprs, decoded:
     yields (its endpoint, the (key, Message) list, filled on zenoh's threads)."""
     from services.bus import BusConfig
 
-    with socket.socket() as free:
-        free.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{free.getsockname()[1]}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     got, lock = [], threading.Lock()
 
     def on(sample):
