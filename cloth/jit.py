@@ -73,4 +73,16 @@ def helper(fn=None, **options):
     return njit(**opts)(fn)
 
 
-__all__ = ["FAST_ARITHMETIC", "helper", "kernel"]
+def compiled_here(dispatcher) -> bool:
+    """Whether numba's on-disk cache holds machine code of `dispatcher` (a kernel) for this
+    machine's CPU, from its current source: if not, its first call compiles it. Read from
+    numba's cache index (not a public API: where that is not as expected, True)."""
+    try:
+        index = dispatcher._cache._cache_file._load_index()  # {} when missing or stale
+        magic = dispatcher.targetctx.codegen().magic_tuple()  # (target triple, CPU, features)
+        return any(key[1] == magic for key in index)
+    except Exception:  # noqa: BLE001 - another numba: take it as compiled
+        return True
+
+
+__all__ = ["FAST_ARITHMETIC", "compiled_here", "helper", "kernel"]

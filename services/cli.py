@@ -154,8 +154,7 @@ def cmd_cloth(args) -> int:
     from cloth.surface import SurfaceSettings
     from skinning.body import load_body
 
-    from .body_job import showcase_frames
-    from .cloth_job import OUTFITS, START_FRAME, find_outfit, render_cloth_snapshots, run_cloth_clip
+    from .cloth_job import OUTFITS, find_outfit
 
     if args.fabrics and not args.fabric:  # (it was read by nobody: the garments kept their presets)
         names = sorted(load_fabrics(args.fabrics))  # (a malformed file is named first)
@@ -168,6 +167,17 @@ def cmd_cloth(args) -> int:
     fabrics = fabric_choice(args.fabric, args.fabrics) if args.fabric else None
     surface = None if args.coarse_only else SurfaceSettings(level=args.level)
     outfits = [find_outfit(data, outfit) for outfit in args.outfit or list(OUTFITS)]  # all checked first
+    with _compiling_ahead(data, outfits[0], surface is not None):
+        _cloth_runs(args, data, body, outfits, fabrics, surface, ik, out_dir, renderer)
+    if renderer is not None:
+        renderer.release()
+    return 0
+
+
+def _cloth_runs(args, data, body, outfits, fabrics, surface, ik, out_dir, renderer) -> None:
+    from .body_job import showcase_frames
+    from .cloth_job import START_FRAME, render_cloth_snapshots, run_cloth_clip
+
     for outfit_dir in outfits:
         for clip in _clips(data, args.clip):
             # the first frame is skipped (converter T-pose)
@@ -179,9 +189,15 @@ def cmd_cloth(args) -> int:
             if renderer is not None and report.snapshots:
                 path = render_cloth_snapshots(body, report, report.models, out_dir, renderer, close_up=args.close_up)
                 print(f"  snapshots: {path}")
-    if renderer is not None:
-        renderer.release()
-    return 0
+
+
+def _compiling_ahead(data: Path, outfit, surface: bool):
+    """On a first run, the detailed surface's kernels compiled in a second process meanwhile
+    (`services.warmup`); nothing where there is no surface to step."""
+    from .cloth_job import find_outfit
+    from .warmup import compiling_ahead
+
+    return compiling_ahead(data, find_outfit(data, outfit)) if surface else contextlib.nullcontext()
 
 
 def _logging(args) -> None:
@@ -255,7 +271,7 @@ def cmd_session(args) -> int:
               f"zenoh displays connect to {cfg.listen[0]}; Ctrl-C to stop")
     # Ctrl-C or SIGTERM ends the stream between frames; what was published is still simulated,
     # and the .rrd, the recording and the snapshots are closed as at the clip's end
-    with _stop_on_signals() as stop:
+    with _stop_on_signals() as stop, _compiling_ahead(data, args.outfit, spec.level is not None):
         result = run_session(body, data, clip, session, Path(args.out), spec, every=args.every,
                              max_frames=args.max_frames, bus_config=cfg,
                              serve_port=args.port if args.serve else None,
@@ -386,7 +402,7 @@ def cmd_cloth_service(args) -> int:
     data = data_dir(args.data)
     spec = _spec(args, data)  # the default outfit and fabric
     body = load_body(data)
-    with bus_config_from_args(args).open() as bus:
+    with bus_config_from_args(args).open() as bus, _compiling_ahead(data, args.outfit, spec.level is not None):
         svc = ClothService(bus, body, data, spec, idle_seconds=args.idle, catch_up=args.catch_up,
                            spin=args.spin_ms / 1000.0, cpus=cpus, float32_meshes=args.float32_meshes).start()
         print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)

@@ -267,7 +267,8 @@ class OutfitSession:
 
     def step_cloth(self, body_vertices: np.ndarray, dt: float, surface: bool = True,
                    surface_dt: float | None = None,
-                   on_garment: Callable[[int, np.ndarray], None] | None = None) -> list[np.ndarray]:
+                   on_garment: Callable[[int, np.ndarray], None] | None = None,
+                   coarse: bool = True) -> list[np.ndarray]:
         """One frame of every garment: S101, then (if `surface`) S102-S106 with time step
         `surface_dt` (default dt; longer when frames were skipped for the surface).
 
@@ -279,10 +280,12 @@ class OutfitSession:
         done (a service publishes it there while the other garments are still stepping); its
         detailed surface is `garment_surface(k)`. A garment worn over or under another
         (`self.layers`) is handed over on the calling thread once every garment is done and the
-        pair's surfaces are layered."""
+        pair's surfaces are layered.
+        coarse False: S101 is not stepped; the detailed surfaces are built over the coarse cloth as
+        it is (`services.warmup` compiles S102-S106 so, without S101's kernels)."""
         surface = surface and bool(self.surfaces)
         self.pose.update_surface(body_vertices, tips=surface)
-        self._frame = (body_vertices, dt, surface, surface_dt or dt, on_garment)
+        self._frame = (body_vertices, dt, surface, surface_dt or dt, on_garment, coarse)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
         order = sorted(range(len(self.sims)), key=self.garment_seconds.__getitem__)
         if order != self._order:
@@ -337,10 +340,14 @@ class OutfitSession:
         return [self._step_garment(k) for k in share]
 
     def _step_garment(self, k: int) -> np.ndarray:
-        body_vertices, dt, surface, surface_dt, on_garment = self._frame
+        body_vertices, dt, surface, surface_dt, on_garment, coarse = self._frame
         sim = self.sims[k]
         t0 = time.perf_counter()
-        x = sim.step(body_vertices, dt, profile=self.profile, body_pose=self.pose)
+        if coarse:
+            x = sim.step(body_vertices, dt, profile=self.profile, body_pose=self.pose)
+        else:
+            self.pose.wait_queries()  # (S101 waits for them in its step: the surface needs them too)
+            x = sim.state.x
         self.cloth_seconds[k] = time.perf_counter() - t0
         self.stage_seconds[k] = sim.stage_seconds
         if surface:

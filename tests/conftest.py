@@ -7,6 +7,10 @@ from skinning.data import data_dir
 
 CLIPS = ["cmu_13_29_jumping_jacks", "cmu_131_01_walk_3dsmax", "cmu_npybvh_example_75f"]
 
+# no second process compiling the surface's kernels ahead (services.warmup) in the commands the tests
+# start: it would compete with the tests for the cores (its own tests set it back)
+os.environ.setdefault("TRYON_WARMUP", "0")
+
 
 @pytest.fixture(scope="session", autouse=True)
 def model_cache(tmp_path_factory):
