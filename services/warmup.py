@@ -13,8 +13,8 @@ steps the detailed surfaces of one outfit on the body's rest pose without S101 (
 and so compiles S102-S106 into the cache while the command compiles the body and S101. When the
 session reaches its first surface, numba loads those kernels from the cache. The cache's files are
 written whole (numba writes a temporary file and renames it), so two processes can fill it at
-once; a kernel both reach, each compiles. `tryon session` on an empty cache: 121 → 70 s (AMD EPYC,
-seventy-eighth session). The second process runs at a lower priority and is stopped when the
+once; a kernel both reach, each compiles. `tryon session` on an empty cache: 112-123 → 74-83 s (AMD
+EPYC, seventy-eighth session). The second process runs at a lower priority and is stopped when the
 command ends; nothing it does changes a result (the same machine code, loaded instead of
 compiled). TRYON_WARMUP=0 turns it off (the tests do: their subprocesses would compete with them).
 
