@@ -154,7 +154,8 @@ def cmd_cloth(args) -> int:
     from cloth.surface import SurfaceSettings
     from skinning.body import load_body
 
-    from .cloth_job import OUTFITS, find_outfit
+    from .body_job import showcase_frames
+    from .cloth_job import OUTFITS, START_FRAME, find_outfit, render_cloth_snapshots, run_cloth_clip
 
     if args.fabrics and not args.fabric:  # (it was read by nobody: the garments kept their presets)
         names = sorted(load_fabrics(args.fabrics))  # (a malformed file is named first)
@@ -168,27 +169,22 @@ def cmd_cloth(args) -> int:
     surface = None if args.coarse_only else SurfaceSettings(level=args.level)
     outfits = [find_outfit(data, outfit) for outfit in args.outfit or list(OUTFITS)]  # all checked first
     with _compiling_ahead(data, outfits[0], surface is not None):
-        _cloth_runs(args, data, body, outfits, fabrics, surface, ik, out_dir, renderer)
+        for outfit_dir in outfits:
+            for clip in _clips(data, args.clip):
+                # the first frame is skipped (converter T-pose)
+                frames = (_frame_list(args.frames) if args.frames
+                          else showcase_frames(clip.stem, args.every, START_FRAME))
+                report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
+                                        snapshot_frames=frames, fabrics=fabrics, surface=surface, ik=ik,
+                                        contact=_contact(args))
+                print(report.summary())
+                if renderer is not None and report.snapshots:
+                    path = render_cloth_snapshots(body, report, report.models, out_dir, renderer,
+                                                  close_up=args.close_up)
+                    print(f"  snapshots: {path}")
     if renderer is not None:
         renderer.release()
     return 0
-
-
-def _cloth_runs(args, data, body, outfits, fabrics, surface, ik, out_dir, renderer) -> None:
-    from .body_job import showcase_frames
-    from .cloth_job import START_FRAME, render_cloth_snapshots, run_cloth_clip
-
-    for outfit_dir in outfits:
-        for clip in _clips(data, args.clip):
-            # the first frame is skipped (converter T-pose)
-            frames = _frame_list(args.frames) if args.frames else showcase_frames(clip.stem, args.every, START_FRAME)
-            report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
-                                    snapshot_frames=frames, fabrics=fabrics, surface=surface, ik=ik,
-                                    contact=_contact(args))
-            print(report.summary())
-            if renderer is not None and report.snapshots:
-                path = render_cloth_snapshots(body, report, report.models, out_dir, renderer, close_up=args.close_up)
-                print(f"  snapshots: {path}")
 
 
 def _compiling_ahead(data: Path, outfit, surface: bool):

@@ -79,12 +79,10 @@ def start_compiling(data: Path, outfit_dir: Path) -> subprocess.Popen | None:
     this CPU (and TRYON_WARMUP is not 0); None otherwise."""
     if os.environ.get(WARMUP_ENV, "1") == "0" or surface_compiled():
         return None
-    root = Path(__file__).resolve().parents[1]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
-    try:
+    try:  # (from the folder that holds this package, which `python -m` puts first on the path)
         return subprocess.Popen([sys.executable, "-m", "services.warmup", "--data", str(data),
-                                 "--outfit", str(outfit_dir)], env=env, cwd=root, stdin=subprocess.DEVNULL,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                 "--outfit", str(outfit_dir)], cwd=Path(__file__).resolve().parents[1],
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     except OSError:  # (no second process: the command compiles everything itself, as before)
         return None
 
