@@ -33,6 +33,12 @@ check (`sim.recover_unstable`) and counted, where an exception would have stoppe
 
 from __future__ import annotations
 
+import ast
+import hashlib
+import json
+import os
+from pathlib import Path
+
 from numba import njit
 from numba.core.options import DefaultOptions
 
@@ -85,4 +91,88 @@ def compiled_here(dispatcher) -> bool:
         return True
 
 
-__all__ = ["FAST_ARITHMETIC", "compiled_here", "helper", "kernel"]
+STALE_STAMP = "tryon-sources.json"  # in a package's numba cache folder: each module's key when last checked
+
+
+def drop_stale_caches(folder: str | Path, package: str) -> list[str]:
+    """Delete numba's cached machine code of the modules of `package` (the *.py files in `folder`)
+    that depend on a module whose source changed since the last call; returns their names.
+
+    numba checks a cached kernel only against its own file's time stamp and size. A kernel that
+    calls or inlines a function of another module (S103's `wrinkles.avoid_penetration` inlines
+    `collision.face_walk_distance`) keeps running the old code after that module changes: a
+    `git pull` that changes only collision.py left S103 reading the old distances (the sum of its
+    readings 44.0 m before and after a change to the face walk that adds 0.5 m to each, seventy-eighth
+    session). So each module's key is a digest of its source and of every module of the package
+    it imports (`from .x import`, `from package.x import`, also inside functions, and theirs in
+    turn), kept in STALE_STAMP in the package's cache folder; where a key changed, that module's
+    cache files go, and numba compiles it afresh at its first call. To be called before any
+    kernel of the package runs (a package's `__init__`). Errors (a read-only cache, an unusual
+    numba) leave the caches as numba keeps them."""
+    try:
+        return _drop_stale_caches(Path(folder), package)
+    except Exception:  # noqa: BLE001 - never stops an import
+        return []
+
+
+def _drop_stale_caches(folder: Path, package: str) -> list[str]:
+    sources = {p.stem: p.read_bytes() for p in sorted(folder.glob("*.py"))}
+    imports = {m: _sibling_imports(src, package) & sources.keys() for m, src in sources.items()}
+    digests = {m: hashlib.sha256(src).hexdigest() for m, src in sources.items()}
+    keys = {}
+    for m in sources:
+        seen, todo = {m}, [m]
+        while todo:
+            for d in imports[todo.pop()] - seen:
+                seen.add(d)
+                todo.append(d)
+        keys[m] = hashlib.sha256("".join(f"{d}:{digests[d]};" for d in sorted(seen)).encode()).hexdigest()
+    cache = _cache_folder(folder)
+    stamp = cache / STALE_STAMP
+    try:
+        old = json.loads(stamp.read_text())
+    except (OSError, ValueError):
+        old = {}  # (never checked here: any cache files are of unknown age)
+    dropped = sorted(m for m in keys if old.get(m) != keys[m])
+    for m in dropped:
+        for f in cache.glob(f"{m}.*.nb[ic]"):
+            f.unlink(missing_ok=True)
+    if dropped or old.keys() != keys.keys():
+        tmp = stamp.with_name(f"{stamp.name}.{os.getpid()}.part")
+        tmp.write_text(json.dumps(keys, indent=0, sort_keys=True))
+        os.replace(tmp, stamp)  # (whole: another process may read it meanwhile)
+    return dropped
+
+
+def _sibling_imports(source: bytes, package: str) -> set[str]:
+    """The modules of `package` that a module's source imports (first component after the package)."""
+    names = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.ImportFrom):
+            parts = (node.module or "").split(".")
+            if node.level == 1 or (node.level == 0 and parts[0] == package):
+                rest = parts if node.level == 1 else parts[1:]
+                if rest and rest[0]:
+                    names.add(rest[0])
+                else:  # from . import x / from package import x
+                    names.update(a.name for a in node.names)
+        elif isinstance(node, ast.Import):
+            for a in node.names:
+                parts = a.name.split(".")
+                if parts[0] == package and len(parts) > 1:
+                    names.add(parts[1])
+    return names
+
+
+def _cache_folder(folder: Path) -> Path:
+    """Where numba keeps the cache files of the functions defined in `folder`'s modules (its
+    __pycache__, or NUMBA_CACHE_DIR's folder for it, or the user-wide one), as numba's own
+    locator finds it for a function defined there."""
+    from numba.core.caching import CompileResultCacheImpl
+
+    probe: dict = {}
+    exec(compile("def probe():\n    pass\n", str(folder / "__init__.py"), "exec"), probe)
+    return Path(CompileResultCacheImpl(probe["probe"]).locator.get_cache_path())
+
+
+__all__ = ["FAST_ARITHMETIC", "compiled_here", "drop_stale_caches", "helper", "kernel"]
