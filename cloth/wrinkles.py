@@ -449,7 +449,6 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
         other[i] = np.inf
         behind[i] = 0
     tested = 0
-    g0 = g1 = g2 = 0.0  # a particle's distances from its parents
     for f in range(face_ids.shape[0]):
         near = False
         n_groups = 0  # the body parts near the face's corners: their nearest vertices, and the other parts'
@@ -460,6 +459,9 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
         for k in range(order.shape[0]):
             loc = order[k]
             vid = face_ids[f, loc]
+            # the Lipschitz check's candidate among its tested parents: the least reach (reading plus
+            # distance from the particle plus RECHECK_SLACK), and the face that parent's walk ended on
+            recheck_reach, recheck_face = np.inf, -1
             if parents[loc, 0] >= 0:
                 if k == 3:  # (the corners come first in order, and are tested whatever their distance)
                     corner_margin = face_margin + bulge_towards_body(ctrl, f, face_ids, order, normals, facing)
@@ -486,15 +488,13 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                         # each parent is within the clearance plus its distance from it
                         gx, gy, gz = p[vid, 0] - p[pid, 0], p[vid, 1] - p[pid, 1], p[vid, 2] - p[pid, 2]
                         g = math.sqrt(gx * gx + gy * gy + gz * gz)
-                        if m == 0:  # (kept for the Lipschitz check below)
-                            g0 = g
-                        elif m == 1:
-                            g1 = g
-                        else:
-                            g2 = g
                         bound += 1
                         if sd[pid] < clearance + g:
                             room += 1
+                        # (the Lipschitz check below: the first parent of least reach)
+                        reach_p = abs(sd[pid]) + g + RECHECK_SLACK
+                        if body_face[pid] >= 0 and reach_p < recheck_reach:
+                            recheck_reach, recheck_face = reach_p, body_face[pid]
                 if bound > 0 and room == bound:
                     hit = True
                 if not hit:
@@ -515,21 +515,11 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                         kept = body_face[vid]
                     # Decision (the Lipschitz check): the distance to the body changes no faster than the
                     # position, so a reading farther than a tested parent's plus their distance apart is a
-                    # walk stopped on a local minimum: walk again from the face the nearest such parent's ended on
-                    start, best = -1, np.inf
-                    for m in range(3 if parents[loc, 0] >= 0 else 0):
-                        par = parents[loc, m]
-                        if par < 0:
-                            continue
-                        pid = face_ids[f, par]
-                        if sd[pid] == UNTESTED or body_face[pid] < 0:
-                            continue
-                        reach_p = abs(sd[pid]) + (g0 if m == 0 else (g1 if m == 1 else g2)) + RECHECK_SLACK
-                        if abs(d) > reach_p and reach_p < best:
-                            start, best = body_face[pid], reach_p
-                    if start < 0 or start == body_face[vid]:
+                    # walk stopped on a local minimum: walk again from the face the nearest such parent's ended
+                    # on (the parent of least reach, found above: the first of the parents it exceeds)
+                    if attempt > 0 or abs(d) <= recheck_reach or recheck_face == body_face[vid]:
                         break
-                    body_face[vid] = start
+                    body_face[vid] = recheck_face
                 body_face[vid] = kept
                 behind[vid] = inside_part
                 rate = normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
