@@ -28,6 +28,7 @@ services catch it, log it, count it in their stats and go on serving.
 from __future__ import annotations
 
 import json
+import math
 import struct
 import time
 from dataclasses import dataclass, field
@@ -187,7 +188,7 @@ def decode(data: bytes | memoryview, key: str = "?", session: str | None = None,
         if name in arrays:
             raise MessageError(key, f"array {name!r} appears twice")
         dtype = np.dtype(code)
-        nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        nbytes = math.prod(shape) * dtype.itemsize  # (Python integers: a product past 2^63 does not wrap)
         if offset + nbytes > len(buf):
             raise MessageError(key, f"array {name!r} {code}{shape} needs {nbytes} bytes, "
                                     f"{len(buf) - offset} left in the message")

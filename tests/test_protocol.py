@@ -85,6 +85,27 @@ def test_schema_violations_are_rejected(arrays, problem):
     assert problem in str(e.value)
 
 
+def with_array_shape(data: bytes, name: str, shape: list) -> bytes:
+    """The same message with one array descriptor's shape changed (payload kept)."""
+    _, _, hlen = PREFIX.unpack_from(data, 0)
+    arrays = json.loads(data[PREFIX.size:PREFIX.size + hlen])["arrays"]
+    for d in arrays:
+        if d["name"] == name:
+            d["shape"] = shape
+    return with_header(data, arrays=arrays)
+
+
+@pytest.mark.parametrize("shape", [[2**32, 2**32], [2**62, 4], [2**21, 2**21, 2**21, 4], [2**63, 3]])
+def test_an_array_whose_size_overflows_64_bits_is_rejected(shape):
+    """Sizes whose product wraps round in 64-bit integers (2^64 elements: 0) were taken for an
+    empty array, and numpy's reshape then failed with a plain ValueError, which the services do
+    not count as a rejection."""
+    data = with_array_shape(encode(body_message()), "vertices", shape)
+    with pytest.raises(MessageError) as e:
+        decode(data, KEY, "s1", "body")
+    assert KEY in str(e.value) and "'vertices'" in str(e.value) and "needs" in str(e.value)
+
+
 def test_unsupported_dtype_is_refused_when_encoding():
     with pytest.raises(MessageError, match="unsupported dtype"):
         encode(Message("stats", "s1", arrays={"x": np.zeros(3, np.complex64)}))
