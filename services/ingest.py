@@ -53,6 +53,10 @@ from .wire import CompactPositions
 log = logging.getLogger("tryon.ingest")
 
 
+# a pose quaternion shorter than this names no rotation (normalised, it would be noise or NaN)
+MIN_QUATERNION_NORM = 1e-6
+
+
 def quaternions_to_matrices(q: np.ndarray, out: np.ndarray) -> np.ndarray:
     """(n, 4) quaternions (x, y, z, w), normalised here, -> (n, 3, 3) rotation matrices."""
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
@@ -193,6 +197,11 @@ class BusPoseSource:
                 rot = msg.arrays["local_rotations"]
                 if rot.shape[0] != n:
                     raise MessageError(k, f"local_rotations has {rot.shape[0]} rows, the skeleton has {n} bones")
+                norm = np.linalg.norm(rot.astype(np.float64), axis=1)
+                if not (norm > MIN_QUATERNION_NORM).all():
+                    row = int(np.argmin(norm))
+                    raise MessageError(k, f"local_rotations row {row} ({self.skeleton.names[row]}) is no rotation: "
+                                          f"quaternion of norm {norm[row]:.3g}")
                 if msg.frame <= last:
                     raise MessageError(k, f"frame {msg.frame} arrives after frame {last}")
             except MessageError as err:

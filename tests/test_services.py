@@ -1273,6 +1273,43 @@ def test_live_pose_stream_drives_the_body_like_the_file(hub, body, data):
         ingest_bus.close()
 
 
+def test_a_pose_with_a_zero_quaternion_is_rejected_and_the_stream_goes_on(hub, data, caplog):
+    """A pose whose rotation quaternion is all zeros names no rotation (normalising it gave NaN, and
+    the frame was lost further on without saying why): it is rejected naming its key, bone and
+    problem, counted, and the next poses drive the body as before."""
+    from services.bus import Latched, wait_matching
+    from services.ingest import matrices_to_quaternions, skeleton_message
+
+    port, _ = hub
+    capture_bus, ingest_bus = peer(port), peer(port)
+    latched = Latched(capture_bus)
+    try:
+        with BVHSource(mocap_clip(data), every=2, max_frames=7) as clip:
+            frames = list(clip)
+            latched.publish(key("zq", "skeleton"), encode(skeleton_message("zq", clip.skeleton, clip.frame_time)))
+        stats = Stats("ingest", "zq")
+        source = BusPoseSource(ingest_bus, "zq", stats, wait_skeleton=10, idle_timeout=3)
+        pub = capture_bus.declare_publisher(key("zq", "pose"), congestion_control=zenoh.CongestionControl.BLOCK)
+        assert wait_matching(pub, 10)
+        for f in frames[1:]:
+            q = matrices_to_quaternions(f.local_rot)
+            if f.index == 3:
+                q[4] = 0.0
+            pub.put(encode(Message("pose", "zq", f.index, f.time, {"local_rotations": q,
+                                                                   "root_position": f.root_position.copy()})))
+        with caplog.at_level(logging.WARNING):
+            got = [(f.index, np.isfinite(f.local_rot).all()) for f in source]
+        assert got == [(1, True), (2, True), (4, True), (5, True), (6, True)]
+        assert stats.counts["rejected"] == 1 and stats.counts["received"] == 5
+        assert "tryon/zq/pose" in caplog.text and "local_rotations row 4" in caplog.text
+        pub.undeclare()
+        source.close()
+    finally:
+        latched.close()
+        capture_bus.close()
+        ingest_bus.close()
+
+
 def test_an_ingest_that_skins_a_body_with_nan_logs_and_counts_it_and_publishes_the_next_frame(hub, body, data,
                                                                                               caplog):
     """A skinned body the compact grid cannot hold (NaN) is not published: the ingest logs the
