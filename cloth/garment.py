@@ -175,8 +175,7 @@ def read_obj_polygons(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise GarmentError(f"{path}: no faces")
     if f.max() >= len(v) or f[f >= 0].min() < 0:
         raise GarmentError(f"{path}: a face references a vertex that does not exist")
-    if not np.isfinite(v).all():
-        raise GarmentError(f"{path}: a vertex coordinate is not finite")
+    _check_finite(path, v)
     return v, f
 
 
@@ -270,11 +269,21 @@ def load_garment_file(path: str | Path, scale: float = 1.0) -> list[Garment]:
             raise GarmentError(f"{path}: trimesh cannot read it: {exc}") from exc
         if len(getattr(mesh, "faces", [])) == 0:
             raise GarmentError(f"{path}: no faces")
+        _check_finite(path, np.asarray(mesh.vertices, dtype=np.float64))  # (before merging, which warns on them)
         mesh.merge_vertices(merge_tex=True, merge_norm=True)  # UV/normal seams would split the cloth
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
         faces = np.full((len(mesh.faces), 4), -1, dtype=np.int32)
         faces[:, :3] = mesh.faces
     return split_garments(path.stem, vertices * scale, faces)
+
+
+def _check_finite(path: Path, vertices: np.ndarray) -> None:
+    """GarmentError naming the first vertex with a NaN or infinite coordinate (in file order)."""
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if len(bad):
+        raise GarmentError(f"{path}: vertex {bad[0]} has a coordinate that is not a finite number "
+                           f"({', '.join(map(str, vertices[bad[0]]))})"
+                           + (f", and {len(bad) - 1} more vertices" if len(bad) > 1 else ""))
 
 
 def skin_distances(points: np.ndarray, skin: np.ndarray, rows: int = 256) -> np.ndarray:

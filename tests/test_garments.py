@@ -221,7 +221,9 @@ def test_a_garment_mesh_off_the_rest_body_or_no_outfit_at_all_is_refused_naming_
     """A garment mesh in other units or another frame is refused, naming the file and the frame
     expected, rather than simulated from where it floats; so is a path that holds no outfit. A
     file's name becomes the garment's (a bus key: letters, digits, '_', '.' and '-'), and two
-    files giving one name are refused."""
+    files giving one name are refused; so is a mesh with a coordinate that is not a number."""
+    import trimesh
+
     from cloth.garment import load_garments
 
     base, skin = rest_world
@@ -242,6 +244,17 @@ def test_a_garment_mesh_off_the_rest_body_or_no_outfit_at_all_is_refused_naming_
     _write_obj(tmp_path / "button.obj", tee.vertices[:3], np.array([[0, 1, 2, -1]]))
     with pytest.raises(GarmentError, match=r"button\.obj: no piece of cloth in it"):
         load_garments(tmp_path / "button.obj", base, skin)
+    # a coordinate that is not a number: named, in an OBJ as in any other format (the placement
+    # check read "more than nan cm from the skin", after trimesh warned while merging it)
+    holed = tee.vertices.copy()
+    holed[10, 1], holed[11, 2] = np.nan, np.inf
+    _write_obj(tmp_path / "holed.obj", holed, tee.faces)
+    tris, _ = triangulate(tee.faces, tee.vertices)
+    trimesh.Trimesh(holed, tris, process=False).export(tmp_path / "holed.ply")
+    for f in ("holed.obj", "holed.ply"):
+        with pytest.raises(GarmentError, match=rf"{f.replace('.', '[.]')}: vertex 10 has a coordinate that is not a "
+                                               r"finite number \(.*nan.*\), and 1 more vertices"):
+            load_garments(tmp_path / f, base, skin)
     mine = tmp_path / "mine"
     mine.mkdir()
     _write_obj(mine / "my shirt.obj", tee.vertices, tee.faces)
