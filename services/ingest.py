@@ -41,7 +41,7 @@ import zenoh
 from skinning.animate import STAGES, BodyAnimator
 from skinning.body import Body
 from skinning.contact import ContactSettings
-from skinning.retarget import IKSettings
+from skinning.retarget import IKSettings, missing_bones
 from skinning.skeleton import Skeleton
 from skinning.source import PoseFrame
 
@@ -103,8 +103,14 @@ def skeleton_message(session: str, skeleton: Skeleton, frame_time: float) -> Mes
 def skeleton_from_message(msg: Message, key_expr: str) -> tuple[Skeleton, float]:
     names = msg.meta.get("names")
     n = len(msg.arrays["parents"])
+    if n == 0:
+        raise MessageError(key_expr, "a skeleton needs at least one bone")
     if not isinstance(names, list) or len(names) != n or not all(isinstance(s, str) for s in names):
         raise MessageError(key_expr, f"meta 'names' must list {n} bone names")
+    missing = missing_bones(names)
+    if missing:
+        raise MessageError(key_expr, f"skeleton lacks the bones the retargeting needs: {', '.join(missing)} "
+                                     f"(CMU names; a capture system publishes its pelvis and legs under them)")
     parents = msg.arrays["parents"]
     if msg.arrays["heads"].shape[0] != n or msg.arrays["tails"].shape[0] != n:
         raise MessageError(key_expr, f"heads/tails must have {n} rows, one per bone")

@@ -144,6 +144,15 @@ class RetargetFrame:
     iterations: int
 
 
+# the person's bones the lower body is mapped from (pelvis and ankles, through the legs' chains)
+NEEDED_BONES = ("Hips", *LEGS["left"], *LEGS["right"])
+
+
+def missing_bones(names) -> list[str]:
+    """The bones of NEEDED_BONES a person's skeleton (its bone names) lacks."""
+    return [n for n in NEEDED_BONES if n not in names]
+
+
 class Retargeter:
     """Per-session retargeting state: alignment, scale, last IK solution."""
 
@@ -154,7 +163,7 @@ class Retargeter:
         self.person = person
         self.ik = ik or IKSettings()
         cs = character.skeleton
-        missing = [n for n in ("Hips", *LEGS["left"], *LEGS["right"]) if n not in person.names]
+        missing = missing_bones(person.names)
         if missing:
             raise ValueError(f"person skeleton lacks {missing}")
         self.align = alignment_rotations(cs, person)

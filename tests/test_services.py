@@ -1273,6 +1273,29 @@ def test_live_pose_stream_drives_the_body_like_the_file(hub, body, data):
         ingest_bus.close()
 
 
+@pytest.mark.parametrize("change, problem", [
+    ("no bones", "at least one bone"),
+    ("other names", "lacks the bones the retargeting needs: Hips, LeftUpLeg"),
+])
+def test_a_skeleton_message_the_ingest_cannot_use_is_rejected_naming_it(data, change, problem):
+    """A capture system's skeleton with no bones (its parents array read past its end: IndexError)
+    or without the bones the retargeting maps (hips, legs; the ingest stopped later with no key
+    named) is refused as a malformed message naming the key, so a live source rejects and counts it
+    and goes on waiting for a usable one."""
+    from services.ingest import skeleton_from_message, skeleton_message
+
+    with BVHSource(mocap_clip(data)) as clip:
+        msg = skeleton_message("sk", clip.skeleton, clip.frame_time)
+    if change == "no bones":
+        msg.arrays = {name: a[:0] for name, a in msg.arrays.items()}
+        msg.meta["names"] = []
+    else:
+        msg.meta["names"] = [f"bone{i}" for i in range(len(msg.meta["names"]))]
+    with pytest.raises(MessageError) as e:
+        skeleton_from_message(decode(encode(msg), "tryon/sk/skeleton"), "tryon/sk/skeleton")
+    assert "tryon/sk/skeleton" in str(e.value) and problem in str(e.value)
+
+
 def test_a_pose_with_a_zero_quaternion_is_rejected_and_the_stream_goes_on(hub, data, caplog):
     """A pose whose rotation quaternion is all zeros names no rotation (normalising it gave NaN, and
     the frame was lost further on without saying why): it is rejected naming its key, bone and
