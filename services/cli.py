@@ -16,7 +16,9 @@ from .diskspace import DEFAULT_MIN_FREE
 from .spin import LIVE_SPIN, check_cpus, default_cpus
 
 
-def _clips(data: Path, names: list[str] | None) -> list[Path]:
+def _clips(data: Path, names: list[str] | None, every: int | None = None) -> list[Path]:
+    """The clips named (all of <data>/mocap if none). every: the commands that run a session from
+    START_FRAME on refuse a clip with no frame there at one frame in `every`."""
     mocap = data / "mocap"
     if not names:
         return sorted(mocap.glob("*.bvh"))
@@ -29,8 +31,30 @@ def _clips(data: Path, names: list[str] | None) -> list[Path]:
             p = mocap / name
         if not p.exists():
             raise SystemExit(f"tryon: clip {name!r} not found (looked for {p})")
+        if every is not None:
+            _check_session_frames(p, every)
         out.append(p)
     return out
+
+
+def _check_session_frames(clip: Path, every: int) -> None:
+    """SystemExit naming the clip when taking one frame in `every` leaves none from START_FRAME on
+    (a session of a one-frame clip ran no frame and reported nothing)."""
+    from skinning.bvh import BVHReader
+
+    from .cloth_job import START_FRAME
+
+    reader = BVHReader(clip)
+    try:
+        n = reader.header.n_frames
+    finally:
+        reader.close()
+    taken = -(-n // every)
+    if taken <= START_FRAME:
+        raise SystemExit(f"tryon: clip {clip} has {n} frame{'s' if n != 1 else ''}; taking one in {every}, a session "
+                         f"starts at its frame {START_FRAME * every} (the first frame of a CMU clip is the "
+                         f"converter's T-pose), so there is nothing to run. For one pose, write it as two motion "
+                         f"rows (more for the garments to settle), with --every 1")
 
 
 def _body_arguments(p) -> None:
@@ -163,6 +187,7 @@ def cmd_cloth(args) -> int:
                           f'the fabric too, e.g. --fabric {names[0] if names else "NAME"} or '
                           f'--fabric "top=NAME,bottom=NAME"')
     ik = _ik(args)
+    clips = _clips(data_dir(args.data), args.clip, every=args.every if args.clip else None)  # before any output
     data, out_dir, renderer = _start(args)
     body = load_body(data)
     fabrics = fabric_choice(args.fabric, args.fabrics) if args.fabric else None
@@ -170,7 +195,7 @@ def cmd_cloth(args) -> int:
     outfits = [find_outfit(data, outfit) for outfit in args.outfit or list(OUTFITS)]  # all checked first
     with _compiling_ahead(data, outfits[0], surface is not None):
         for outfit_dir in outfits:
-            for clip in _clips(data, args.clip):
+            for clip in clips:
                 # the first frame is skipped (converter T-pose)
                 frames = (_frame_list(args.frames) if args.frames
                           else showcase_frames(clip.stem, args.every, START_FRAME))
@@ -252,7 +277,7 @@ def cmd_session(args) -> int:
     ik = _ik(args)
     data = data_dir(args.data)
     session = check_session_name(args.session)
-    clip = _clips(data, [args.clip])[0]
+    clip = _clips(data, [args.clip], every=args.every)[0]
     spec = _spec(args, data)
     cfg = bus_config_from_args(args)
     if args.serve and not args.listen:
@@ -297,7 +322,8 @@ def cmd_ingest(args) -> int:
             source = BusPoseSource(bus, session, Stats("ingest", session), wait_skeleton=args.wait, stop=stop)
             start = 0
         else:
-            source = BVHSource(_clips(data, [args.clip])[0], pace=args.pace, loop=args.loop, every=args.every,
+            source = BVHSource(_clips(data, [args.clip], every=args.every)[0], pace=args.pace, loop=args.loop,
+                               every=args.every,
                                max_frames=args.max_frames, loop_from=START_FRAME)
             start = START_FRAME
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
@@ -496,7 +522,7 @@ def cmd_capture(args) -> int:
     data = data_dir(args.data)
     session = check_session_name(args.session)
     with bus_config_from_args(args).open() as bus, \
-            BVHSource(_clips(data, [args.clip])[0], pace=args.pace, every=args.every,
+            BVHSource(_clips(data, [args.clip], every=args.every)[0], pace=args.pace, every=args.every,
                       max_frames=args.max_frames) as source:
         with _stop_on_signals() as stop:
             n = publish_capture(bus, session, source, start_frame=START_FRAME, stop=stop,

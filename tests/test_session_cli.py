@@ -113,6 +113,24 @@ def test_a_frame_count_below_one_is_refused_at_once(command, option, value, tmp_
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("command", ["session", "cloth", "ingest", "capture"])
+def test_a_clip_with_no_frame_after_its_first_is_refused_naming_it(command, tmp_path, capsys):
+    """A one-frame clip (a user's single pose) ran a session of no frames: empty timings, exit 0.
+    A session starts at the clip's second frame (CMU's first is the converter's T-pose)."""
+    from skinning.data import data_dir
+
+    lines = (data_dir() / "mocap" / "cmu_npybvh_example_75f.bvh").read_text().splitlines()
+    at = next(i for i, line in enumerate(lines) if line.startswith("Frame Time"))
+    one = tmp_path / "one pose.bvh"
+    one.write_text("\n".join([*(("Frames: 1" if line.startswith("Frames:") else line) for line in lines[:at + 1]),
+                              lines[at + 1]]) + "\n")
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as stop:
+        main([command, "--clip", str(one), *(["--out", str(out)] if command in ("session", "cloth") else [])])
+    assert f"clip {one} has 1 frame" in str(stop.value.code) and "nothing to run" in str(stop.value.code)
+    assert not out.exists()
+
+
 def test_a_fabrics_file_without_a_fabric_named_is_refused_not_ignored(tmp_path, capsys):
     """`tryon cloth --fabrics FILE` alone used to run with the outfit's presets, the file unread;
     now it is read (a malformed one is named) and the command asks which of its fabrics to wear."""
