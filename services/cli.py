@@ -381,6 +381,9 @@ def cmd_catalog(args) -> int:
     if args.outfit:
         paths = [find_outfit(data, name) for name in args.outfit]
     else:
+        if not (data / "garments").is_dir():
+            raise FileNotFoundError(f"data folder {data} has no garments/ folder (an outfit folder each: "
+                                    f"--outfit PATH names one elsewhere)")
         paths = []
         for path in sorted((data / "garments").iterdir()):
             with contextlib.suppress(GarmentError):

@@ -436,3 +436,7 @@ def test_the_catalog_lists_each_outfits_garments_and_the_fabrics(tmp_path, capsy
     assert f"  raw_denim: stretch {fabric('denim').stretch_stiffness:g} N/m" in out and "cotton:" not in out
     assert main(["catalog", "--outfit", "no-such-outfit"]) == 2
     assert "outfit 'no-such-outfit' not found" in capsys.readouterr().err
+    # a data folder without garments (a user's body and motion alone) is named, not an OS error's path
+    (tmp_path / "bare").mkdir()
+    assert main(["--data", str(tmp_path / "bare"), "catalog"]) == 2
+    assert f"data folder {tmp_path / 'bare'} has no garments/ folder" in capsys.readouterr().err
