@@ -56,9 +56,10 @@ class SimSettings:
     max_speed: float = 30.0  # m/s: a faster particle is treated as exploded
     max_stretch: float = 3.0  # a structural spring longer than this times rest marks an explosion
     # strain-limiting passes after the last substep (one after each other substep), and after the contact
-    # pass with its placed particles held. 8 and 6 (seventy-fourth session) gave every row's strain p99
-    # 0.0-1.6 points lower (11 of the 18 clip x garment rows within 10 %, 10 with these), but a cloth service
-    # sharing its process with an ingest fell further behind a 60 Hz stream (docs/cloth.md)
+    # pass with its placed particles held. 8 and 6 (seventy-fourth session, again in the seventy-ninth) give
+    # every row's strain p99 0.0-1.6 points lower (11 of the 18 clip x garment rows within 10 %, 10 with
+    # these) for 4-6 % more S101 and larger largest strains on some rows; 16 and 12 no lower than 8 and 6:
+    # what is left is held by the contact (docs/cloth.md)
     limit_passes: int = 4
     # free strain-limiting passes after the contact pass, then a second one for what slid (0: neither)
     slide_passes: int = 1
