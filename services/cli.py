@@ -13,6 +13,7 @@ from pathlib import Path
 from skinning.data import ENV_VAR, data_dir
 
 from .diskspace import DEFAULT_MIN_FREE
+from .outputs import output_folder
 from .spin import LIVE_SPIN, check_cpus, default_cpus
 
 
@@ -138,8 +139,7 @@ def _frame_list(text: str) -> list[int]:
 
 def _start(args):
     """Data folder, output folder and (unless --no-png) a renderer, shared by the jobs."""
-    out_dir = Path(args.out)
-    out_dir.mkdir(parents=True, exist_ok=True)
+    out_dir = output_folder(args.out)
     renderer = None
     if not args.no_png:
         from .render import Renderer

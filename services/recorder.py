@@ -26,6 +26,7 @@ from mcap.writer import CompressionType, Writer
 
 from .bus import Latched, Stats, check_session_name, key, parse_key, wait_matching
 from .diskspace import DEFAULT_MIN_FREE, SpaceGuard
+from .outputs import output_file
 from .protocol import READABLE_VERSIONS, SCHEMA_VERSION, MessageError, peek_header, retag
 
 log = logging.getLogger("tryon.recorder")
@@ -40,7 +41,7 @@ class Recorder:
     def __init__(self, bus: zenoh.Session, session: str, path: str | Path, min_free: int = DEFAULT_MIN_FREE):
         """min_free: bytes to leave free on the file's disk; the recording is finished when fewer are."""
         self.bus, self.session, self.path = bus, session, Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        output_file(self.path)  # (a folder named: refused before the first message, not at the rename)
         self._space = SpaceGuard(self.path.parent, min_free)
         self.stopped: str | None = None  # why the recording was finished before close()
         self._finished = False

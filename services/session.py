@@ -27,6 +27,7 @@ from .cloth_service import ClothService, OutfitSpec
 from .ingest import IngestService
 from .protocol import MessageError, decode
 from .diskspace import DEFAULT_MIN_FREE
+from .outputs import output_folder
 from .recorder import Recorder
 from .spin import LIVE_SPIN
 from .viewer import RecordingSink, VertexNormals, ViewerBridge
@@ -213,7 +214,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
     """Run one session end to end in this process (see the module docstring). rrd, record: write
     the rerun and bus recordings; min_free: bytes they leave free on their disk (each is finished,
     complete, when fewer are: services.diskspace)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
+    output_folder(out_dir)
     serve = serve_port is not None
     bus = (bus_config or BusConfig()).open()
     t_start = time.perf_counter()

@@ -22,6 +22,7 @@ from skinning.skin import MeshNormals
 
 from .bus import Stats, fetch_latched, key, parse_key
 from .diskspace import DEFAULT_MIN_FREE, SpaceGuard
+from .outputs import output_file
 from .protocol import MessageError, decode
 from .wire import body_vertices, garment_mesh, vertex_count
 
@@ -85,7 +86,7 @@ class RecordingSink:
         self._file = None
         streams = []
         if self.rrd is not None:
-            self.rrd.parent.mkdir(parents=True, exist_ok=True)
+            output_file(self.rrd)
             self._part = self.rrd.with_name(self.rrd.name + ".part")
             self._file = rr.RecordingStream("tryon", recording_id=session)
             self._file.set_sinks(rr.FileSink(str(self._part)))

@@ -131,6 +131,40 @@ def test_a_clip_with_no_frame_after_its_first_is_refused_naming_it(command, tmp_
     assert not out.exists()
 
 
+@pytest.mark.parametrize("command", [["session", "--coarse-only", "--max-frames", "2", "--out"],
+                                     ["cloth", "--coarse-only", "--max-frames", "2", "--out"],
+                                     ["body", "--max-frames", "2", "--out"]])
+def test_an_output_folder_that_is_a_file_is_refused_at_once(command, tmp_path, capsys):
+    """--out naming a file: the session ran its setup and died in a FileExistsError traceback."""
+    there = tmp_path / "notes.txt"
+    there.write_text("mine")
+    assert main([*command, str(there)]) == 2
+    err = capsys.readouterr().err
+    assert f"tryon: {there}: a file is there, not a folder" in err and "Traceback" not in err
+    assert there.read_text() == "mine"
+
+
+def test_a_recording_named_by_a_folder_is_refused_before_recording(tmp_path):
+    """`tryon record --out FOLDER` recorded the whole session into FOLDER.part and then failed to
+    rename it (IsADirectoryError): the recording was never finished. The recorder and the viewer's
+    .rrd now refuse a folder before the first message (`tryon record` and `tryon viewer --save`
+    then exit 2 with that line; not run here, as they would wait for a session)."""
+    from services.bus import BusConfig
+    from services.recorder import Recorder
+    from services.viewer import RecordingSink
+
+    with BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open() as bus:
+        with pytest.raises(ValueError, match=rf"{re.escape(str(tmp_path))}: is a folder; name the file to write"):
+            Recorder(bus, "rec", tmp_path)
+    with pytest.raises(ValueError, match=rf"{re.escape(str(tmp_path))}: is a folder; name the file to write"):
+        RecordingSink("rec", rrd=tmp_path)
+    assert not tmp_path.with_name(tmp_path.name + ".part").exists()
+    inner = tmp_path / "new" / "deeper" / "s.mcap"  # a file in folders not made yet: made
+    with BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open() as bus:
+        Recorder(bus, "rec", inner).close()
+    assert list(read_recording(inner)) == []
+
+
 def test_a_fabrics_file_without_a_fabric_named_is_refused_not_ignored(tmp_path, capsys):
     """`tryon cloth --fabrics FILE` alone used to run with the outfit's presets, the file unread;
     now it is read (a malformed one is named) and the command asks which of its fabrics to wear."""
