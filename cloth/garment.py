@@ -139,17 +139,23 @@ def fit_mhclo(clo: Mhclo, base_vertices: np.ndarray) -> np.ndarray:
 
 
 def _pad_faces(faces: list[list[int]] | np.ndarray, path: Path) -> np.ndarray:
-    out = np.full((len(faces), 4), -1, dtype=np.int32)
+    """(F, 4) int32 faces, triangles padded with -1; a polygon of more than four corners (an n-gon of a
+    modelling tool's export) as a fan of triangles from its first corner, as trimesh reads one."""
+    rows = []
     for i, f in enumerate(faces):
+        f = list(f)
         if len(f) == 3 or len(f) == 4:
-            out[i, : len(f)] = f
+            rows.append(f + [-1] * (4 - len(f)))
+        elif len(f) > 4:
+            rows.extend([f[0], f[k], f[k + 1], -1] for k in range(1, len(f) - 1))
         else:
-            raise GarmentError(f"{path}: face {i} has {len(f)} vertices; garments need triangles or quads")
-    return out
+            raise GarmentError(f"{path}: face {i} has {len(f)} vertices; a face needs three or more")
+    return np.array(rows, dtype=np.int32).reshape(-1, 4)
 
 
 def read_obj_polygons(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices in file order and tri/quad faces of an OBJ (garment files are small and simple)."""
+    """Vertices in file order and tri/quad faces of an OBJ (garment files are small and simple; a face of
+    more corners as triangles, `_pad_faces`)."""
     verts, faces = [], []
     try:
         text = path.read_text(encoding="utf-8", errors="replace")

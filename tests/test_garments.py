@@ -46,6 +46,28 @@ def test_malformed_mhclo_is_rejected_with_file_and_problem(tmp_path, text, probl
     assert problem in str(err.value)
 
 
+def test_an_obj_polygon_of_more_than_four_corners_is_read_as_a_fan_of_triangles(tmp_path):
+    """A modelling tool's OBJ may hold n-gons: a regular hexagon beside a quad and a triangle comes back
+    as four triangles fanned from its first corner (covering its area, 3 sqrt(3) / 2 r^2), the quad and
+    the triangle as they are; a face of two corners is refused naming the file."""
+    from cloth.garment import read_obj_polygons
+
+    hexagon = [(np.cos(a), np.sin(a), 0.0) for a in np.arange(6) * np.pi / 3]
+    extra = [(3.0, 0.0, 0.0), (4.0, 0.0, 0.0), (4.0, 1.0, 0.0), (3.0, 1.0, 0.0), (5.0, 0.0, 0.0)]
+    path = tmp_path / "ngon.obj"
+    path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in hexagon + extra)
+                    + "f 1 2 3 4 5 6\nf 7 8 9 10\nf 8 11 9\n")
+    vertices, faces = read_obj_polygons(path)
+    np.testing.assert_array_equal(faces, [[0, 1, 2, -1], [0, 2, 3, -1], [0, 3, 4, -1], [0, 4, 5, -1],
+                                          [6, 7, 8, 9], [7, 10, 8, -1]])
+    tri = vertices[faces[:4, :3]]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum()
+    assert area == pytest.approx(3 * np.sqrt(3) / 2)
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2\n")
+    with pytest.raises(GarmentError, match=r"ngon\.obj: face 1 has 2 vertices; a face needs three or more"):
+        read_obj_polygons(path)
+
+
 def test_outfits_split_into_top_and_bottom_with_consistent_winding(outfits):
     for name, garments in outfits.items():
         assert [g.name for g in garments] == [f"{name}.top", f"{name}.bottom"]
