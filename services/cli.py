@@ -17,9 +17,9 @@ from .outputs import output_folder
 from .spin import LIVE_SPIN, check_cpus, default_cpus
 
 
-def _clips(data: Path, names: list[str] | None, every: int | None = None) -> list[Path]:
-    """The clips named (all of <data>/mocap if none). every: the commands that run a session from
-    START_FRAME on refuse a clip with no frame there at one frame in `every`."""
+def _clips(data: Path, names: list[str] | None, every: int | None = None, check: bool = False) -> list[Path]:
+    """The clips named (all of <data>/mocap if none). check: the commands that run a session from
+    START_FRAME on refuse a clip with no frame there at one frame in `every` (None: `_every`'s)."""
     mocap = data / "mocap"
     if not names:
         return sorted(mocap.glob("*.bvh"))
@@ -32,24 +32,42 @@ def _clips(data: Path, names: list[str] | None, every: int | None = None) -> lis
             p = mocap / name
         if not p.exists():
             raise SystemExit(f"tryon: clip {name!r} not found (looked for {p})")
-        if every is not None:
-            _check_session_frames(p, every)
+        if check:
+            _check_session_frames(p, _every(every, p))
         out.append(p)
     return out
+
+
+# frames per second a session runs at when --every is not given (the nearest a clip's rate allows)
+SESSION_RATE = 60.0
+
+
+def _clip_frame_time(clip: Path) -> tuple[int, float]:
+    """A BVH clip's frame count and frame time (s), from its header."""
+    from skinning.bvh import BVHReader
+
+    reader = BVHReader(clip)
+    try:
+        return reader.header.n_frames, reader.header.frame_time
+    finally:
+        reader.close()
+
+
+def _every(every: int | None, clip: Path) -> int:
+    """--every, or where not given, the one frame in N that brings the clip nearest SESSION_RATE: 2 for
+    the CMU clips' 120 Hz, 1 for a clip of 60 Hz or less (a 30 Hz clip taken at one frame in two ran
+    at 15 Hz), 4 for 240 Hz."""
+    if every is not None:
+        return every
+    return max(1, round(1.0 / _clip_frame_time(clip)[1] / SESSION_RATE))
 
 
 def _check_session_frames(clip: Path, every: int) -> None:
     """SystemExit naming the clip when taking one frame in `every` leaves none from START_FRAME on
     (a session of a one-frame clip ran no frame and reported nothing)."""
-    from skinning.bvh import BVHReader
-
     from .cloth_job import START_FRAME
 
-    reader = BVHReader(clip)
-    try:
-        n = reader.header.n_frames
-    finally:
-        reader.close()
+    n = _clip_frame_time(clip)[0]
     taken = -(-n // every)
     if taken <= START_FRAME:
         raise SystemExit(f"tryon: clip {clip} has {n} frame{'s' if n != 1 else ''}; taking one in {every}, a session "
@@ -187,7 +205,7 @@ def cmd_cloth(args) -> int:
                           f'the fabric too, e.g. --fabric {names[0] if names else "NAME"} or '
                           f'--fabric "top=NAME,bottom=NAME"')
     ik = _ik(args)
-    clips = _clips(data_dir(args.data), args.clip, every=args.every if args.clip else None)  # before any output
+    clips = _clips(data_dir(args.data), args.clip, every=args.every, check=bool(args.clip))  # before any output
     data, out_dir, renderer = _start(args)
     body = load_body(data)
     fabrics = fabric_choice(args.fabric, args.fabrics) if args.fabric else None
@@ -196,10 +214,11 @@ def cmd_cloth(args) -> int:
     with _compiling_ahead(data, outfits[0], surface is not None):
         for outfit_dir in outfits:
             for clip in clips:
+                every = _every(args.every, clip)
                 # the first frame is skipped (converter T-pose)
                 frames = (_frame_list(args.frames) if args.frames
-                          else showcase_frames(clip.stem, args.every, START_FRAME))
-                report = run_cloth_clip(body, outfit_dir, clip, every=args.every, max_frames=args.max_frames,
+                          else showcase_frames(clip.stem, every, START_FRAME))
+                report = run_cloth_clip(body, outfit_dir, clip, every=every, max_frames=args.max_frames,
                                         snapshot_frames=frames, fabrics=fabrics, surface=surface, ik=ik,
                                         contact=_contact(args))
                 print(report.summary())
@@ -277,7 +296,8 @@ def cmd_session(args) -> int:
     ik = _ik(args)
     data = data_dir(args.data)
     session = check_session_name(args.session)
-    clip = _clips(data, [args.clip], every=args.every)[0]
+    clip = _clips(data, [args.clip], every=args.every, check=True)[0]
+    every = _every(args.every, clip)
     spec = _spec(args, data)
     cfg = bus_config_from_args(args)
     if args.serve and not args.listen:
@@ -285,7 +305,8 @@ def cmd_session(args) -> int:
     body = load_body(data)
     frames = _frame_list(args.snapshot_frames) if args.snapshot_frames else []
     level = args.level if not args.coarse_only else "coarse"
-    print(f"session {session}: {clip.stem} × {args.outfit} (level {level}), "
+    print(f"session {session}: {clip.stem} at {1.0 / (_clip_frame_time(clip)[1] * every):.4g} Hz × {args.outfit} "
+          f"(level {level}), "
           f"bus {cfg.mode} listening on {', '.join(cfg.listen) or 'nothing'}")
     if args.serve:
         print(f"  serving: rerun viewer `rerun --connect rerun+http://<this-host>:{args.port}/proxy`; "
@@ -293,7 +314,7 @@ def cmd_session(args) -> int:
     # Ctrl-C or SIGTERM ends the stream between frames; what was published is still simulated,
     # and the .rrd, the recording and the snapshots are closed as at the clip's end
     with _stop_on_signals() as stop, _compiling_ahead(data, args.outfit, spec.level is not None):
-        result = run_session(body, data, clip, session, Path(args.out), spec, every=args.every,
+        result = run_session(body, data, clip, session, Path(args.out), spec, every=every,
                              max_frames=args.max_frames, bus_config=cfg,
                              serve_port=args.port if args.serve else None,
                              web_port=args.web_port if args.serve else None, record=not args.no_record,
@@ -322,8 +343,8 @@ def cmd_ingest(args) -> int:
             source = BusPoseSource(bus, session, Stats("ingest", session), wait_skeleton=args.wait, stop=stop)
             start = 0
         else:
-            source = BVHSource(_clips(data, [args.clip], every=args.every)[0], pace=args.pace, loop=args.loop,
-                               every=args.every,
+            clip = _clips(data, [args.clip], every=args.every, check=True)[0]
+            source = BVHSource(clip, pace=args.pace, loop=args.loop, every=_every(args.every, clip),
                                max_frames=args.max_frames, loop_from=START_FRAME)
             start = START_FRAME
         desc = {"outfit": args.outfit, "fabric": args.fabric, "level": None if args.coarse_only else args.level,
@@ -524,9 +545,9 @@ def cmd_capture(args) -> int:
 
     data = data_dir(args.data)
     session = check_session_name(args.session)
+    clip = _clips(data, [args.clip], every=args.every, check=True)[0]
     with bus_config_from_args(args).open() as bus, \
-            BVHSource(_clips(data, [args.clip], every=args.every)[0], pace=args.pace, every=args.every,
-                      max_frames=args.max_frames) as source:
+            BVHSource(clip, pace=args.pace, every=_every(args.every, clip), max_frames=args.max_frames) as source:
         with _stop_on_signals() as stop:
             n = publish_capture(bus, session, source, start_frame=START_FRAME, stop=stop,
                                 wait_subscribers=args.wait_subscribers)
@@ -584,7 +605,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fabric", help=FABRIC_HELP + "; the fabrics from --fabrics")
     p.add_argument("--fabrics", help="TOML file of fabrics (default: the presets, cloth/fabrics.toml)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
-    p.add_argument("--every", type=_count, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--every", type=_count, default=None,
+                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
     p.add_argument("--max-frames", type=_count, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
     p.add_argument("--frames", help="snapshot frames, comma-separated session frame numbers (default: a showcase "
@@ -601,7 +623,8 @@ def main(argv: list[str] | None = None) -> int:
     _outfit_arguments(p)
     p.add_argument("--session", default="demo", help="session name (default demo)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
-    p.add_argument("--every", type=_count, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--every", type=_count, default=None,
+                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
     p.add_argument("--max-frames", type=_count, default=None, help="stop after N frames")
     p.add_argument("--snapshot-frames", default="60,150,240,420",
                    help="frames to render as PNG (comma-separated; default 60,150,240,420)")
@@ -626,7 +649,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wait", type=_seconds, default=30.0, help="--live: seconds to wait for the skeleton")
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"), help="BVH pacing (default realtime)")
     p.add_argument("--loop", action="store_true", help="loop the clip")
-    p.add_argument("--every", type=_count, default=2, help="take one frame in N (default 2: 60 Hz)")
+    p.add_argument("--every", type=_count, default=None,
+                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
     p.add_argument("--max-frames", type=_count, default=None)
     p.add_argument("--wait-subscribers", type=_seconds, default=10.0,
                    help="wait up to this many seconds for a body subscriber (cloth service) before the first frame")
@@ -713,7 +737,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--session", default="demo")
     p.add_argument("--clip", default="cmu_131_01_walk_3dsmax")
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"))
-    p.add_argument("--every", type=_count, default=2)
+    p.add_argument("--every", type=_count, default=None,
+                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
     p.add_argument("--max-frames", type=_count, default=None)
     p.add_argument("--wait-subscribers", type=_seconds, default=10.0,
                    help="wait up to this many seconds for a pose subscriber (mocap-ingest) before the first pose")

@@ -165,6 +165,24 @@ def test_a_recording_named_by_a_folder_is_refused_before_recording(tmp_path):
     assert list(read_recording(inner)) == []
 
 
+@pytest.mark.parametrize("rate, every", [(30, 1), (60, 1), (100, 2), (120, 2), (240, 4)])
+def test_without_every_a_clip_runs_nearest_60_hz(rate, every, tmp_path, capsys):
+    """--every defaulted to 2, right for the CMU clips' 120 Hz: a user's 30 Hz clip ran at 15 Hz. Now
+    the default takes the one frame in N that brings the clip nearest 60 Hz; given, --every stands."""
+    from services.cli import _every
+    from skinning.data import data_dir
+
+    lines = (data_dir() / "mocap" / "cmu_npybvh_example_75f.bvh").read_text().splitlines()
+    clip = tmp_path / f"at{rate}.bvh"
+    clip.write_text("\n".join(f"Frame Time: {1 / rate:.8f}" if line.startswith("Frame Time") else line
+                              for line in lines) + "\n")
+    assert _every(None, clip) == every and _every(3, clip) == 3
+    if rate == 30:
+        assert main(["session", "--clip", str(clip), "--max-frames", "2", "--coarse-only", "--no-rrd", "--no-record",
+                     "--no-png", "--out", str(tmp_path / "out")]) == 0
+        assert "session demo: at30 at 30 Hz × " in capsys.readouterr().out
+
+
 def test_a_fabrics_file_without_a_fabric_named_is_refused_not_ignored(tmp_path, capsys):
     """`tryon cloth --fabrics FILE` alone used to run with the outfit's presets, the file unread;
     now it is read (a malformed one is named) and the command asks which of its fabrics to wear."""
