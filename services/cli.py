@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import functools
 import signal
 import sys
 import threading
@@ -40,10 +41,12 @@ def _clips(data: Path, names: list[str] | None, every: int | None = None, check:
 
 # frames per second a session runs at when --every is not given (the nearest a clip's rate allows)
 SESSION_RATE = 60.0
+EVERY_HELP = "take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)"
 
 
+@functools.lru_cache(maxsize=64)
 def _clip_frame_time(clip: Path) -> tuple[int, float]:
-    """A BVH clip's frame count and frame time (s), from its header."""
+    """A BVH clip's frame count and frame time (s), from its header (read once per clip and command)."""
     from skinning.bvh import BVHReader
 
     reader = BVHReader(clip)
@@ -582,6 +585,7 @@ OUTFIT_HELP = ("outfit folder in <data>/garments, or a path: a MakeHuman outfit 
 
 
 def main(argv: list[str] | None = None) -> int:
+    _clip_frame_time.cache_clear()  # (a clip's header read once per command, afresh for the next)
     parser = argparse.ArgumentParser(prog="tryon", description="Real-time virtual try-on.")
     parser.add_argument("--data", help=f"data folder (default: ${ENV_VAR} or ../shared/data)")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -605,8 +609,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fabric", help=FABRIC_HELP + "; the fabrics from --fabrics")
     p.add_argument("--fabrics", help="TOML file of fabrics (default: the presets, cloth/fabrics.toml)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
-    p.add_argument("--every", type=_count, default=None,
-                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
+    p.add_argument("--every", type=_count, default=None, help=EVERY_HELP)
     p.add_argument("--max-frames", type=_count, default=None, help="stop each clip after N frames")
     p.add_argument("--no-png", action="store_true", help="skip rendering snapshots")
     p.add_argument("--frames", help="snapshot frames, comma-separated session frame numbers (default: a showcase "
@@ -623,8 +626,7 @@ def main(argv: list[str] | None = None) -> int:
     _outfit_arguments(p)
     p.add_argument("--session", default="demo", help="session name (default demo)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
-    p.add_argument("--every", type=_count, default=None,
-                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
+    p.add_argument("--every", type=_count, default=None, help=EVERY_HELP)
     p.add_argument("--max-frames", type=_count, default=None, help="stop after N frames")
     p.add_argument("--snapshot-frames", default="60,150,240,420",
                    help="frames to render as PNG (comma-separated; default 60,150,240,420)")
@@ -649,8 +651,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--wait", type=_seconds, default=30.0, help="--live: seconds to wait for the skeleton")
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"), help="BVH pacing (default realtime)")
     p.add_argument("--loop", action="store_true", help="loop the clip")
-    p.add_argument("--every", type=_count, default=None,
-                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
+    p.add_argument("--every", type=_count, default=None, help=EVERY_HELP)
     p.add_argument("--max-frames", type=_count, default=None)
     p.add_argument("--wait-subscribers", type=_seconds, default=10.0,
                    help="wait up to this many seconds for a body subscriber (cloth service) before the first frame")
@@ -737,8 +738,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--session", default="demo")
     p.add_argument("--clip", default="cmu_131_01_walk_3dsmax")
     p.add_argument("--pace", default="realtime", choices=("realtime", "fast"))
-    p.add_argument("--every", type=_count, default=None,
-                   help="take one frame in N (default: the N that brings the clip nearest 60 Hz, 2 for the 120 Hz CMU clips)")
+    p.add_argument("--every", type=_count, default=None, help=EVERY_HELP)
     p.add_argument("--max-frames", type=_count, default=None)
     p.add_argument("--wait-subscribers", type=_seconds, default=10.0,
                    help="wait up to this many seconds for a pose subscriber (mocap-ingest) before the first pose")

@@ -203,7 +203,8 @@ class BusPoseSource:
                 rot = msg.arrays["local_rotations"]
                 if rot.shape[0] != n:
                     raise MessageError(k, f"local_rotations has {rot.shape[0]} rows, the skeleton has {n} bones")
-                norm = np.linalg.norm(rot.astype(np.float64), axis=1)
+                q = rot.astype(np.float64)
+                norm = np.linalg.norm(q, axis=1)
                 if not (norm > MIN_QUATERNION_NORM).all():
                     row = int(np.argmin(norm))
                     raise MessageError(k, f"local_rotations row {row} ({self.skeleton.names[row]}) is no rotation: "
@@ -215,7 +216,7 @@ class BusPoseSource:
                 continue
             self.stats.add("received")
             last = msg.frame
-            quaternions_to_matrices(rot.astype(np.float64), self._rot)
+            quaternions_to_matrices(q, self._rot)
             self._pos[:] = msg.arrays["root_position"]
             self.origin_ns = msg.origin_ns
             yield PoseFrame(msg.frame, msg.time, self._rot, self._pos)
