@@ -584,11 +584,20 @@ OUTFIT_HELP = ("outfit folder in <data>/garments, or a path: a MakeHuman outfit 
                "of those")
 
 
+class _Parser(argparse.ArgumentParser):
+    """No option prefixes: `catalog --out X` would otherwise be read as `--outfit X` and the error
+    would name X as an outfit."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+
 def main(argv: list[str] | None = None) -> int:
     _clip_frame_time.cache_clear()  # (a clip's header read once per command, afresh for the next)
-    parser = argparse.ArgumentParser(prog="tryon", description="Real-time virtual try-on.")
+    parser = _Parser(prog="tryon", description="Real-time virtual try-on.")
     parser.add_argument("--data", help=f"data folder (default: ${ENV_VAR} or ../shared/data)")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     p = sub.add_parser("body", help="retarget and skin motion clips; print timings, write PNG snapshots")
     p.add_argument("--clip", action="append", help="clip name in <data>/mocap or a BVH path (repeatable; default all)")
     p.add_argument("--out", default="out", help="output folder (default out/)")

@@ -113,6 +113,18 @@ def test_a_frame_count_below_one_is_refused_at_once(command, option, value, tmp_
     assert not any(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("argv, option", [(["catalog", "--out", "x"], "--out"),
+                                          (["session", "--max", "3"], "--max")])
+def test_an_option_is_taken_by_its_whole_name_only(argv, option, capsys):
+    """argparse took prefixes: `catalog --out X` was read as `--outfit X`, and the error named X as
+    an outfit."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert f"unrecognized arguments: {option}" in err and "outfit" not in err.split("error:")[1]
+
+
 @pytest.mark.parametrize("command", ["session", "cloth", "ingest", "capture"])
 def test_a_clip_with_no_frame_after_its_first_is_refused_naming_it(command, tmp_path, capsys):
     """A one-frame clip (a user's single pose) ran a session of no frames: empty timings, exit 0.
