@@ -26,10 +26,10 @@ from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
 from .topology import vertex_cells
 from .winding import NO_WINDING
-from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, deformation_heights,
-                       elastic_forces, fold_across, fold_lines, fold_quads, length_displacement, match_required_length,
-                       normal_force, offset_along_normals, other_part_seeds, penetration_floor, quad_lattice,
-                       shading_normals)
+from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, cover_body_tips,
+                       deformation_heights, elastic_forces, fold_across, fold_lines, fold_quads, length_displacement,
+                       match_required_length, normal_force, offset_along_normals, other_part_seeds, penetration_floor,
+                       quad_lattice, shading_normals)
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,10 @@ class SurfaceSettings:
     # off a particle's distance (`wrinkles.tip_allowance`): a coarse body's vertices stand 2-7 mm
     # out, and came through the detailed triangles between particles the clearance away (0: off)
     tip_share: float = 0.25
+    # and a body vertex standing out of its ring that lies in front of the detailed triangle over it, or
+    # within the clearance, raises that triangle's corners until it is the clearance under it (Decision,
+    # `wrinkles.cover_body_tips`; needs the pose's vertex tips)
+    cover_tips: bool = True
     contact_margin: float = 0.0075  # m: S103 tests a finer particle only near a particle this close
     # m: S103 tests a coarse face, and its first subdivision, only if a corner is this close
     # (wider than contact_margin: a face whose corners stand off a convex part can cut into it)
@@ -158,6 +162,8 @@ class SurfaceModel:
     fold_quad_flip: np.ndarray  # (T, 5) uint8
     fold_quad_points: np.ndarray  # (3, Q) int32: `wrinkles.quad_lattice`
     fold_quad_rs: np.ndarray  # (3, Q, 2) int32
+    d_tri_start: np.ndarray  # (N + 1,) int64: CSR of each detailed vertex's triangles (into tess.triangles)
+    d_tri_ids: np.ndarray  # int32
 
     @property
     def n_vertices(self) -> int:
@@ -191,7 +197,7 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
                         f.max_neighbour_ratio * seg, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
                         1.0 - 1.0 / f.max_neighbour_ratio**2, *fold_lines(tess.lattice, tess.level),
                         *fold_quads(tess.coarse_triangles, faces, tess.coarse_edges),
-                        *quad_lattice(tess.lattice, tess.level))
+                        *quad_lattice(tess.lattice, tess.level), *vertex_cells(tess.n_vertices, tess.triangles))
 
 
 class SurfaceState:
@@ -277,6 +283,9 @@ class SurfaceState:
         self.exit_was_inside = np.zeros(N, dtype=np.uint8)  # out_along_normals: 1 where it found the particle inside
         self.tree_stack = np.zeros(FACE_TREE_STACK, dtype=np.int32)  # out_along_normals' face-tree query scratch
         self.no_tips = np.zeros(0)  # S103 without the body's tip heights (DetailedSurface.step's face_tip None)
+        # cover_body_tips: each body vertex's nearest tested particle (-1 between frames), the vertices listed
+        self.tip_owner = np.zeros(0, dtype=np.int32)
+        self.tip_owned = np.zeros(0, dtype=np.int32)
 
 
 class DetailedSurface:
@@ -287,11 +296,13 @@ class DetailedSurface:
         self.tested = 0  # particles S103 tested in the last frame
         self.creased = 0  # particles moved out of a crease in the last frame (`creases.leave_creases`)
         self.exited = 0  # particles moved out along ±n_i in the last frame (`creases.out_along_normals`)
+        self.covered = 0  # body vertices whose detailed triangle S103 raised over them in the last frame
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
              body: BodyMesh | None, face_n: np.ndarray | None, dt: float,
              grid: VertexGrid | None = None, face_tip: np.ndarray | None = None,
-             winding: tuple | None = None, tree: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+             winding: tuple | None = None, tree: tuple | None = None,
+             vertex_tip: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """One frame of S102-S106 from the coarse positions x (n, 3); returns (positions, normals)
         of the detailed mesh (views of the state arrays, valid until the next step).
 
@@ -305,7 +316,9 @@ class DetailedSurface:
         body.winding_faces), through which the moves out of creases leave a particle outside the
         body as a whole where it is (None: the tangent planes alone decide); tree: the pose's face
         tree (`FaceTree.arrays()` over the clothed faces), through whose nearest face a particle
-        inside goes out where no way along ±n_i is near (None: it stays)."""
+        inside goes out where no way along ±n_i is near (None: it stays); vertex_tip: how far each
+        body vertex stands out of its ring (`BodyPose.vertex_tip`, valid once `face_tips()` has run;
+        None: no triangle is raised over the body's tips, `wrinkles.cover_body_tips`)."""
         m, s, t, st = self.model, self.state, self.model.tess, self.model.settings
         c = m.cloth
         t0 = time.perf_counter()
@@ -342,6 +355,16 @@ class DetailedSurface:
         s.lifted[:] = s.dh
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)
+        self.covered = 0
+        if body is not None and vertex_tip is not None and st.cover_tips:  # (S103's Decision, with its time)
+            if len(s.tip_owner) != len(body_x):
+                s.tip_owner = np.full(len(body_x), -1, dtype=np.int32)
+                s.tip_owned = np.zeros(len(body_x), dtype=np.int32)
+            self.covered = cover_body_tips(s.p, s.n_pn, s.dh, s.dh_pen, s.lifted, s.floor, s.ceiling, s.body_floor,
+                                           s.sd, s.facing, s.other, s.body_face, s.part_face, body_x, body.triangles,
+                                           body.tri_nbrs, body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids,
+                                           body.parts, face_n, s.q, vertex_tip, t.triangles, m.d_tri_start,
+                                           m.d_tri_ids, s.tip_owner, s.tip_owned, st.clearance, st.max_height)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0

@@ -12,7 +12,7 @@ import math
 import numpy as np
 
 from .collision import (ALL_REGIONS, behind_every_plane, deepest_plane, face_walk_distance, grid_nearest_per_part,
-                        walk_nearest)
+                        vertex_normal, walk_nearest)
 from .geometry import add_face_normal
 from .jit import FAST_ARITHMETIC, helper, kernel
 
@@ -575,6 +575,181 @@ def bulge_towards_body(ctrl, f, face_ids, order, normals, facing):
             off = abs(off)
         bulge = max(bulge, off)
     return bulge
+
+
+# the body's tips against the detailed triangles (Decision, `cover_body_tips`)
+MIN_COVERED_TIP = 1e-5  # m: a body vertex standing out of its ring by less is covered by S103's particles alone
+COVER_FACING = 0.5  # the skin faces out through the triangle: n_v . n_triangle at least this
+MAX_COVER_POKE = 0.005  # m: a vertex farther in front of the triangle is not under it (another body part over it)
+COVER_REACH = 0.01  # m: a vertex deeper under its triangle leaves S106 the floor S103 gave (it comes down less)
+COVER_WALK_STEPS = 4  # particles walked from the vertex's nearest tested particle to the triangle over it
+# and where the vertex lies over none of the triangles around the particle nearest it (their normals lean), the
+# one it misses least is taken while it lies no farther outside that one's edges than this (barycentric)
+COVER_OUTSIDE = 0.25
+
+
+@helper
+def _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz):
+    """Of the detailed triangles around particle i, the one whose projection along its normal
+    holds the point v, or else the one it misses least: (triangle, how far outside its edges the
+    point's projection lies in barycentric terms (0: inside), its unit normal turned to the
+    particles' side); triangle -1 if none has an area."""
+    best_t, best_out = -1, np.inf
+    bx = by = bz = 0.0
+    for k in range(d_tri_start[i], d_tri_start[i + 1]):
+        t = d_tri_ids[k]
+        a, b, c = d_tris[t, 0], d_tris[t, 1], d_tris[t, 2]
+        e0x, e0y, e0z = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
+        e1x, e1y, e1z = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
+        wx, wy, wz = vx - p[a, 0], vy - p[a, 1], vz - p[a, 2]
+        d00 = e0x * e0x + e0y * e0y + e0z * e0z
+        d01 = e0x * e1x + e0y * e1y + e0z * e1z
+        d11 = e1x * e1x + e1y * e1y + e1z * e1z
+        d20 = wx * e0x + wy * e0y + wz * e0z
+        d21 = wx * e1x + wy * e1y + wz * e1z
+        den = d00 * d11 - d01 * d01
+        if den <= 0.0:
+            continue
+        v = (d11 * d20 - d01 * d21) / den
+        w = (d00 * d21 - d01 * d20) / den
+        out = max(0.0, -v, -w, v + w - 1.0)
+        if out >= best_out:
+            continue
+        nx, ny, nz = e0y * e1z - e0z * e1y, e0z * e1x - e0x * e1z, e0x * e1y - e0y * e1x
+        length = math.sqrt(nx * nx + ny * ny + nz * nz)
+        side = 0.0
+        for m in range(3):
+            q = d_tris[t, m]
+            side += normals[q, 0] * nx + normals[q, 1] * ny + normals[q, 2] * nz
+        if side < 0.0:
+            length = -length
+        best_t, best_out = t, out
+        bx, by, bz = nx / length, ny / length, nz / length
+        if out == 0.0:
+            break
+    return best_t, best_out, bx, by, bz
+
+
+@kernel
+def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, sd, facing, other, body_face, part_face,
+                    body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q, vertex_tip,
+                    d_tris, d_tri_start, d_tri_ids, owner, owned, clearance, max_height):
+    """Decision (the body's tips against the detailed triangles; S103 tests particles, not
+    triangles): a body vertex standing out of its ring (vertex_tip, `collision.face_tip_heights`)
+    can come through the detailed triangle between particles that S103 put the clearance off the
+    faces around it, or that S106 brought down towards the body as far as their own distances
+    allow: skin seen through tight cloth, at the knees and thighs. Each such vertex that a
+    tested particle's walk ended next to (a corner of body_face[i]) is looked for under the
+    detailed triangles around its nearest such particle (walking to the particle nearest to it,
+    at most COVER_WALK_STEPS times; or the one of those it misses least, by at most COVER_OUTSIDE).
+    Where the skin faces out through that triangle (n_v . n_t >=
+    COVER_FACING) and the vertex lies at most MAX_COVER_POKE in front of its plane or less than
+    COVER_REACH behind it (s, its height over the plane), the plane is kept the clearance over
+    it: each corner rises along its normal by (s + clearance) / (n_i . n_t) where that is
+    positive, and S106 may bring it down by no more than -(s + clearance) / (n_i . n_t) after
+    (floor, body_floor: `penetration_floor`'s, raised; ceiling not below the floor).
+    Only where S103 tested all three corners with the body below them (facing >= 0), and where
+    a corner to be raised has another body part within TIP_OTHER_CLEAR, only if it still reads
+    the clearance or more outside by a face walk from where its walk in the other part ended
+    (part_face), else from its own (body_face: S103's walks in the other parts came back to its
+    own, or a bound ruled them out). In a crease a lift goes into the other skin; at the seam
+    between two parts, as at the knee, the other part is the same skin going on, and the specks
+    showed there: `tip_allowance`'s rule, no other part within 1 cm, left the knees as they
+    were. Δh stays within max_height; the lifts count in Δh, Δh_penetration and `lifted` (sd is
+    left as S103 read it). owner (n_body,) int32: -1 on entry and on return; owned (n_body,)
+    int32 scratch; q (3,) scratch. Returns the number of vertices covered by a lift."""
+    n_owned = 0
+    for i in range(p.shape[0]):  # each tested particle offers itself to the tips of its walk's face
+        f = body_face[i]
+        if sd[i] == UNTESTED or f < 0:
+            continue
+        for k in range(3):
+            v = tris[f, k]
+            if vertex_tip[v] < MIN_COVERED_TIP:
+                continue
+            j = owner[v]
+            if j < 0:
+                owner[v] = i
+                owned[n_owned] = v
+                n_owned += 1
+            elif ((p[i, 0] - body_x[v, 0]) ** 2 + (p[i, 1] - body_x[v, 1]) ** 2 + (p[i, 2] - body_x[v, 2]) ** 2 <
+                  (p[j, 0] - body_x[v, 0]) ** 2 + (p[j, 1] - body_x[v, 1]) ** 2 + (p[j, 2] - body_x[v, 2]) ** 2):
+                owner[v] = i
+    covered = 0
+    for m in range(n_owned):
+        v = owned[m]
+        i = owner[v]
+        owner[v] = -1
+        vx, vy, vz = body_x[v, 0], body_x[v, 1], body_x[v, 2]
+        t = -1
+        out = np.inf
+        nx = ny = nz = 0.0
+        for _ in range(COVER_WALK_STEPS):
+            t, out, nx, ny, nz = _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz)
+            if out == 0.0:
+                break
+            # on to the particle around i nearest the vertex, while one is nearer
+            best = (p[i, 0] - vx) ** 2 + (p[i, 1] - vy) ** 2 + (p[i, 2] - vz) ** 2
+            nearest = i
+            for k in range(d_tri_start[i], d_tri_start[i + 1]):
+                for c in range(3):
+                    u = d_tris[d_tri_ids[k], c]
+                    du = (p[u, 0] - vx) ** 2 + (p[u, 1] - vy) ** 2 + (p[u, 2] - vz) ** 2
+                    if du < best:
+                        best, nearest = du, u
+            if nearest == i:
+                break
+            i = nearest
+        if t < 0 or out > COVER_OUTSIDE:
+            continue
+        a = d_tris[t, 0]
+        s = (vx - p[a, 0]) * nx + (vy - p[a, 1]) * ny + (vz - p[a, 2]) * nz  # the vertex's height over the plane
+        if s <= -COVER_REACH or s > MAX_COVER_POKE:
+            continue
+        bx, by, bz = vertex_normal(tri_start, tri_ids, face_n, v)
+        if bx * nx + by * ny + bz * nz < COVER_FACING:
+            continue  # the skin does not face out through this triangle
+        need = s + clearance  # > 0: the plane rises by this; <= 0: it may come down by -need, no more
+        usable = True
+        for c in range(3):
+            j = d_tris[t, c]
+            rate = normals[j, 0] * nx + normals[j, 1] * ny + normals[j, 2] * nz
+            if sd[j] == UNTESTED or facing[j] < 0.0 or rate < COVER_FACING:
+                usable = False
+                break
+            if need > LIFT_TOLERANCE and other[j] < TIP_OTHER_CLEAR:  # another part near: the raised corner must stay out of it
+                start = part_face[j] if part_face[j] >= 0 else body_face[j]
+                if start < 0:
+                    usable = False
+                    break
+                lift = min(need / rate, max_height - dh[j])
+                d = face_walk_distance(p[j, 0] + lift * normals[j, 0], p[j, 1] + lift * normals[j, 1],
+                                       p[j, 2] + lift * normals[j, 2], body_x, tris, tri_nbrs, tri_start, tri_ids,
+                                       nbr_start, nbr_ids, regions, start, face_n, q)[0]
+                if d < clearance:
+                    usable = False
+                    break
+        if not usable:
+            continue
+        for c in range(3):
+            j = d_tris[t, c]
+            rate = normals[j, 0] * nx + normals[j, 1] * ny + normals[j, 2] * nz
+            if need > LIFT_TOLERANCE:
+                lift = min(need / rate, max_height - dh[j])
+                if lift > 0.0:
+                    dh[j] += lift
+                    dh_pen[j] += lift
+                    lifted[j] = dh[j]
+                    p[j, 0] += lift * normals[j, 0]
+                    p[j, 1] += lift * normals[j, 1]
+                    p[j, 2] += lift * normals[j, 2]
+            low = dh[j] - max(0.0, -need) / rate  # S106 may bring the corner down this far, no further
+            floor[j] = max(floor[j], low)
+            body_floor[j] = max(body_floor[j], low)
+            ceiling[j] = max(ceiling[j], floor[j])
+        if need > LIFT_TOLERANCE:
+            covered += 1
+    return covered
 
 
 # ---------------------------------------------------------------- S104 normal force

@@ -260,7 +260,8 @@ class OutfitSession:
         # the frame's body: face normals, vertex grid, face tree; shared by the garments
         self.pose = BodyPose(body_mesh, any(m.settings.needs_face_tree for m in outfit.models),
                              any(m.settings.union_passes > 0 for m in outfit.models),
-                             any(sf.model.settings.tip_share > 0 for sf in self.surfaces))
+                             any(sf.model.settings.tip_share > 0 or sf.model.settings.cover_tips
+                                 for sf in self.surfaces))
         self.profile = False
         self.stage_seconds = np.zeros((len(self.sims), 2))
         self.cloth_seconds = np.zeros(len(self.sims))
@@ -355,7 +356,8 @@ class OutfitSession:
             self._detailed[k] = surf.step(x, st.nearest_any, self.pose.x, self.body_mesh, self.pose.face_n,
                                           surface_dt, self.pose.grid, self.pose.face_tips(),
                                           self.pose.winding.arrays() if self.pose.winding is not None else None,
-                                          self.pose.faces.arrays() if self.pose.faces is not None else None)
+                                          self.pose.faces.arrays() if self.pose.faces is not None else None,
+                                          self.pose.vertex_tip)
             self.surface_seconds[k] = surf.stage_seconds
         spent = time.perf_counter() - t0
         avg = self.garment_seconds[k]
