@@ -356,15 +356,16 @@ class DetailedSurface:
         penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.clearance, st.contact_margin - st.clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)
         self.covered = 0
-        if body is not None and vertex_tip is not None and st.cover_tips:  # (S103's Decision, with its time)
+        if body is not None and vertex_tip is not None and st.cover_tips and st.own_vertex:  # (S103's Decision)
             if len(s.tip_owner) != len(body_x):
                 s.tip_owner = np.full(len(body_x), -1, dtype=np.int32)
                 s.tip_owned = np.zeros(len(body_x), dtype=np.int32)
             self.covered = cover_body_tips(s.p, s.n_pn, s.dh, s.dh_pen, s.lifted, s.floor, s.ceiling, s.body_floor,
-                                           s.sd, s.facing, s.other, s.body_face, s.part_face, body_x, body.triangles,
-                                           body.tri_nbrs, body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids,
-                                           body.parts, face_n, s.q, vertex_tip, t.triangles, m.d_tri_start,
-                                           m.d_tri_ids, s.tip_owner, s.tip_owned, st.clearance, st.max_height)
+                                           s.sd, s.facing, s.other, s.body_face, s.part_face, s.near_vertex, body_x,
+                                           body.triangles, body.tri_nbrs, body.tri_start, body.tri_ids, body.nbr_start,
+                                           body.nbr_ids, body.parts, face_n, s.q, vertex_tip, t.triangles,
+                                           m.d_tri_start, m.d_tri_ids, m.d_edges, m.d_edge_start, m.d_edge_ids,
+                                           s.tip_owner, s.tip_owned, st.clearance, st.max_height)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0

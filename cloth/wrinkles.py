@@ -578,12 +578,13 @@ def bulge_towards_body(ctrl, f, face_ids, order, normals, facing):
 
 
 # the body's tips against the detailed triangles (Decision, `cover_body_tips`)
-MIN_COVERED_TIP = 1e-5  # m: a body vertex standing out of its ring by less is covered by S103's particles alone
+MIN_COVERED_TIP = 0.0005  # m: a body vertex standing out of its ring by less is covered by S103's particles alone
 COVER_FACING = 0.5  # the skin faces out through the triangle: n_v . n_triangle at least this
 MAX_COVER_POKE = 0.005  # m: a vertex farther in front of the triangle is not under it (another body part over it)
-COVER_REACH = 0.01  # m: a vertex deeper under its triangle leaves S106 the floor S103 gave (it comes down less)
-COVER_WALK_STEPS = 4  # particles walked from the vertex's nearest tested particle to the triangle over it
-# and where the vertex lies over none of the triangles around the particle nearest it (their normals lean), the
+COVER_SLACK = 0.001  # m: the triangle's plane and the tangent plane at its particle differ by less there
+COVER_REACH = 0.0015  # m: a vertex deeper under its triangle leaves S106 the floor S103 gave (it comes down less)
+COVER_WALK_STEPS = 4  # steps over the detailed edges from a particle to the one nearest the vertex
+# where the vertex lies over none of the triangles around the particle nearest it (their normals lean), the
 # one it misses least is taken while it lies no farther outside that one's edges than this (barycentric)
 COVER_OUTSIDE = 0.25
 
@@ -632,16 +633,18 @@ def _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz):
 
 @kernel
 def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, sd, facing, other, body_face, part_face,
-                    body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q, vertex_tip,
-                    d_tris, d_tri_start, d_tri_ids, owner, owned, clearance, max_height):
+                    near_vertex, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q, vertex_tip,
+                    d_tris, d_tri_start, d_tri_ids, d_edges, d_edge_start, d_edge_ids, owner, owned, clearance,
+                    max_height):
     """Decision (the body's tips against the detailed triangles; S103 tests particles, not
     triangles): a body vertex standing out of its ring (vertex_tip, `collision.face_tip_heights`)
     can come through the detailed triangle between particles that S103 put the clearance off the
     faces around it, or that S106 brought down towards the body as far as their own distances
-    allow: skin seen through tight cloth, at the knees and thighs. Each such vertex that a
-    tested particle's walk ended next to (a corner of body_face[i]) is looked for under the
-    detailed triangles around its nearest such particle (walking to the particle nearest to it,
-    at most COVER_WALK_STEPS times; or the one of those it misses least, by at most COVER_OUTSIDE).
+    allow: skin seen through tight cloth, at the knees and thighs. Each such vertex that is a
+    tested particle's nearest body vertex (near_vertex, S103's own vertex) is looked for under the
+    detailed triangles around the particle nearest to it (walking there over the detailed edges
+    from the first such particle, at most COVER_WALK_STEPS steps; or the one of those triangles it
+    misses least, by at most COVER_OUTSIDE, where their normals lean).
     Where the skin faces out through that triangle (n_v . n_t >=
     COVER_FACING) and the vertex lies at most MAX_COVER_POKE in front of its plane or less than
     COVER_REACH behind it (s, its height over the plane), the plane is kept the clearance over
@@ -659,47 +662,38 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
     left as S103 read it). owner (n_body,) int32: -1 on entry and on return; owned (n_body,)
     int32 scratch; q (3,) scratch. Returns the number of vertices covered by a lift."""
     n_owned = 0
-    for i in range(p.shape[0]):  # each tested particle offers itself to the tips of its walk's face
-        f = body_face[i]
-        if sd[i] == UNTESTED or f < 0:
+    for i in range(p.shape[0]):  # each tip that is a tested particle's nearest body vertex, once
+        if sd[i] == UNTESTED:
             continue
-        for k in range(3):
-            v = tris[f, k]
-            if vertex_tip[v] < MIN_COVERED_TIP:
-                continue
-            j = owner[v]
-            if j < 0:
-                owner[v] = i
-                owned[n_owned] = v
-                n_owned += 1
-            elif ((p[i, 0] - body_x[v, 0]) ** 2 + (p[i, 1] - body_x[v, 1]) ** 2 + (p[i, 2] - body_x[v, 2]) ** 2 <
-                  (p[j, 0] - body_x[v, 0]) ** 2 + (p[j, 1] - body_x[v, 1]) ** 2 + (p[j, 2] - body_x[v, 2]) ** 2):
-                owner[v] = i
+        v = near_vertex[i]
+        if v < 0 or owner[v] >= 0 or vertex_tip[v] < MIN_COVERED_TIP:
+            continue
+        owner[v] = i
+        owned[n_owned] = v
+        n_owned += 1
     covered = 0
     for m in range(n_owned):
         v = owned[m]
         i = owner[v]
         owner[v] = -1
         vx, vy, vz = body_x[v, 0], body_x[v, 1], body_x[v, 2]
-        t = -1
-        out = np.inf
-        nx = ny = nz = 0.0
-        for _ in range(COVER_WALK_STEPS):
-            t, out, nx, ny, nz = _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz)
-            if out == 0.0:
-                break
-            # on to the particle around i nearest the vertex, while one is nearer
-            best = (p[i, 0] - vx) ** 2 + (p[i, 1] - vy) ** 2 + (p[i, 2] - vz) ** 2
+        # (its height over the tangent plane at its nearest particle: most lie deep under it, or far over)
+        s = (vx - p[i, 0]) * normals[i, 0] + (vy - p[i, 1]) * normals[i, 1] + (vz - p[i, 2]) * normals[i, 2]
+        if s < -COVER_REACH - COVER_SLACK or s > MAX_COVER_POKE + COVER_SLACK:
+            continue
+        best = (p[i, 0] - vx) ** 2 + (p[i, 1] - vy) ** 2 + (p[i, 2] - vz) ** 2
+        for _ in range(COVER_WALK_STEPS):  # on to the particle nearest the vertex
             nearest = i
-            for k in range(d_tri_start[i], d_tri_start[i + 1]):
-                for c in range(3):
-                    u = d_tris[d_tri_ids[k], c]
-                    du = (p[u, 0] - vx) ** 2 + (p[u, 1] - vy) ** 2 + (p[u, 2] - vz) ** 2
-                    if du < best:
-                        best, nearest = du, u
+            for k in range(d_edge_start[i], d_edge_start[i + 1]):
+                e = d_edge_ids[k]
+                u = d_edges[e, 0] + d_edges[e, 1] - i
+                du = (p[u, 0] - vx) ** 2 + (p[u, 1] - vy) ** 2 + (p[u, 2] - vz) ** 2
+                if du < best:
+                    best, nearest = du, u
             if nearest == i:
                 break
             i = nearest
+        t, out, nx, ny, nz = _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz)
         if t < 0 or out > COVER_OUTSIDE:
             continue
         a = d_tris[t, 0]
