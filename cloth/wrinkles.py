@@ -633,9 +633,9 @@ def _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz):
 
 @kernel
 def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, sd, facing, other, body_face, part_face,
-                    near_vertex, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q, vertex_tip,
-                    d_tris, d_tri_start, d_tri_ids, d_edges, d_edge_start, d_edge_ids, owner, owned, clearance,
-                    max_height):
+                    near_vertex, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q,
+                    vertex_tip, d_tris, d_tri_start, d_tri_ids, d_edges, d_edge_start, d_edge_ids, owner, owned,
+                    clearance, max_height):
     """Decision (the body's tips against the detailed triangles; S103 tests particles, not
     triangles): a body vertex standing out of its ring (vertex_tip, `collision.face_tip_heights`)
     can come through the detailed triangle between particles that S103 put the clearance off the
@@ -644,23 +644,23 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
     tested particle's nearest body vertex (near_vertex, S103's own vertex) is looked for under the
     detailed triangles around the particle nearest to it (walking there over the detailed edges
     from the first such particle, at most COVER_WALK_STEPS steps; or the one of those triangles it
-    misses least, by at most COVER_OUTSIDE, where their normals lean).
-    Where the skin faces out through that triangle (n_v . n_t >=
-    COVER_FACING) and the vertex lies at most MAX_COVER_POKE in front of its plane or less than
-    COVER_REACH behind it (s, its height over the plane), the plane is kept the clearance over
-    it: each corner rises along its normal by (s + clearance) / (n_i . n_t) where that is
-    positive, and S106 may bring it down by no more than -(s + clearance) / (n_i . n_t) after
-    (floor, body_floor: `penetration_floor`'s, raised; ceiling not below the floor).
-    Only where S103 tested all three corners with the body below them (facing >= 0), and where
-    a corner to be raised has another body part within TIP_OTHER_CLEAR, only if it still reads
-    the clearance or more outside by a face walk from where its walk in the other part ended
-    (part_face), else from its own (body_face: S103's walks in the other parts came back to its
-    own, or a bound ruled them out). In a crease a lift goes into the other skin; at the seam
-    between two parts, as at the knee, the other part is the same skin going on, and the specks
-    showed there: `tip_allowance`'s rule, no other part within 1 cm, left the knees as they
-    were. Δh stays within max_height; the lifts count in Δh, Δh_penetration and `lifted` (sd is
-    left as S103 read it). owner (n_body,) int32: -1 on entry and on return; owned (n_body,)
-    int32 scratch; q (3,) scratch. Returns the number of vertices covered by a lift."""
+    misses least, by at most COVER_OUTSIDE, where their normals lean). Where the skin faces out
+    through that triangle (n_v . n_t >= COVER_FACING) and the vertex lies at most MAX_COVER_POKE
+    in front of its plane or less than COVER_REACH behind it (s, its height over the plane), the
+    plane is kept the clearance over it: each corner rises along its normal by
+    (s + clearance) / (n_i . n_t) where that is positive, and S106 may bring it down by no more
+    than -(s + clearance) / (n_i . n_t) after (floor, body_floor: `penetration_floor`'s, raised;
+    ceiling not below the floor). Only where S103 tested all three corners with the body below
+    them (facing >= 0), and where a corner to be raised has another body part within
+    TIP_OTHER_CLEAR, only if it still reads the clearance or more outside by a face walk from
+    where its walk in the other part ended (part_face), else from its own (body_face: S103's
+    walks in the other parts came back to its own, or a bound ruled them out). In a crease a lift
+    goes into the other skin; at the seam between two parts, as at the knee, the other part is
+    the same skin going on, and the specks showed there: `tip_allowance`'s rule, no other part
+    within 1 cm, left the knees as they were. Δh stays within max_height; the lifts count in Δh,
+    Δh_penetration and `lifted` (sd is left as S103 read it). owner (n_body,) int32: -1 on entry
+    and on return; owned (n_body,) int32 scratch; q (3,) scratch. Returns the number of vertices
+    covered by a lift."""
     n_owned = 0
     for i in range(p.shape[0]):  # each tip that is a tested particle's nearest body vertex, once
         if sd[i] == UNTESTED:
@@ -711,7 +711,8 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
             if sd[j] == UNTESTED or facing[j] < 0.0 or rate < COVER_FACING:
                 usable = False
                 break
-            if need > LIFT_TOLERANCE and other[j] < TIP_OTHER_CLEAR:  # another part near: the raised corner must stay out of it
+            # another part near: the raised corner must stay out of it
+            if need > LIFT_TOLERANCE and other[j] < TIP_OTHER_CLEAR:
                 start = part_face[j] if part_face[j] >= 0 else body_face[j]
                 if start < 0:
                     usable = False

@@ -879,9 +879,10 @@ def test_the_triangle_over_a_body_tip_keeps_it_the_clearance_under_the_surface(a
     through the triangle over it (the test above). With the pose's vertex tips the corners of
     the triangle over it rise along their normals until its plane lies the clearance over the
     vertex (by about 1.26 mm; the surface there leans a little, so 1.00-1.04 mm straight up),
-    and through ten more frames, S106 included, it stays there without rising again. With another body part 2 mm over the surface there (an arm box), a raised
-    corner would come nearer it than the clearance: nothing rises, the vertex shows through as
-    before, and no particle enters the arm."""
+    and through ten more frames, S106 included, it stays there without rising again. With
+    another body part 2 mm over the surface there (an arm box), a raised corner would come
+    nearer it than the clearance: nothing rises, the vertex shows through as before, and no
+    particle enters the arm."""
     lattice = 0.04 / 6
     bv, bt, apex = raised_box_top(0.008, shift=lattice / 2)
     regions = np.ones(len(bv), dtype=np.uint8)
