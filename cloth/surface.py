@@ -365,7 +365,9 @@ class DetailedSurface:
                                            body.triangles, body.tri_nbrs, body.tri_start, body.tri_ids, body.nbr_start,
                                            body.nbr_ids, body.parts, face_n, s.q, vertex_tip, t.triangles,
                                            m.d_tri_start, m.d_tri_ids, m.d_edges, m.d_edge_start, m.d_edge_ids,
-                                           s.tip_owner, s.tip_owned, st.clearance, st.max_height)
+                                           s.tip_owner, s.tip_owned, st.clearance, st.max_height,
+                                           body.winding_faces, *(NO_WINDING if winding is None else winding),
+                                           winding is not None)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0

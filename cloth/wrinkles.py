@@ -15,6 +15,7 @@ from .collision import (ALL_REGIONS, behind_every_plane, deepest_plane, face_wal
                         vertex_normal, walk_nearest)
 from .geometry import add_face_normal
 from .jit import FAST_ARITHMETIC, helper, kernel
+from .winding import winding_number
 
 UNTESTED = np.inf  # signed distance of a detailed particle S103 did not test this frame
 
@@ -635,7 +636,7 @@ def _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz):
 def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, sd, facing, other, body_face, part_face,
                     near_vertex, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q,
                     vertex_tip, d_tris, d_tri_start, d_tri_ids, d_edges, d_edge_start, d_edge_ids, owner, owned,
-                    clearance, max_height):
+                    clearance, max_height, wfaces, wlo, wstart, wids, wspan, wextent, use_winding):
     """Decision (the body's tips against the detailed triangles; S103 tests particles, not
     triangles): a body vertex standing out of its ring (vertex_tip, `collision.face_tip_heights`)
     can come through the detailed triangle between particles that S103 put the clearance off the
@@ -657,7 +658,10 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
     walks in the other parts came back to its own, or a bound ruled them out). In a crease a lift
     goes into the other skin; at the seam between two parts, as at the knee, the other part is
     the same skin going on, and the specks showed there: `tip_allowance`'s rule, no other part
-    within 1 cm, left the knees as they were. Δh stays within max_height; the lifts count in Δh,
+    within 1 cm, left the knees as they were. And a raised corner must lie outside the body as a
+    whole (its winding number 0; use_winding, the pose's winding grid over wfaces): where the
+    skinned skin overlaps itself, as the thigh in the belly in a squat, a corner S103 read outside
+    its own part rose into the other (the jumping jacks' squats). Δh stays within max_height; the lifts count in Δh,
     Δh_penetration and `lifted` (sd is left as S103 read it). owner (n_body,) int32: -1 on entry
     and on return; owned (n_body,) int32 scratch; q (3,) scratch. Returns the number of vertices
     covered by a lift."""
@@ -711,17 +715,19 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
             if sd[j] == UNTESTED or facing[j] < 0.0 or rate < COVER_FACING:
                 usable = False
                 break
-            # another part near: the raised corner must stay out of it
-            if need > LIFT_TOLERANCE and other[j] < TIP_OTHER_CLEAR:
+            if need <= LIFT_TOLERANCE:
+                continue
+            lift = max(0.0, min(need / rate, max_height - dh[j]))
+            rx, ry, rz = p[j, 0] + lift * normals[j, 0], p[j, 1] + lift * normals[j, 1], p[j, 2] + lift * normals[j, 2]
+            # the raised corner stays outside the body as a whole (where the skinned skin overlaps itself, as the
+            # thigh in the belly in a squat, a corner S103 read outside its own part can rise into the other)
+            if use_winding and winding_number(rx, ry, rz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) != 0:
+                usable = False
+                break
+            if other[j] < TIP_OTHER_CLEAR:  # another part near: the raised corner must stay the clearance out of it
                 start = part_face[j] if part_face[j] >= 0 else body_face[j]
-                if start < 0:
-                    usable = False
-                    break
-                lift = min(need / rate, max_height - dh[j])
-                d = face_walk_distance(p[j, 0] + lift * normals[j, 0], p[j, 1] + lift * normals[j, 1],
-                                       p[j, 2] + lift * normals[j, 2], body_x, tris, tri_nbrs, tri_start, tri_ids,
-                                       nbr_start, nbr_ids, regions, start, face_n, q)[0]
-                if d < clearance:
+                if start < 0 or face_walk_distance(rx, ry, rz, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
+                                                   nbr_ids, regions, start, face_n, q)[0] < clearance:
                     usable = False
                     break
         if not usable:
