@@ -868,7 +868,9 @@ def _height_over(p, tri, a):
     q = np.broadcast_to(a, u.shape)
     area = cross2(u, v, w)
     l0, l1, l2 = cross2(v, w, q) / area, cross2(w, u, q) / area, cross2(u, v, q) / area
-    k = np.flatnonzero((l0 >= -1e-12) & (l1 >= -1e-12) & (l2 >= -1e-12))[0]
+    under = np.flatnonzero((l0 >= -1e-12) & (l1 >= -1e-12) & (l2 >= -1e-12))
+    assert len(under) >= 1
+    k = under[0]
     return l0[k] * u[k, 1] + l1[k] * v[k, 1] + l2[k] * w[k, 1], k
 
 
@@ -1018,18 +1020,7 @@ def test_a_body_vertex_standing_out_between_particles_stays_under_the_surface(ti
     # the surface's height over the raised vertex: the detailed triangle under it in x-z
     a = bv[apex]
     tri = surf.model.tess.triangles
-    u, v, w = p[tri[:, 0]], p[tri[:, 1]], p[tri[:, 2]]
-
-    def cross2(o, s, t):
-        return (s[:, 0] - o[:, 0]) * (t[:, 2] - o[:, 2]) - (s[:, 2] - o[:, 2]) * (t[:, 0] - o[:, 0])
-
-    q = np.broadcast_to(a, u.shape)
-    area = cross2(u, v, w)
-    l0, l1, l2 = cross2(v, w, q) / area, cross2(w, u, q) / area, cross2(u, v, q) / area
-    under = np.flatnonzero((l0 >= 0) & (l1 >= 0) & (l2 >= 0))
-    assert len(under) >= 1
-    k = under[0]
-    height = l0[k] * u[k, 1] + l1[k] * v[k, 1] + l2[k] * w[k, 1]
+    height, k = _height_over(p, tri, a)
     corner_distance = np.linalg.norm((p[tri[k]] - a)[:, [0, 2]], axis=1)
     np.testing.assert_allclose(corner_distance, lattice / np.sqrt(2), rtol=1e-6)  # the square's middle
     if tip_share == 0.0:
