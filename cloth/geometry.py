@@ -275,3 +275,21 @@ def morton_order(points: np.ndarray, cell: float) -> np.ndarray:
         for axis in range(3):
             key |= ((q[:, axis] >> bit) & 1) << (3 * bit + axis)
     return np.argsort(key, kind="stable")
+
+
+@kernel
+def walk_nearest_vertex(px, py, pz, x, nbr_start, nbr_ids, start, steps):
+    """The vertex of x nearest p reached by walking from `start` to ever nearer neighbours."""
+    v = start
+    best = (x[v, 0] - px) ** 2 + (x[v, 1] - py) ** 2 + (x[v, 2] - pz) ** 2
+    for _ in range(steps):
+        nxt = v
+        for k in range(nbr_start[v], nbr_start[v + 1]):
+            w = nbr_ids[k]
+            d2 = (x[w, 0] - px) ** 2 + (x[w, 1] - py) ** 2 + (x[w, 2] - pz) ** 2
+            if d2 < best:
+                best, nxt = d2, w
+        if nxt == v:
+            break
+        v = nxt
+    return v

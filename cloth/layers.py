@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import outside_at
-from .geometry import closest_in_fan, nearest_vertices
+from .geometry import closest_in_fan, nearest_vertices, walk_nearest_vertex
 from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
 from .surface import rest_surface as surface_at_rest
@@ -133,24 +133,6 @@ class LayerState:
         self.lift = SheetMoves(m.over)
         self.press = SheetMoves(m.under)
         self.q = np.zeros(3)
-
-
-@kernel
-def walk_nearest_vertex(px, py, pz, x, nbr_start, nbr_ids, start, steps):
-    """The vertex of x nearest p reached by walking from `start` to ever nearer neighbours."""
-    v = start
-    best = (x[v, 0] - px) ** 2 + (x[v, 1] - py) ** 2 + (x[v, 2] - pz) ** 2
-    for _ in range(steps):
-        nxt = v
-        for k in range(nbr_start[v], nbr_start[v + 1]):
-            w = nbr_ids[k]
-            d2 = (x[w, 0] - px) ** 2 + (x[w, 1] - py) ** 2 + (x[w, 2] - pz) ** 2
-            if d2 < best:
-                best, nxt = d2, w
-        if nxt == v:
-            break
-        v = nxt
-    return v
 
 
 @kernel

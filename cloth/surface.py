@@ -24,7 +24,7 @@ from .creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
 from .pn import Tessellation, build_tessellation, pn_surface
-from .topology import vertex_cells
+from .topology import vertex_cells, vertex_neighbours
 from .winding import NO_WINDING
 from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, cover_body_tips,
                        deformation_heights, elastic_forces, fold_across, fold_lines, fold_quads, length_displacement,
@@ -164,6 +164,8 @@ class SurfaceModel:
     fold_quad_rs: np.ndarray  # (3, Q, 2) int32
     d_tri_start: np.ndarray  # (N + 1,) int64: CSR of each detailed vertex's triangles (into tess.triangles)
     d_tri_ids: np.ndarray  # int32
+    d_nbr_start: np.ndarray  # (N + 1,) int64: CSR of each detailed vertex's neighbours along the detailed edges
+    d_nbr_ids: np.ndarray  # int32
 
     @property
     def n_vertices(self) -> int:
@@ -197,7 +199,8 @@ def build_surface_model(cloth: ClothModel, settings: SurfaceSettings | None = No
                         f.max_neighbour_ratio * seg, es, ei, f.k_out_plane, f.h_normal, f.transfer_exponent,
                         1.0 - 1.0 / f.max_neighbour_ratio**2, *fold_lines(tess.lattice, tess.level),
                         *fold_quads(tess.coarse_triangles, faces, tess.coarse_edges),
-                        *quad_lattice(tess.lattice, tess.level), *vertex_cells(tess.n_vertices, tess.triangles))
+                        *quad_lattice(tess.lattice, tess.level), *vertex_cells(tess.n_vertices, tess.triangles),
+                        *vertex_neighbours(tess.n_vertices, d_edges))
 
 
 class SurfaceState:
@@ -364,7 +367,7 @@ class DetailedSurface:
                                            s.sd, s.facing, s.other, s.body_face, s.part_face, s.near_vertex, body_x,
                                            body.triangles, body.tri_nbrs, body.tri_start, body.tri_ids, body.nbr_start,
                                            body.nbr_ids, body.parts, face_n, s.q, vertex_tip, t.triangles,
-                                           m.d_tri_start, m.d_tri_ids, m.d_edges, m.d_edge_start, m.d_edge_ids,
+                                           m.d_tri_start, m.d_tri_ids, m.d_nbr_start, m.d_nbr_ids,
                                            s.tip_owner, s.tip_owned, st.clearance, st.max_height,
                                            body.winding_faces, *(NO_WINDING if winding is None else winding),
                                            winding is not None)

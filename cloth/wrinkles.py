@@ -13,7 +13,7 @@ import numpy as np
 
 from .collision import (ALL_REGIONS, behind_every_plane, deepest_plane, face_walk_distance, grid_nearest_per_part,
                         vertex_normal, walk_nearest)
-from .geometry import add_face_normal
+from .geometry import add_face_normal, walk_nearest_vertex
 from .jit import FAST_ARITHMETIC, helper, kernel
 from .winding import winding_number
 
@@ -635,8 +635,8 @@ def _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz):
 @kernel
 def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, sd, facing, other, body_face, part_face,
                     near_vertex, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q,
-                    vertex_tip, d_tris, d_tri_start, d_tri_ids, d_edges, d_edge_start, d_edge_ids, owner, owned,
-                    clearance, max_height, wfaces, wlo, wstart, wids, wspan, wextent, use_winding):
+                    vertex_tip, d_tris, d_tri_start, d_tri_ids, d_nbr_start, d_nbr_ids, owner, owned, clearance,
+                    max_height, wfaces, wlo, wstart, wids, wspan, wextent, use_winding):
     """Decision (the body's tips against the detailed triangles; S103 tests particles, not
     triangles): a body vertex standing out of its ring (vertex_tip, `collision.face_tip_heights`)
     can come through the detailed triangle between particles that S103 put the clearance off the
@@ -644,11 +644,12 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
     allow: skin seen through tight cloth, at the knees and thighs. Each such vertex that is a
     tested particle's nearest body vertex (near_vertex, S103's own vertex) is looked for under the
     detailed triangles around the particle nearest to it (walking there over the detailed edges
-    from the first such particle, at most COVER_WALK_STEPS steps; or the one of those triangles it
-    misses least, by at most COVER_OUTSIDE, where their normals lean). Where the skin faces out
-    through that triangle (n_v . n_t >= COVER_FACING) and the vertex lies at most MAX_COVER_POKE
-    in front of its plane or less than COVER_REACH behind it (s, its height over the plane), the
-    plane is kept the clearance over it: each corner rises along its normal by
+    from the first such particle, at most COVER_WALK_STEPS steps, `geometry.walk_nearest_vertex`;
+    or the one of those triangles it misses least, by at most COVER_OUTSIDE, where their normals
+    lean). Where the skin faces out through that triangle (n_v . n_t >= COVER_FACING) and the
+    vertex lies at most MAX_COVER_POKE in front of its plane or less than COVER_REACH behind it
+    (s, its height over the plane), the plane is kept the clearance over it: each corner rises
+    along its normal by
     (s + clearance) / (n_i . n_t) where that is positive, and S106 may bring it down by no more
     than -(s + clearance) / (n_i . n_t) after (floor, body_floor: `penetration_floor`'s, raised;
     ceiling not below the floor). Only where S103 tested all three corners with the body below
@@ -685,18 +686,7 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
         s = (vx - p[i, 0]) * normals[i, 0] + (vy - p[i, 1]) * normals[i, 1] + (vz - p[i, 2]) * normals[i, 2]
         if s < -COVER_REACH - COVER_SLACK or s > MAX_COVER_POKE + COVER_SLACK:
             continue
-        best = (p[i, 0] - vx) ** 2 + (p[i, 1] - vy) ** 2 + (p[i, 2] - vz) ** 2
-        for _ in range(COVER_WALK_STEPS):  # on to the particle nearest the vertex
-            nearest = i
-            for k in range(d_edge_start[i], d_edge_start[i + 1]):
-                e = d_edge_ids[k]
-                u = d_edges[e, 0] + d_edges[e, 1] - i
-                du = (p[u, 0] - vx) ** 2 + (p[u, 1] - vy) ** 2 + (p[u, 2] - vz) ** 2
-                if du < best:
-                    best, nearest = du, u
-            if nearest == i:
-                break
-            i = nearest
+        i = walk_nearest_vertex(vx, vy, vz, p, d_nbr_start, d_nbr_ids, i, COVER_WALK_STEPS)
         t, out, nx, ny, nz = _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz)
         if t < 0 or out > COVER_OUTSIDE:
             continue
