@@ -49,6 +49,7 @@ from skinning.body import Body
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key, put_reliably
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, build_outfit, collision_body, find_outfit
+from .frame_order import FrameOrder
 from .heap import freeze_heap, reclaim_heap
 from .model_cache import ModelCache, object_digest
 from .protocol import MAX_LEVEL, Message, MessageError, decode, encode
@@ -141,7 +142,7 @@ class GarmentSession:
         self._n32 = [np.empty((n, 3), np.float32) for n in n_out] if service.float32_meshes else None
         self._compact = None if service.float32_meshes else [CompactMesh(n) for n in n_out]
         self.body_x = np.empty((service.body.n_visible, 3))
-        self.last_frame = -1
+        self.order = FrameOrder()  # of the body frames stepped
         self.seen_frame = -1  # the newest body frame that reached it, stepped or rejected
         self.run = 0  # which of the session's announcements its garments are from (`run` in the description)
         self.started = False
@@ -274,11 +275,15 @@ class GarmentSession:
         if q.shape[0] != svc.animator.character.model.nq:
             raise MessageError(key_expr, f"q has {q.shape[0]} values, the character needs "
                                          f"{svc.animator.character.model.nq}")
-        if msg.frame <= self.last_frame:
-            raise MessageError(key_expr, f"frame {msg.frame} arrives after frame {self.last_frame}")
-        if self.last_frame >= 0 and msg.frame != self.last_frame + 1:
+        last = self.order.last
+        jumped_from = self.order.take(msg.frame, key_expr)
+        if jumped_from is not None:
+            log.warning("cloth: %s: %d frames in a row came behind frame %d, a stray: the session goes on from "
+                        "frame %d", key_expr, FrameOrder.RESYNC_FRAMES, jumped_from, msg.frame)
+            self.stats.add("resyncs")
+            self.seen_frame = msg.frame
+        elif last >= 0 and msg.frame != last + 1:
             self.stats.add("gaps")
-        self.last_frame = msg.frame
         body_vertices(msg.arrays, out=self.body_x)  # (compact: decoded straight into it)
         first = not self.started
         if first:  # joined without the announcement: settle the garments into this first pose
@@ -744,8 +749,8 @@ class ClothService:
 
     def _close_if_done(self, session: str) -> None:
         gs = self.sessions.get(session)
-        if gs is not None and gs.end_frame is not None and gs.last_frame >= gs.end_frame:
-            log.info("cloth: session %s ended after frame %d", session, gs.last_frame)
+        if gs is not None and gs.end_frame is not None and gs.order.last >= gs.end_frame:
+            log.info("cloth: session %s ended after frame %d", session, gs.order.last)
             self.closed_stats[session] = gs.stats.snapshot()
             self.sessions.pop(session).close()
             self._reclaim_if_idle()

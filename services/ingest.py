@@ -46,6 +46,7 @@ from skinning.skeleton import Skeleton
 from skinning.source import PoseFrame
 
 from .bus import Latched, Stats, fetch_latched, key, put_reliably, wait_matching
+from .frame_order import FrameOrder
 from .heap import freeze_heap
 from .protocol import Message, MessageError, decode, encode
 from .wire import CompactPositions
@@ -184,9 +185,9 @@ class BusPoseSource:
 
     def __iter__(self) -> Iterator[PoseFrame]:
         n = len(self.skeleton.names)
-        last = -1
+        order = FrameOrder()
         end_at = None  # the capture's last frame, once its end message is in
-        while end_at is None or last < end_at:
+        while end_at is None or order.last < end_at:
             sample = self._next_sample()
             if sample is None:
                 return
@@ -209,13 +210,15 @@ class BusPoseSource:
                     row = int(np.argmin(norm))
                     raise MessageError(k, f"local_rotations row {row} ({self.skeleton.names[row]}) is no rotation: "
                                           f"quaternion of norm {norm[row]:.3g}")
-                if msg.frame <= last:
-                    raise MessageError(k, f"frame {msg.frame} arrives after frame {last}")
+                jumped_from = order.take(msg.frame, k)
             except MessageError as err:
                 self.stats.reject(err)
                 continue
+            if jumped_from is not None:
+                log.warning("ingest: %s: %d poses in a row came behind frame %d, a stray: the stream goes on from "
+                            "frame %d", k, FrameOrder.RESYNC_FRAMES, jumped_from, msg.frame)
+                self.stats.add("resyncs")
             self.stats.add("received")
-            last = msg.frame
             quaternions_to_matrices(q, self._rot)
             self._pos[:] = msg.arrays["root_position"]
             self.origin_ns = msg.origin_ns

@@ -180,3 +180,33 @@ def test_a_session_description_with_a_level_out_of_range_is_refused(level):
         OutfitSpec.from_description({"level": level}, default, "tryon/s/session")
     assert OutfitSpec.from_description({"level": None}, default, "tryon/s/session").level is None
     assert OutfitSpec.from_description({}, default, "tryon/s/session").level == 6
+
+
+def test_a_stray_frame_far_ahead_does_not_hold_the_stream_out():
+    """FrameOrder: frames taken in order, gaps allowed; one at or before the last taken is
+    rejected naming the key. A stray numbered far ahead is taken (nothing tells it from a stream
+    resuming after a pause), and then RESYNC_FRAMES frames in a row behind it, each after the one
+    before, show the stream going on: the last of them is taken, and the order follows it."""
+    from services.frame_order import FrameOrder
+
+    order = FrameOrder()
+    assert FrameOrder.RESYNC_FRAMES == 3
+    assert [order.take(f, KEY) for f in (0, 1, 5)] == [None, None, None]  # (a gap: a paused capture)
+    with pytest.raises(MessageError, match=rf"{KEY}: frame 5 arrives after frame 5"):
+        order.take(5, KEY)
+    assert order.take(10**6, KEY) is None  # the stray
+    for f in (6, 7):
+        with pytest.raises(MessageError, match="arrives after frame 1000000"):
+            order.take(f, KEY)
+    assert order.take(8, KEY) == 10**6 and order.last == 8
+    assert order.take(9, KEY) is None and order.last == 9
+
+    # strays behind a stream that goes on are rejected every time: the stream's frames between
+    # them, or a stray's repeats, break the run
+    order = FrameOrder()
+    for f in range(100, 110):
+        assert order.take(f, KEY) is None
+        for stray in (f - 50, f - 50):
+            with pytest.raises(MessageError):
+                order.take(stray, KEY)
+    assert order.last == 109

@@ -569,6 +569,40 @@ def test_malformed_messages_are_rejected_counted_and_the_session_goes_on(hub, bo
         bus.close()
 
 
+def test_a_stray_body_frame_far_ahead_is_stepped_and_the_session_goes_on(hub, body, data, caplog):
+    """A valid body message numbered far ahead of its session (a second publisher on the key, a
+    corrupt counter) was stepped, and every real frame after it was then rejected as out of order
+    until the session was announced again. Now the real frames that come behind it show the
+    stream going on: the first FrameOrder.RESYNC_FRAMES - 1 of them are rejected and counted, and
+    the garments go on from the next (services.frame_order)."""
+    port, cloth = hub
+    bus = peer(port)
+    stop = threading.Event()
+    caplog.set_level(logging.WARNING)
+    try:
+        bodies = Collector(bus, key("stray", "body"))
+        garments = Collector(bus, key("stray", "garment", GARMENTS[0]))
+        t, svc = run_ingest(bus, "stray", body, data, pace="realtime", loop=True, stop=stop)
+        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) >= 5, 60, "the session to run")
+        _, real = bodies.messages[-1]
+        bus.put(key("stray", "body"), encode(Message("body", "stray", 10**6, real.time, real.arrays, real.meta)))
+        wait_until(lambda: 10**6 in garments.frames(f"garment/{GARMENTS[0]}"), 30, "the stray's garments")
+
+        def after_stray():
+            frames = garments.frames(f"garment/{GARMENTS[0]}")
+            return frames[frames.index(10**6) + 1:]
+
+        wait_until(lambda: len(after_stray()) >= 10, 30, "garments after the stray")
+        assert after_stray() == sorted(after_stray()) and after_stray()[-1] < 10**6
+        counts = cloth.sessions["stray"].stats.snapshot()["counts"]
+        assert counts.get("resyncs") == 1 and counts["rejected"] == 2
+        assert "tryon/stray/body" in caplog.text and "behind frame 1000000, a stray" in caplog.text
+    finally:
+        stop.set()
+        t.join(30)
+        bus.close()
+
+
 def test_two_concurrent_sessions_do_not_see_each_other(hub, body, data, monkeypatch):
     port, cloth = hub
     buses = [peer(port), peer(port)]
@@ -1296,10 +1330,10 @@ def test_a_skeleton_message_the_ingest_cannot_use_is_rejected_naming_it(data, ch
     assert "tryon/sk/skeleton" in str(e.value) and problem in str(e.value)
 
 
-def test_a_pose_with_a_zero_quaternion_is_rejected_and_the_stream_goes_on(hub, data, caplog):
-    """A pose whose rotation quaternion is all zeros names no rotation (normalising it gave NaN, and
-    the frame was lost further on without saying why): it is rejected naming its key, bone and
-    problem, counted, and the next poses drive the body as before."""
+def live_poses(hub, data, session: str, edit) -> tuple[list[tuple[int, bool]], Stats]:
+    """The first six poses of the short clip published live on tryon/<session>/pose, each as
+    edit(index, quaternions) gives them (a list of (index, quaternions); index of None: as it is);
+    returns (index, finite) of each pose the ingest's BusPoseSource yields, and its stats."""
     from services.bus import Latched, wait_matching
     from services.ingest import matrices_to_quaternions, skeleton_message
 
@@ -1309,28 +1343,53 @@ def test_a_pose_with_a_zero_quaternion_is_rejected_and_the_stream_goes_on(hub, d
     try:
         with BVHSource(mocap_clip(data), every=2, max_frames=7) as clip:
             frames = list(clip)
-            latched.publish(key("zq", "skeleton"), encode(skeleton_message("zq", clip.skeleton, clip.frame_time)))
-        stats = Stats("ingest", "zq")
-        source = BusPoseSource(ingest_bus, "zq", stats, wait_skeleton=10, idle_timeout=3)
-        pub = capture_bus.declare_publisher(key("zq", "pose"), congestion_control=zenoh.CongestionControl.BLOCK)
+            latched.publish(key(session, "skeleton"), encode(skeleton_message(session, clip.skeleton, clip.frame_time)))
+        stats = Stats("ingest", session)
+        source = BusPoseSource(ingest_bus, session, stats, wait_skeleton=10, idle_timeout=3)
+        pub = capture_bus.declare_publisher(key(session, "pose"), congestion_control=zenoh.CongestionControl.BLOCK)
         assert wait_matching(pub, 10)
         for f in frames[1:]:
-            q = matrices_to_quaternions(f.local_rot)
-            if f.index == 3:
-                q[4] = 0.0
-            pub.put(encode(Message("pose", "zq", f.index, f.time, {"local_rotations": q,
-                                                                   "root_position": f.root_position.copy()})))
-        with caplog.at_level(logging.WARNING):
-            got = [(f.index, np.isfinite(f.local_rot).all()) for f in source]
-        assert got == [(1, True), (2, True), (4, True), (5, True), (6, True)]
-        assert stats.counts["rejected"] == 1 and stats.counts["received"] == 5
-        assert "tryon/zq/pose" in caplog.text and "local_rotations row 4" in caplog.text
+            for index, q in edit(f.index, matrices_to_quaternions(f.local_rot)):
+                pub.put(encode(Message("pose", session, index, f.time, {"local_rotations": q,
+                                                                         "root_position": f.root_position.copy()})))
+        got = [(f.index, bool(np.isfinite(f.local_rot).all())) for f in source]
         pub.undeclare()
         source.close()
+        return got, stats
     finally:
         latched.close()
         capture_bus.close()
         ingest_bus.close()
+
+
+def test_a_pose_with_a_zero_quaternion_is_rejected_and_the_stream_goes_on(hub, data, caplog):
+    """A pose whose rotation quaternion is all zeros names no rotation (normalising it gave NaN, and
+    the frame was lost further on without saying why): it is rejected naming its key, bone and
+    problem, counted, and the next poses drive the body as before."""
+    def zero_row(index, q):
+        if index == 3:
+            q[4] = 0.0
+        return [(index, q)]
+
+    with caplog.at_level(logging.WARNING):
+        got, stats = live_poses(hub, data, "zq", zero_row)
+    assert got == [(1, True), (2, True), (4, True), (5, True), (6, True)]
+    assert stats.counts["rejected"] == 1 and stats.counts["received"] == 5
+    assert "tryon/zq/pose" in caplog.text and "local_rotations row 4" in caplog.text
+
+
+def test_a_stray_pose_far_ahead_is_taken_and_the_stream_goes_on(hub, data, caplog):
+    """A pose numbered far ahead of the capture's (a second publisher, a corrupt counter) had every
+    real pose after it rejected: now the first FrameOrder.RESYNC_FRAMES - 1 behind it are, and the
+    stream goes on from the next (services.frame_order)."""
+    def stray_after_2(index, q):
+        return [(index, q)] + ([(10**6, q.copy())] if index == 2 else [])
+
+    with caplog.at_level(logging.WARNING):
+        got, stats = live_poses(hub, data, "strayq", stray_after_2)
+    assert [i for i, _ in got] == [1, 2, 10**6, 5, 6]
+    assert stats.counts["rejected"] == 2 and stats.counts["resyncs"] == 1
+    assert "tryon/strayq/pose" in caplog.text and "behind frame 1000000, a stray" in caplog.text
 
 
 def test_an_ingest_that_skins_a_body_with_nan_logs_and_counts_it_and_publishes_the_next_frame(hub, body, data,
