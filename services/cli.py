@@ -35,6 +35,9 @@ def _clips(data: Path, names: list[str] | None, every: int | None = None, check:
             raise SystemExit(f"tryon: clip {name!r} not found (looked for {p})")
         if check:
             _check_session_frames(p, _every(every, p))
+        note = _skeleton_note(p)
+        if note:
+            print(note, flush=True)
         out.append(p)
     return out
 
@@ -45,15 +48,33 @@ EVERY_HELP = "take one frame in N (default: the N that brings the clip nearest 6
 
 
 @functools.lru_cache(maxsize=64)
-def _clip_frame_time(clip: Path) -> tuple[int, float]:
-    """A BVH clip's frame count and frame time (s), from its header (read once per clip and command)."""
+def _clip_header(clip: Path):
+    """A BVH clip's header (`skinning.bvh.BVHHeader`; read once per clip and command)."""
     from skinning.bvh import BVHReader
 
     reader = BVHReader(clip)
     try:
-        return reader.header.n_frames, reader.header.frame_time
+        return reader.header
     finally:
         reader.close()
+
+
+def _skeleton_note(clip: Path) -> str | None:
+    """What a clip of a skeleton other than CMU's leaves unmoved: the character's bones none of
+    its joints is named as (they keep their rest pose relative to their parents). None: the CMU
+    skeleton."""
+    from skinning.bvh import bone_names_file
+    from skinning.skeleton import CMU_BONES
+
+    header = _clip_header(clip)
+    if header.cmu:
+        return None
+    still = [b for b in CMU_BONES if b not in header.skeleton.names]
+    moved = len(CMU_BONES) - len(still)
+    unmoved = (f"; {', '.join(still)} follow their parents (name the joints for them in "
+               f"{bone_names_file(clip).name})") if still else ""
+    return (f"tryon: clip {clip.name} is not the CMU skeleton: its joints named as the character's bones drive "
+            f"{moved} of the character's {len(CMU_BONES)} bones{unmoved}")
 
 
 def _every(every: int | None, clip: Path) -> int:
@@ -62,7 +83,7 @@ def _every(every: int | None, clip: Path) -> int:
     at 15 Hz), 4 for 240 Hz."""
     if every is not None:
         return every
-    return max(1, round(1.0 / _clip_frame_time(clip)[1] / SESSION_RATE))
+    return max(1, round(1.0 / _clip_header(clip).frame_time / SESSION_RATE))
 
 
 def _check_session_frames(clip: Path, every: int) -> None:
@@ -70,7 +91,7 @@ def _check_session_frames(clip: Path, every: int) -> None:
     (a session of a one-frame clip ran no frame and reported nothing)."""
     from .cloth_job import START_FRAME
 
-    n = _clip_frame_time(clip)[0]
+    n = _clip_header(clip).n_frames
     taken = -(-n // every)
     if taken <= START_FRAME:
         raise SystemExit(f"tryon: clip {clip} has {n} frame{'s' if n != 1 else ''}; taking one in {every}, a session "
@@ -308,7 +329,7 @@ def cmd_session(args) -> int:
     body = load_body(data)
     frames = _frame_list(args.snapshot_frames) if args.snapshot_frames else []
     level = args.level if not args.coarse_only else "coarse"
-    print(f"session {session}: {clip.stem} at {1.0 / (_clip_frame_time(clip)[1] * every):.4g} Hz × {args.outfit} "
+    print(f"session {session}: {clip.stem} at {1.0 / (_clip_header(clip).frame_time * every):.4g} Hz × {args.outfit} "
           f"(level {level}), "
           f"bus {cfg.mode} listening on {', '.join(cfg.listen) or 'nothing'}")
     if args.serve:
@@ -594,7 +615,7 @@ class _Parser(argparse.ArgumentParser):
 
 
 def main(argv: list[str] | None = None) -> int:
-    _clip_frame_time.cache_clear()  # (a clip's header read once per command, afresh for the next)
+    _clip_header.cache_clear()  # (a clip's header read once per command, afresh for the next)
     parser = _Parser(prog="tryon", description="Real-time virtual try-on.")
     parser.add_argument("--data", help=f"data folder (default: ${ENV_VAR} or ../shared/data)")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)

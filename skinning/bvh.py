@@ -13,6 +13,7 @@ Units: BVH files carry none. CMU files use 1 unit = 1/0.45 inch = 0.056444 m
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Iterator
@@ -20,7 +21,7 @@ from typing import IO, Iterator
 import numpy as np
 
 from .kinematics import channels_to_local
-from .skeleton import CMU_BONES, CMU_PARENTS, Skeleton, bone_tails
+from .skeleton import CMU_BONES, CMU_PARENTS, LEGS, NEEDED_BONES, Skeleton, bone_tails
 
 CMU_UNIT_M = 0.056444
 
@@ -66,6 +67,7 @@ class BVHHeader:
     n_frames: int  # as declared by `Frames:`
     unit: float  # metres per file unit
     motion_line: int  # 1-based line number of the first motion row
+    cmu: bool = True  # the CMU skeleton (else another, whose bones named alike drive the character's)
 
     @property
     def n_channels(self) -> int:
@@ -76,19 +78,49 @@ class BVHHeader:
         return 1.0 / self.frame_time
 
 
-def _canonical_names(path, raw: list[tuple[str, int]]) -> list[str]:
-    names = [n for n, _ in raw]
-    max3ds = bool(_MAX3DS_MARKERS & set(names))
+def bone_names_file(path: Path) -> Path:
+    """The clip's bone-name map beside it: walk.bvh -> walk.bones.toml."""
+    return path.with_suffix(".bones.toml")
+
+
+def read_bone_names(path: Path) -> dict[str, str]:
+    """The clip's own joint names -> the CMU names the character's bones go by, from the
+    `[bones]` table of `bone_names_file(path)` ({} where there is none). BVHError naming the map
+    file where it is not such a table."""
+    names_path = bone_names_file(path)
+    if not names_path.is_file():
+        return {}
+    try:
+        with open(names_path, "rb") as fh:
+            table = tomllib.load(fh)
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise BVHError(names_path, None, f"cannot read the bone-name map: {exc}") from None
+    bones = table.get("bones")
+    if not isinstance(bones, dict) or not all(isinstance(v, str) for v in bones.values()):
+        raise BVHError(names_path, None, "expected a [bones] table of joint name = \"CMU bone name\" (e.g. "
+                                         "pelvis = \"Hips\")")
+    unknown = sorted(v for v in bones.values() if v not in CMU_BONES)
+    if unknown:
+        raise BVHError(names_path, None, f"[bones] maps onto {', '.join(map(repr, unknown))}, which the character "
+                                         f"has no bone of (its bones: {', '.join(CMU_BONES)})")
+    return dict(bones)
+
+
+def _canonical_names(path, raw: list[tuple[str, int]], bone_names: dict[str, str]) -> tuple[list[str], bool]:
+    """Each joint's name as the character's bones go by (a namespace prefix such as Mixamo's
+    `mixamorig:` left off, then `bone_names`, the 3dsMax naming, the finger aliases), and whether
+    every one is a CMU skeleton bone: then the file is the CMU skeleton, its hierarchy checked
+    against it; else another skeleton, kept as it is."""
+    plain = [bone_names.get(n, bone_names.get(n.rsplit(":", 1)[-1], n.rsplit(":", 1)[-1])) for n, _ in raw]
+    max3ds = bool(_MAX3DS_MARKERS & set(plain)) and not bone_names
     out = []
-    for name, line in raw:
+    for name, (raw_name, line) in zip(plain, raw):
         canon = MAX3DS_NAMES.get(name, name) if max3ds else name
         canon = FINGER_ALIASES.get(canon, canon)
-        if canon not in CMU_BONES:
-            raise BVHError(path, line, f"unknown joint {name!r} (not a CMU skeleton joint or known alias)")
         if canon in out:
-            raise BVHError(path, line, f"joint {name!r} appears twice")
+            raise BVHError(path, line, f"joint {raw_name!r} appears twice (as {canon!r})")
         out.append(canon)
-    return out
+    return out, all(n in CMU_BONES for n in out)
 
 
 class _Tokens:
@@ -221,18 +253,21 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
     if not (math.isfinite(frame_time) and frame_time > 0):
         raise BVHError(path, tline, f"Frame Time: must be a positive number, got {ft_text!r}")
 
-    names = _canonical_names(path, [(j["name"], j["line"]) for j in joints])
-    for j, canon in zip(joints, names):
-        parent = names[j["parent"]] if j["parent"] >= 0 else None
-        want = CMU_PARENTS[canon]
-        # a missing optional joint (e.g. no LHipJoint) may shift a parent one level up
-        if parent != want and not (want in OPTIONAL_BONES and want not in names and CMU_PARENTS[want] == parent):
-            raise BVHError(path, j["line"], f"joint {j['name']!r} is a child of {parent!r}, expected {want!r}")
-    missing = [b for b in CMU_BONES if b not in names and b not in OPTIONAL_BONES]
-    if missing:
-        raise BVHError(path, None, f"required joints missing: {', '.join(missing)}")
-
+    names, cmu = _canonical_names(path, [(j["name"], j["line"]) for j in joints], read_bone_names(path))
     parents = np.array([j["parent"] for j in joints], dtype=np.int32)
+    if cmu:
+        for j, canon in zip(joints, names):
+            parent = names[j["parent"]] if j["parent"] >= 0 else None
+            want = CMU_PARENTS[canon]
+            # a missing optional joint (e.g. no LHipJoint) may shift a parent one level up
+            if parent != want and not (want in OPTIONAL_BONES and want not in names and CMU_PARENTS[want] == parent):
+                raise BVHError(path, j["line"], f"joint {j['name']!r} is a child of {parent!r}, expected {want!r}")
+        missing = [b for b in CMU_BONES if b not in names and b not in OPTIONAL_BONES]
+        if missing:
+            raise BVHError(path, None, f"required joints missing: {', '.join(missing)}")
+    else:
+        _check_other_skeleton(path, names, parents)
+
     offsets = np.array([j["offset"] for j in joints], dtype=np.float64) * unit
     heads = offsets.copy()
     for b in range(len(joints)):
@@ -252,7 +287,27 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
         n_frames=n_frames,
         unit=unit,
         motion_line=lineno + 1,
+        cmu=cmu,
     )
+
+
+def _check_other_skeleton(path, names: list[str], parents: np.ndarray) -> None:
+    """A skeleton other than CMU's drives the character through the bones it names alike: it
+    needs the pelvis and both legs' chains (NEEDED_BONES, each leg's joints in descent)."""
+    missing = [b for b in NEEDED_BONES if b not in names]
+    if missing:
+        unknown = [n for n in names if n not in CMU_BONES]
+        raise BVHError(path, None, f"not the CMU skeleton (joints {', '.join(map(repr, unknown[:6]))}"
+                                   f"{', ...' if len(unknown) > 6 else ''}) and no joint maps onto "
+                                   f"{', '.join(missing)}, which the retargeting needs: name them in "
+                                   f"{bone_names_file(Path(path)).name} (a [bones] table, e.g. pelvis = \"Hips\")")
+    for side in LEGS.values():
+        for upper, lower in zip(side, side[1:]):
+            b, a = names.index(lower), names.index(upper)
+            while b >= 0 and b != a:
+                b = int(parents[b])
+            if b != a:
+                raise BVHError(path, None, f"joint {lower!r} does not descend from {upper!r}")
 
 
 class BVHReader:

@@ -45,7 +45,7 @@ from .hands import HandSettings
 from .ik_kernels import (IKScratch, copy_rotations, dls_step, keep_arm_clear, lowest_sole_point, pose_error,
                          weighted_cost)
 from .kinematics import forward_kinematics, rotation_between
-from .skeleton import LEGS, Skeleton
+from .skeleton import LEGS, NEEDED_BONES, Skeleton
 
 # Bones whose rest direction is a matter of proportion, not of pose: no alignment.
 STRUCTURAL_BONES = {"Hips", "LHipJoint", "RHipJoint", "LowerBack", "Spine", "Spine1", "Neck", "Neck1", "Head",
@@ -142,10 +142,6 @@ class RetargetFrame:
     floor_lift: np.ndarray  # (2,) m the ankle targets were raised to keep the soles above the floor
     arm_turn: np.ndarray  # (2,) rad left/right arm turned outwards for clearance
     iterations: int
-
-
-# the person's bones the lower body is mapped from (pelvis and ankles, through the legs' chains)
-NEEDED_BONES = ("Hips", *LEGS["left"], *LEGS["right"])
 
 
 def missing_bones(names) -> list[str]:

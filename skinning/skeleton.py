@@ -40,6 +40,8 @@ LEGS = {
     "left": ("LeftUpLeg", "LeftLeg", "LeftFoot"),
     "right": ("RightUpLeg", "RightLeg", "RightFoot"),
 }
+# the person's bones the lower body is mapped from (pelvis and ankles, through the legs' chains)
+NEEDED_BONES = ("Hips", *LEGS["left"], *LEGS["right"])
 
 
 @dataclass(frozen=True)
@@ -74,7 +76,8 @@ def cmu_parents() -> np.ndarray:
 
 
 def bone_tails(names, parents, heads, end_sites: dict[int, np.ndarray] | None = None) -> np.ndarray:
-    """Far end of each bone: the head of its main (or only) child, else its end site, else its head."""
+    """Far end of each bone: the head of its main (or only) child, else the mean of its children's
+    heads, else its end site, else its head."""
     tails = heads.copy()
     children: dict[int, list[int]] = {}
     for b, p in enumerate(parents):
@@ -86,6 +89,8 @@ def bone_tails(names, parents, heads, end_sites: dict[int, np.ndarray] | None = 
             tails[b] = heads[names.index(MAIN_CHILD[name])]
         elif len(kids) == 1:
             tails[b] = heads[kids[0]]
+        elif kids:  # (another skeleton's: a hand over five fingers, a chest under the neck and shoulders)
+            tails[b] = heads[kids].mean(axis=0)
         elif end_sites and b in end_sites:
             tails[b] = end_sites[b]
     return tails

@@ -257,8 +257,10 @@ def test_forward_kinematics_against_offsets(tmp_path):
     (SMALL, _row() + _row().replace("0.0", "nan", 1), "channel 0 is not finite", FIRST_ROW + 1),
     (SMALL, _row() + _row().replace("0.0", "abc", 1), "value is not a number: 'abc'", FIRST_ROW + 1),
     (SMALL, _row() + _row() + _row(), "more motion rows than 'Frames: 2'", FIRST_ROW + 2),
-    (SMALL.replace("JOINT Neck1", "JOINT Tail"), "", "unknown joint 'Tail'",
-     SMALL[:SMALL.index("JOINT Neck1")].count("\n") + 1),
+    (SMALL.replace("JOINT LeftFoot", "JOINT Tail"), "", "not the CMU skeleton (joints 'Tail') and no joint maps "
+     "onto LeftFoot, which the retargeting needs: name them in clip.bones.toml", None),
+    (SMALL.replace("JOINT LeftLeg", "JOINT Hips"), "", "joint 'Hips' appears twice (as 'Hips')",
+     SMALL[:SMALL.index("JOINT LeftLeg")].count("\n") + 1),
     (SMALL.replace("CHANNELS 3 Xrotation Yrotation Zrotation", "CHANNELS 4 Xrotation Yrotation Zrotation"), "",
      "CHANNELS declares 4 but 'JOINT' is not a channel name", 10),
     (SMALL.replace("Frame Time: 0.01", "Frame Time: -1"), "", "Frame Time: must be a positive number", FIRST_ROW - 1),
@@ -357,3 +359,129 @@ def test_realtime_pacing_has_no_burst_after_a_slow_first_frame(mocap):
                 time.sleep(0.06)  # 3.6 frames at 60 Hz
     gaps = np.diff(stamps)
     assert np.all(gaps[1:] > 0.5 * src.frame_time), gaps
+
+
+MIXAMO = """HIERARCHY
+ROOT mixamorig:Hips
+{
+  OFFSET 0 100 0
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Yrotation Xrotation
+  JOINT mixamorig:LeftUpLeg
+  {
+    OFFSET 10 -5 0
+    CHANNELS 3 Zrotation Yrotation Xrotation
+    JOINT mixamorig:LeftLeg
+    {
+      OFFSET 0 -45 0
+      CHANNELS 3 Zrotation Yrotation Xrotation
+      JOINT mixamorig:LeftFoot
+      {
+        OFFSET 0 -45 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        End Site
+        {
+          OFFSET 0 0 10
+        }
+      }
+    }
+  }
+  JOINT mixamorig:RightUpLeg
+  {
+    OFFSET -10 -5 0
+    CHANNELS 3 Zrotation Yrotation Xrotation
+    JOINT mixamorig:RightLeg
+    {
+      OFFSET 0 -45 0
+      CHANNELS 3 Zrotation Yrotation Xrotation
+      JOINT mixamorig:RightFoot
+      {
+        OFFSET 0 -45 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        End Site
+        {
+          OFFSET 0 0 10
+        }
+      }
+    }
+  }
+  JOINT mixamorig:Spine
+  {
+    OFFSET 0 10 0
+    CHANNELS 3 Zrotation Yrotation Xrotation
+    JOINT mixamorig:Spine2
+    {
+      OFFSET 0 30 0
+      CHANNELS 3 Zrotation Yrotation Xrotation
+      JOINT mixamorig:Neck
+      {
+        OFFSET 0 10 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        End Site
+        {
+          OFFSET 0 10 0
+        }
+      }
+      JOINT mixamorig:LeftShoulder
+      {
+        OFFSET 6 6 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        End Site
+        {
+          OFFSET 10 0 0
+        }
+      }
+      JOINT mixamorig:RightShoulder
+      {
+        OFFSET -6 6 0
+        CHANNELS 3 Zrotation Yrotation Xrotation
+        End Site
+        {
+          OFFSET -10 0 0
+        }
+      }
+    }
+  }
+}
+MOTION
+Frames: 1
+Frame Time: 0.0333333
+""" + " ".join(["0"] * (6 + 3 * 11)) + "\n"
+
+
+def test_a_skeleton_of_another_tool_is_read_by_its_bone_names(tmp_path, mocap):
+    """A Mixamo-style file (namespace prefix, no LowerBack or hip joints, a Spine2 with three
+    children): not the CMU skeleton, kept as it is, each joint named as the character's bones
+    go by (the prefix left off); a bone with several children and no main one ends at their
+    heads' mean."""
+    header, _ = read_bvh(write(tmp_path, MIXAMO), unit=0.01)
+    sk = header.skeleton
+    assert not header.cmu
+    assert sk.names == ("Hips", "LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot",
+                        "Spine", "Spine2", "Neck", "LeftShoulder", "RightShoulder")
+    np.testing.assert_allclose(sk.heads[sk.index("LeftFoot")], [0.10, 0.05, 0.0], atol=1e-12)
+    # Spine2 at 1.40 m: the neck 0.10 m over it, the shoulders 0.06 m
+    np.testing.assert_allclose(sk.tails[sk.index("Spine2")], [0.0, 1.40 + (0.10 + 0.06 + 0.06) / 3, 0.0], atol=1e-12)
+    with BVHReader(mocap / "cmu_131_01_walk_3dsmax.bvh") as walk:
+        assert walk.header.cmu  # (the 3dsMax naming: CMU's)
+
+
+def test_a_bone_name_map_beside_the_clip_names_its_joints(tmp_path):
+    """walk.bvh's joints named in walk.bones.toml ([bones] its name = the CMU name); a map onto a
+    bone the character lacks, or not a table of names, is refused naming the map file."""
+    text = MIXAMO.replace("mixamorig:LeftUpLeg", "thigh_l").replace("mixamorig:LeftLeg", "calf_l")
+    with pytest.raises(BVHError, match="no joint maps onto LeftUpLeg, LeftLeg"):
+        read_bvh(write(tmp_path, text))
+    (tmp_path / "clip.bones.toml").write_text('[bones]\nthigh_l = "LeftUpLeg"\ncalf_l = "LeftLeg"\n')
+    sk = read_bvh(write(tmp_path, text))[0].skeleton
+    assert sk.names[:3] == ("Hips", "LeftUpLeg", "LeftLeg")
+    (tmp_path / "clip.bones.toml").write_text('[bones]\nthigh_l = "Thigh"\n')
+    with pytest.raises(BVHError, match=r"clip.bones.toml: \[bones\] maps onto 'Thigh', which the character has no"):
+        read_bvh(write(tmp_path, text))
+    (tmp_path / "clip.bones.toml").write_text('thigh_l = "LeftUpLeg"\n')
+    with pytest.raises(BVHError, match=r"clip.bones.toml: expected a \[bones\] table"):
+        read_bvh(write(tmp_path, text))
+    # a leg whose knee does not hang from its hip
+    text = MIXAMO.replace("mixamorig:LeftLeg", "TMP").replace("mixamorig:RightLeg", "mixamorig:LeftLeg") \
+        .replace("TMP", "mixamorig:RightLeg")
+    with pytest.raises(BVHError, match="joint 'LeftLeg' does not descend from 'LeftUpLeg'"):
+        read_bvh(write(tmp_path, text, "other.bvh"))
