@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import IO, Iterator
 
 import numpy as np
 
-from .kinematics import channels_to_local
+from .kinematics import channels_to_local, forward_kinematics
 from .skeleton import CMU_BONES, CMU_PARENTS, LEGS, NEEDED_BONES, Skeleton, bone_tails
 
 CMU_UNIT_M = 0.056444
@@ -68,6 +68,8 @@ class BVHHeader:
     unit: float  # metres per file unit
     motion_line: int  # 1-based line number of the first motion row
     cmu: bool = True  # the CMU skeleton (else another, whose bones named alike drive the character's)
+    # metres taken off the root's position channels: its OFFSET where they give its place itself (`_root_shift`)
+    root_shift: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     @property
     def n_channels(self) -> int:
@@ -310,6 +312,39 @@ def _check_other_skeleton(path, names: list[str], parents: np.ndarray) -> None:
                 raise BVHError(path, None, f"joint {lower!r} does not descend from {upper!r}")
 
 
+def _root_shift(path: Path, header: BVHHeader) -> np.ndarray:
+    """Files differ on what the root's position channels give where its OFFSET is not zero: its
+    place relative to the offset (the reading of the format's authors, and CMU's, whose offset is
+    zero), or the place itself, the offset being the rest place repeated (Blender's and other
+    exporters'). Read the first way, the second kind floats the person an offset above the floor.
+    The reading that puts the first frame's lowest joint nearer the floor (y = 0) is taken: the
+    offset (m) to take off the channels for the second, zeros for the first."""
+    skeleton = header.skeleton
+    # (the offset's components that position channels give)
+    offset = skeleton.heads[0] * [np.any((header.chan_joint == 0) & (header.chan_kind == k)) for k in range(3)]
+    if not np.any(offset):
+        return np.zeros(3)
+    with open(path, "r", encoding="utf-8", errors="replace", newline=None) as fh:
+        for lineno, raw in enumerate(fh, 1):
+            if lineno >= header.motion_line and raw.strip():
+                break
+        else:
+            return np.zeros(3)  # (no frame: nothing to place)
+    try:
+        values = np.array(raw.split(), dtype=np.float64)
+    except ValueError:
+        return np.zeros(3)  # (rows() names the problem)
+    if values.shape != (header.n_channels,) or not np.all(np.isfinite(values)):
+        return np.zeros(3)
+    n = len(skeleton.names)
+    rot, pos = np.empty((n, 3, 3)), np.empty(3)
+    channels_to_local(values, header.chan_joint, header.chan_kind, header.unit, rot, pos)
+    g_rot, g_pos = np.empty((n, 3, 3)), np.empty((n, 3))
+    forward_kinematics(skeleton.parents, skeleton.offsets, pos, rot, g_rot, g_pos)
+    lowest = float(g_pos[:, 1].min())
+    return offset if abs(lowest - offset[1]) < abs(lowest) else np.zeros(3)
+
+
 class BVHReader:
     """Open a BVH file, parse its header, then read motion rows one at a time.
 
@@ -326,6 +361,7 @@ class BVHReader:
             raise BVHError(self.path, None, f"cannot open: {exc}") from exc
         try:
             self.header = _read_header(self.path, self._fh, unit)
+            self.header = replace(self.header, root_shift=_root_shift(self.path, self.header))
         except BaseException:
             self._fh.close()
             raise
@@ -395,4 +431,5 @@ def local_pose(header: BVHHeader, values: np.ndarray, rot_out: np.ndarray | None
     rot = np.empty((n, 3, 3)) if rot_out is None else rot_out
     pos = np.empty(3) if pos_out is None else pos_out
     channels_to_local(values, header.chan_joint, header.chan_kind, header.unit, rot, pos)
+    pos -= header.root_shift
     return rot, pos

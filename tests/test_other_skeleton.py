@@ -5,9 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pinocchio as pin
+import pytest
 
 from skinning.animate import BodyAnimator
-from skinning.bvh import local_pose, read_bvh
+from skinning.bvh import CMU_UNIT_M, local_pose, read_bvh
 from skinning.kinematics import axis_rotation, forward_kinematics
 
 # the rewritten skeleton: (name, the walk's bone it copies, parent). No LowerBack, Neck1 or hip
@@ -36,15 +37,17 @@ def zyx_degrees(r: np.ndarray) -> tuple[float, float, float]:
             np.degrees(np.arctan2(r[2, 1], r[2, 2])))
 
 
-def rewrite(header, rows: np.ndarray, path) -> None:
+def rewrite(header, rows: np.ndarray, path, root_offset=(0.0, 0.0, 0.0), absolute: bool = True) -> None:
     """The walk's frames `rows` as a Mixamo-style BVH: each joint's global rotation the walk's
-    bone's (Spine2: its chest's), positions in centimetres."""
+    bone's (Spine2: its chest's), positions in centimetres. root_offset (m): the root's OFFSET;
+    absolute: its position channels give its place (Blender's reading), else its place less the
+    offset."""
     sk = header.skeleton
     names = [n for n, _, _ in MIXAMO_STYLE]
     src = {n: sk.index(b) for n, b, _ in MIXAMO_STYLE if b is not None}
     src_chest = sk.index("Spine1")
-    heads = {n: sk.heads[i] for n, i in src.items()}
-    heads["Spine2"] = 0.5 * (sk.heads[sk.index("Spine1")] + sk.heads[sk.index("Neck")])
+    heads = {n: sk.heads[i] + root_offset for n, i in src.items()}
+    heads["Spine2"] = 0.5 * (heads["Spine1"] + heads["Neck"])
     parent = {n: p for n, _, p in MIXAMO_STYLE}
     children = {n: [c for c, _, p in MIXAMO_STYLE if p == n] for n in names}
     cm = 100.0  # metres -> centimetres
@@ -75,7 +78,7 @@ def rewrite(header, rows: np.ndarray, path) -> None:
         rot, root = local_pose(header, values)
         forward_kinematics(sk.parents, sk.offsets, root, rot, g_rot, g_pos)
         glob = {name: g_rot[src_chest if name == "Spine2" else src[name]] for name in names}
-        out = list(g_pos[sk.index("Hips")] * cm)
+        out = list((g_pos[sk.index("Hips")] - (0.0 if absolute else np.asarray(root_offset))) * cm)
         for name in names:
             local = glob[name] if parent[name] is None else glob[parent[name]].T @ glob[name]
             out += zyx_degrees(local)
@@ -91,19 +94,23 @@ def test_zyx_degrees_round_trip():
     np.testing.assert_allclose(zyx_degrees(r), (40.0, -25.0, 70.0))
 
 
-def test_a_skeleton_of_another_tool_drives_the_character_as_the_clip_does(body, mocap, tmp_path):
+@pytest.mark.parametrize("root", ["zero offset", "offset, absolute channels", "offset, relative channels"])
+def test_a_skeleton_of_another_tool_drives_the_character_as_the_clip_does(body, mocap, tmp_path, root):
     """The walk rewritten with Mixamo's names and hierarchy (no LowerBack, Neck1 or hip joints,
     a Spine2 more, one finger joint a hand) in centimetres: every character bone the rewritten
     skeleton names turns as it does from the walk itself (the rotations are copied by name,
     globally), the legs' IK reaches the same ankles and the pelvis lands at the same place (the
     person's size cancels in the legs' length ratio); the bones it has no joint for follow their
-    parents."""
+    parents. With the root's rest place as its OFFSET, its position channels read either as its
+    place (Blender's export) or as its place less the offset give the same."""
     header, motion = read_bvh(mocap / "cmu_131_01_walk_3dsmax.bvh")
     rows = motion[1:121:6]  # 20 frames of the walk, 0.05 s apart
     other_path = tmp_path / "walk_mixamo.bvh"
-    rewrite(header, rows, other_path)
+    hips = (0.0, 0.0, 0.0) if root == "zero offset" else (0.01, 0.93, -0.02)
+    rewrite(header, rows, other_path, hips, absolute="absolute" in root)
     other, other_rows = read_bvh(other_path)
     assert not other.cmu and "Spine2" in other.skeleton.names and "LowerBack" not in other.skeleton.names
+    assert np.allclose(other.root_shift, np.array(hips) * CMU_UNIT_M * 100 if "absolute" in root else 0.0)
 
     runs = []
     for h, frames in ((header, rows), (other, other_rows)):
