@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import closest_point_triangle, morton_order, nearest_vertices
+from .geometry import closest_point_triangle, morton_order, nearest_vertices, plane_barycentric
 from .jit import helper, kernel
 from .topology import triangle_neighbours, unique_edges, vertex_cells, vertex_neighbours
 from .winding import WindingGrid, closed_faces, ray_crossing, winding_number
@@ -486,19 +486,9 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
                 continue
             a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
             # barycentric coordinates of the projection of x onto the plane
-            e1x, e1y, e1z = body_x[b, 0] - body_x[a, 0], body_x[b, 1] - body_x[a, 1], body_x[b, 2] - body_x[a, 2]
-            e2x, e2y, e2z = body_x[c, 0] - body_x[a, 0], body_x[c, 1] - body_x[a, 1], body_x[c, 2] - body_x[a, 2]
-            px, py, pz = x[i, 0] - body_x[a, 0], x[i, 1] - body_x[a, 1], x[i, 2] - body_x[a, 2]
-            d11 = e1x * e1x + e1y * e1y + e1z * e1z
-            d12 = e1x * e2x + e1y * e2y + e1z * e2z
-            d22 = e2x * e2x + e2y * e2y + e2z * e2z
-            dp1 = px * e1x + py * e1y + pz * e1z
-            dp2 = px * e2x + py * e2y + pz * e2z
-            det = d11 * d22 - d12 * d12
-            if det <= 0.0:
+            wb, wc, ok = plane_barycentric(body_x, a, b, c, x[i, 0], x[i, 1], x[i, 2])
+            if not ok:
                 continue
-            wb = (d22 * dp1 - d12 * dp2) / det
-            wc = (d11 * dp2 - d12 * dp1) / det
             wa = 1.0 - wb - wc
             inside = min(wa, min(wb, wc))
             if inside > best:
@@ -507,6 +497,7 @@ def attach_to_body(x, body_x, tris, tri_start, tri_ids, nearest, fixed, face, ba
                 bary[i, 0] = wa
                 bary[i, 1] = wb
                 bary[i, 2] = wc
+                px, py, pz = x[i, 0] - body_x[a, 0], x[i, 1] - body_x[a, 1], x[i, 2] - body_x[a, 2]
                 height[i] = px * face_n[t, 0] + py * face_n[t, 1] + pz * face_n[t, 2]
         t = face[i]
         for k in range(3):

@@ -16,6 +16,25 @@ def dot3(a0, a1, a2, b0, b1, b2):
 
 
 @helper
+def plane_barycentric(x, a, b, c, px, py, pz):
+    """Weights (wb, wc) of corners b and c of the projection of p onto the plane of triangle
+    (x[a], x[b], x[c]) (wa = 1 - wb - wc; inside where all three are >= 0), and whether the
+    triangle has an area (False: the weights are 0)."""
+    e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+    e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+    wx, wy, wz = px - x[a, 0], py - x[a, 1], pz - x[a, 2]
+    d11 = e1x * e1x + e1y * e1y + e1z * e1z
+    d12 = e1x * e2x + e1y * e2y + e1z * e2z
+    d22 = e2x * e2x + e2y * e2y + e2z * e2z
+    dp1 = wx * e1x + wy * e1y + wz * e1z
+    dp2 = wx * e2x + wy * e2y + wz * e2z
+    det = d11 * d22 - d12 * d12
+    if det <= 0.0:
+        return 0.0, 0.0, False
+    return (d22 * dp1 - d12 * dp2) / det, (d11 * dp2 - d12 * dp1) / det, True
+
+
+@helper
 def closest_point_triangle(px, py, pz, x, a, b, c, out):
     """Closest point to p on triangle (x[a], x[b], x[c]) (Ericson, Real-Time Collision Detection 5.1.5).
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from .collision import (ALL_REGIONS, behind_every_plane, deepest_plane, face_walk_distance, grid_nearest_per_part,
                         vertex_normal, walk_nearest)
-from .geometry import add_face_normal, walk_nearest_vertex
+from .geometry import add_face_normal, plane_barycentric, walk_nearest_vertex
 from .jit import FAST_ARITHMETIC, helper, kernel
 from .winding import winding_number
 
@@ -601,22 +601,14 @@ def _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz):
     for k in range(d_tri_start[i], d_tri_start[i + 1]):
         t = d_tri_ids[k]
         a, b, c = d_tris[t, 0], d_tris[t, 1], d_tris[t, 2]
-        e0x, e0y, e0z = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
-        e1x, e1y, e1z = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
-        wx, wy, wz = vx - p[a, 0], vy - p[a, 1], vz - p[a, 2]
-        d00 = e0x * e0x + e0y * e0y + e0z * e0z
-        d01 = e0x * e1x + e0y * e1y + e0z * e1z
-        d11 = e1x * e1x + e1y * e1y + e1z * e1z
-        d20 = wx * e0x + wy * e0y + wz * e0z
-        d21 = wx * e1x + wy * e1y + wz * e1z
-        den = d00 * d11 - d01 * d01
-        if den <= 0.0:
+        v, w, ok = plane_barycentric(p, a, b, c, vx, vy, vz)
+        if not ok:
             continue
-        v = (d11 * d20 - d01 * d21) / den
-        w = (d00 * d21 - d01 * d20) / den
         out = max(0.0, -v, -w, v + w - 1.0)
         if out >= best_out:
             continue
+        e0x, e0y, e0z = p[b, 0] - p[a, 0], p[b, 1] - p[a, 1], p[b, 2] - p[a, 2]
+        e1x, e1y, e1z = p[c, 0] - p[a, 0], p[c, 1] - p[a, 1], p[c, 2] - p[a, 2]
         nx, ny, nz = e0y * e1z - e0z * e1y, e0z * e1x - e0x * e1z, e0x * e1y - e0y * e1x
         length = math.sqrt(nx * nx + ny * ny + nz * nz)
         side = 0.0
