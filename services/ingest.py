@@ -4,7 +4,8 @@ Live pose stream (what a capture system publishes; see README "Bus contract"):
   tryon/<s>/skeleton  kind "skeleton", latched: meta {"names": [...], "frame_time": s};
                       arrays parents <i4 (n,), heads <f8 (n,3) rest joint positions in metres
                       (Y up, floor y = 0), tails <f8 (n,3) far end of each bone.
-                      Names are the CMU bone names (skinning/skeleton.py CMU_BONES).
+                      Names: the character's (CMU's, skinning/skeleton.py CMU_BONES) for the
+                      bones that drive it, which rotations are copied by; any others may come too.
   tryon/<s>/pose      kind "pose" per frame: local_rotations <f8|<f4 (n,4) unit quaternions
                       (x, y, z, w), each joint relative to its parent, identity = rest pose;
                       root_position <f8|<f4 (3,) metres. frame numbers increase.
