@@ -268,7 +268,7 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
         if missing:
             raise BVHError(path, None, f"required joints missing: {', '.join(missing)}")
     else:
-        _check_other_skeleton(path, names, parents)
+        _check_other_skeleton(path, names, parents, np.array([j["offset"] for j in joints], dtype=np.float64))
 
     offsets = np.array([j["offset"] for j in joints], dtype=np.float64) * unit
     heads = offsets.copy()
@@ -293,9 +293,10 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
     )
 
 
-def _check_other_skeleton(path, names: list[str], parents: np.ndarray) -> None:
+def _check_other_skeleton(path, names: list[str], parents: np.ndarray, offsets: np.ndarray) -> None:
     """A skeleton other than CMU's drives the character through the bones it names alike: it
-    needs the pelvis and both legs' chains (NEEDED_BONES, each leg's joints in descent)."""
+    needs the pelvis and both legs' chains (NEEDED_BONES, each leg's joints in descent), the
+    legs hanging down along Y at rest (offsets: each joint's OFFSET, file units)."""
     missing = [b for b in NEEDED_BONES if b not in names]
     if missing:
         unknown = [n for n in names if n not in CMU_BONES]
@@ -310,6 +311,15 @@ def _check_other_skeleton(path, names: list[str], parents: np.ndarray) -> None:
                 b = int(parents[b])
             if b != a:
                 raise BVHError(path, None, f"joint {lower!r} does not descend from {upper!r}")
+    at = np.zeros((len(names), 3))
+    for b, off in enumerate(offsets):  # (the rest pose: each joint at its ancestors' offsets summed)
+        at[b] = off + (at[parents[b]] if parents[b] >= 0 else 0.0)
+    for side in LEGS.values():
+        leg = at[names.index(side[-1])] - at[names.index(side[0])]
+        if -leg[1] < 0.5 * np.linalg.norm(leg):
+            raise BVHError(path, None, f"in the rest pose {side[-1]!r} is not below {side[0]!r} along Y (the hip "
+                                       f"to the ankle: {np.round(leg, 3).tolist()} file units): BVH motion is "
+                                       f"read Y up, as CMU's (a Z-up file needs converting)")
 
 
 def _root_shift(path: Path, header: BVHHeader) -> np.ndarray:

@@ -480,6 +480,12 @@ def test_a_bone_name_map_beside_the_clip_names_its_joints(tmp_path):
     (tmp_path / "clip.bones.toml").write_text('thigh_l = "LeftUpLeg"\n')
     with pytest.raises(BVHError, match=r"clip.bones.toml: expected a \[bones\] table"):
         read_bvh(write(tmp_path, text))
+    # the same skeleton Z up: its legs along -Z at rest
+    zup = MIXAMO.replace("OFFSET 0 -45 0", "OFFSET 0 0 -45").replace("OFFSET 10 -5 0", "OFFSET 10 0 -5") \
+        .replace("OFFSET -10 -5 0", "OFFSET -10 0 -5")
+    with pytest.raises(BVHError, match=r"in the rest pose 'LeftFoot' is not below 'LeftUpLeg' along Y \(the hip to "
+                                       r"the ankle: \[0.0, 0.0, -90.0\] file units\): BVH motion is read Y up"):
+        read_bvh(write(tmp_path, zup, "zup.bvh"))
     # a leg whose knee does not hang from its hip
     text = MIXAMO.replace("mixamorig:LeftLeg", "TMP").replace("mixamorig:RightLeg", "mixamorig:LeftLeg") \
         .replace("TMP", "mixamorig:RightLeg")
