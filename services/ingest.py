@@ -41,6 +41,7 @@ import zenoh
 
 from skinning.animate import STAGES, BodyAnimator
 from skinning.body import Body
+from skinning.bvh import plain_name
 from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings, missing_bones
 from skinning.skeleton import Skeleton
@@ -109,6 +110,10 @@ def skeleton_from_message(msg: Message, key_expr: str) -> tuple[Skeleton, float]
         raise MessageError(key_expr, "a skeleton needs at least one bone")
     if not isinstance(names, list) or len(names) != n or not all(isinstance(s, str) for s in names):
         raise MessageError(key_expr, f"meta 'names' must list {n} bone names")
+    names = [plain_name(s) for s in names]  # (as a BVH's: a namespace prefix left off)
+    twice = sorted({s for s in names if names.count(s) > 1})
+    if twice:
+        raise MessageError(key_expr, f"meta 'names' names {', '.join(map(repr, twice))} more than once")
     missing = missing_bones(names)
     if missing:
         raise MessageError(key_expr, f"skeleton lacks the bones the retargeting needs: {', '.join(missing)} "

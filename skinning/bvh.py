@@ -108,12 +108,17 @@ def read_bone_names(path: Path) -> dict[str, str]:
     return dict(bones)
 
 
+def plain_name(name: str) -> str:
+    """A joint's name without a namespace prefix (Mixamo's `mixamorig:LeftArm` -> `LeftArm`)."""
+    return name.rsplit(":", 1)[-1]
+
+
 def _canonical_names(path, raw: list[tuple[str, int]], bone_names: dict[str, str]) -> tuple[list[str], bool]:
     """Each joint's name as the character's bones go by (a namespace prefix such as Mixamo's
     `mixamorig:` left off, then `bone_names`, the 3dsMax naming, the finger aliases), and whether
     every one is a CMU skeleton bone: then the file is the CMU skeleton, its hierarchy checked
     against it; else another skeleton, kept as it is."""
-    plain = [bone_names.get(n, bone_names.get(n.rsplit(":", 1)[-1], n.rsplit(":", 1)[-1])) for n, _ in raw]
+    plain = [bone_names.get(n, bone_names.get(plain_name(n), plain_name(n))) for n, _ in raw]
     max3ds = bool(_MAX3DS_MARKERS & set(plain)) and not bone_names
     out = []
     for name, (raw_name, line) in zip(plain, raw):

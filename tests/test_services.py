@@ -1310,6 +1310,7 @@ def test_live_pose_stream_drives_the_body_like_the_file(hub, body, data):
 @pytest.mark.parametrize("change, problem", [
     ("no bones", "at least one bone"),
     ("other names", "lacks the bones the retargeting needs: Hips, LeftUpLeg"),
+    ("a name twice", "meta 'names' names 'LeftLeg' more than once"),
 ])
 def test_a_skeleton_message_the_ingest_cannot_use_is_rejected_naming_it(data, change, problem):
     """A capture system's skeleton with no bones (its parents array read past its end: IndexError)
@@ -1323,11 +1324,26 @@ def test_a_skeleton_message_the_ingest_cannot_use_is_rejected_naming_it(data, ch
     if change == "no bones":
         msg.arrays = {name: a[:0] for name, a in msg.arrays.items()}
         msg.meta["names"] = []
-    else:
+    elif change == "other names":
         msg.meta["names"] = [f"bone{i}" for i in range(len(msg.meta["names"]))]
+    else:  # (one under a namespace prefix, which is left off)
+        msg.meta["names"][msg.meta["names"].index("LeftUpLeg")] = "rig:LeftLeg"
     with pytest.raises(MessageError) as e:
         skeleton_from_message(decode(encode(msg), "tryon/sk/skeleton"), "tryon/sk/skeleton")
     assert "tryon/sk/skeleton" in str(e.value) and problem in str(e.value)
+
+
+def test_a_skeleton_message_is_read_by_its_bone_names_without_namespace_prefixes(data):
+    """A capture system publishing Mixamo's names (`mixamorig:Hips`, ...): read as a BVH's are,
+    the prefix left off."""
+    from services.ingest import skeleton_from_message, skeleton_message
+
+    with BVHSource(mocap_clip(data)) as clip:
+        msg = skeleton_message("sk", clip.skeleton, clip.frame_time)
+    names = list(msg.meta["names"])
+    msg.meta["names"] = [f"mixamorig:{n}" for n in names]
+    skeleton, frame_time = skeleton_from_message(decode(encode(msg), "tryon/sk/skeleton"), "tryon/sk/skeleton")
+    assert list(skeleton.names) == names and frame_time == clip.frame_time
 
 
 def live_poses(hub, data, session: str, edit) -> tuple[list[tuple[int, bool]], Stats]:
