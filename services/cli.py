@@ -63,16 +63,17 @@ def _skeleton_note(clip: Path) -> str | None:
     """What a clip of a skeleton other than CMU's leaves unmoved: the character's bones none of
     its joints is named as (they keep their rest pose relative to their parents). None: the CMU
     skeleton."""
-    from skinning.bvh import bone_names_file
+    from skinning.bvh import OPTIONAL_BONES, bone_names_file
     from skinning.skeleton import CMU_BONES
 
     header = _clip_header(clip)
     if header.cmu:
         return None
-    still = [b for b in CMU_BONES if b not in header.skeleton.names]
-    moved = len(CMU_BONES) - len(still)
-    unmoved = (f"; {', '.join(still)} follow their parents (name the joints for them in "
-               f"{bone_names_file(clip).name})") if still else ""
+    moved = sum(b in header.skeleton.names for b in CMU_BONES)
+    # (of the bones a CMU clip moves: the fingers and hip joints are still in those too)
+    still = [b for b in CMU_BONES if b not in header.skeleton.names and b not in OPTIONAL_BONES]
+    unmoved = (f"; of those a CMU clip moves, {', '.join(still)} follow their parents (name the joints for them "
+               f"in {bone_names_file(clip).name})") if still else ""
     return (f"tryon: clip {clip.name} is not the CMU skeleton: its joints named as the character's bones drive "
             f"{moved} of the character's {len(CMU_BONES)} bones{unmoved}")
 
