@@ -757,7 +757,8 @@ def main(argv: list[str] | None = None) -> int:
     p = sub.add_parser("replay", help="replay an MCAP recording onto the bus")
     p.add_argument("recording")
     p.add_argument("--session", help="publish under this session name (default: the recorded one)")
-    p.add_argument("--speed", type=_seconds, default=1.0, help="1 original pace, 2 twice as fast, 0 as fast as possible")
+    p.add_argument("--speed", type=_seconds, default=1.0,
+                   help="1 original pace, 2 twice as fast, 0 as fast as possible")
     p.add_argument("--only", help="only these kinds, e.g. session,topology,body (feeds a fresh cloth service)")
     p.add_argument("--linger", type=_seconds, default=2.0, help="keep answering topology queries this long at the end")
     p.add_argument("--wait-subscribers", type=_seconds, default=0.0,
