@@ -72,8 +72,10 @@ def _skeleton_note(clip: Path) -> str | None:
     moved = sum(b in header.skeleton.names for b in CMU_BONES)
     # (of the bones a CMU clip moves: the fingers and hip joints are still in those too)
     still = [b for b in CMU_BONES if b not in header.skeleton.names and b not in OPTIONAL_BONES]
-    unmoved = (f"; of those a CMU clip moves, {', '.join(still)} follow their parents (name the joints for them "
-               f"in {bone_names_file(clip).name})") if still else ""
+    follow = "follows its parent (name the joint for it" if len(still) == 1 else \
+        "follow their parents (name the joints for them"
+    unmoved = (f"; of those a CMU clip moves, {', '.join(still)} {follow} in {bone_names_file(clip).name})"
+               if still else "")
     return (f"tryon: clip {clip.name} is not the CMU skeleton: its joints named as the character's bones drive "
             f"{moved} of the character's {len(CMU_BONES)} bones{unmoved}")
 

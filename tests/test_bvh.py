@@ -406,7 +406,7 @@ ROOT mixamorig:Hips
   }
   JOINT mixamorig:Spine
   {
-    OFFSET 0 10 0
+    OFFSET 0 13 0
     CHANNELS 3 Zrotation Yrotation Xrotation
     JOINT mixamorig:Spine2
     {
@@ -451,16 +451,22 @@ Frame Time: 0.0333333
 def test_a_skeleton_of_another_tool_is_read_by_its_bone_names(tmp_path, mocap):
     """A Mixamo-style file (namespace prefix, no LowerBack or hip joints, a Spine2 with three
     children): not the CMU skeleton, kept as it is, each joint named as the character's bones
-    go by (the prefix left off); a bone with several children and no main one ends at their
-    heads' mean."""
+    go by (the prefix left off), the spine by its place: the joint the shoulders hang from is the
+    chest (Spine1), the one below it Spine; a bone with several children and no main one ends at
+    their heads' mean."""
     header, _ = read_bvh(write(tmp_path, MIXAMO), unit=0.01)
     sk = header.skeleton
     assert not header.cmu
     assert sk.names == ("Hips", "LeftUpLeg", "LeftLeg", "LeftFoot", "RightUpLeg", "RightLeg", "RightFoot",
-                        "Spine", "Spine2", "Neck", "LeftShoulder", "RightShoulder")
+                        "Spine", "Spine1", "Neck", "LeftShoulder", "RightShoulder")
     np.testing.assert_allclose(sk.heads[sk.index("LeftFoot")], [0.10, 0.05, 0.0], atol=1e-12)
-    # Spine2 at 1.40 m: the neck 0.10 m over it, the shoulders 0.06 m
-    np.testing.assert_allclose(sk.tails[sk.index("Spine2")], [0.0, 1.40 + (0.10 + 0.06 + 0.06) / 3, 0.0], atol=1e-12)
+    # the chest (Spine2 in the file) ends at the neck, as CMU's; the hips, without CMU's LowerBack,
+    # at their three children's mean (two hip joints 5 cm lower, to the sides, the spine 13 cm higher)
+    np.testing.assert_allclose(sk.tails[sk.index("Spine1")], [0.0, 1.53, 0.0], atol=1e-12)
+    np.testing.assert_allclose(sk.tails[sk.index("Hips")], [0.0, 1.01, 0.0], atol=1e-12)
+    # a map that names a joint of the spine itself is followed as it is
+    (tmp_path / "named.bones.toml").write_text('[bones]\n"mixamorig:Spine" = "LowerBack"\n')
+    assert read_bvh(write(tmp_path, MIXAMO, "named.bvh"))[0].skeleton.names[7:9] == ("LowerBack", "Spine2")
     with BVHReader(mocap / "cmu_131_01_walk_3dsmax.bvh") as walk:
         assert walk.header.cmu  # (the 3dsMax naming: CMU's)
 

@@ -11,14 +11,14 @@ from skinning.animate import BodyAnimator
 from skinning.bvh import CMU_UNIT_M, local_pose, read_bvh
 from skinning.kinematics import axis_rotation, forward_kinematics
 
-# the rewritten skeleton: (name, the walk's bone it copies, parent). No LowerBack, Neck1 or hip
-# joints, a Spine2 between the chest and the neck and shoulders (turning with the chest), one
-# finger joint per hand; names under Mixamo's namespace
+# the rewritten skeleton: (name, the walk's bone it copies, parent). Mixamo's spine (Spine, Spine1,
+# and the chest Spine2, which the shoulders hang from, for CMU's LowerBack, Spine, Spine1), no
+# Neck1 or hip joints, one finger joint per hand; names under Mixamo's namespace
 MIXAMO_STYLE = [("Hips", "Hips", None)]
 for side, s in (("Left", "L"), ("Right", "R")):
     MIXAMO_STYLE += [(f"{side}UpLeg", f"{side}UpLeg", "Hips"), (f"{side}Leg", f"{side}Leg", f"{side}UpLeg"),
                      (f"{side}Foot", f"{side}Foot", f"{side}Leg"), (f"{side}ToeBase", f"{side}ToeBase", f"{side}Foot")]
-MIXAMO_STYLE += [("Spine", "Spine", "Hips"), ("Spine1", "Spine1", "Spine"), ("Spine2", None, "Spine1"),
+MIXAMO_STYLE += [("Spine", "LowerBack", "Hips"), ("Spine1", "Spine", "Spine"), ("Spine2", "Spine1", "Spine1"),
                  ("Neck", "Neck", "Spine2"), ("Head", "Head", "Neck")]
 for side in ("Left", "Right"):
     MIXAMO_STYLE += [(f"{side}Shoulder", f"{side}Shoulder", "Spine2"),
@@ -27,8 +27,8 @@ for side in ("Left", "Right"):
                      (f"{side}Hand", f"{side}Hand", f"{side}ForeArm"),
                      (f"{side}HandIndex1", f"{side}FingerBase", f"{side}Hand")]
 # the character's bones the rewritten skeleton has no joint for: they follow their parents
-NOT_CAPTURED = {"LowerBack", "Neck1", "LeftFingerBase", "LeftHandFinger1", "LThumb", "RightFingerBase",
-                "RightHandFinger1", "RThumb"}
+NOT_CAPTURED = {"Neck1", "LeftFingerBase", "LeftHandFinger1", "LThumb", "RightFingerBase", "RightHandFinger1",
+                "RThumb"}
 
 
 def zyx_degrees(r: np.ndarray) -> tuple[float, float, float]:
@@ -39,15 +39,13 @@ def zyx_degrees(r: np.ndarray) -> tuple[float, float, float]:
 
 def rewrite(header, rows: np.ndarray, path, root_offset=(0.0, 0.0, 0.0), absolute: bool = True) -> None:
     """The walk's frames `rows` as a Mixamo-style BVH: each joint's global rotation the walk's
-    bone's (Spine2: its chest's), positions in centimetres. root_offset (m): the root's OFFSET;
+    bone's, positions in centimetres. root_offset (m): the root's OFFSET;
     absolute: its position channels give its place (Blender's reading), else its place less the
     offset."""
     sk = header.skeleton
     names = [n for n, _, _ in MIXAMO_STYLE]
-    src = {n: sk.index(b) for n, b, _ in MIXAMO_STYLE if b is not None}
-    src_chest = sk.index("Spine1")
+    src = {n: sk.index(b) for n, b, _ in MIXAMO_STYLE}
     heads = {n: sk.heads[i] + root_offset for n, i in src.items()}
-    heads["Spine2"] = 0.5 * (heads["Spine1"] + heads["Neck"])
     parent = {n: p for n, _, p in MIXAMO_STYLE}
     children = {n: [c for c, _, p in MIXAMO_STYLE if p == n] for n in names}
     cm = 100.0  # metres -> centimetres
@@ -77,7 +75,7 @@ def rewrite(header, rows: np.ndarray, path, root_offset=(0.0, 0.0, 0.0), absolut
     for values in rows:
         rot, root = local_pose(header, values)
         forward_kinematics(sk.parents, sk.offsets, root, rot, g_rot, g_pos)
-        glob = {name: g_rot[src_chest if name == "Spine2" else src[name]] for name in names}
+        glob = {name: g_rot[src[name]] for name in names}
         out = list((g_pos[sk.index("Hips")] - (0.0 if absolute else np.asarray(root_offset))) * cm)
         for name in names:
             local = glob[name] if parent[name] is None else glob[parent[name]].T @ glob[name]
@@ -96,20 +94,22 @@ def test_zyx_degrees_round_trip():
 
 @pytest.mark.parametrize("root", ["zero offset", "offset, absolute channels", "offset, relative channels"])
 def test_a_skeleton_of_another_tool_drives_the_character_as_the_clip_does(body, mocap, tmp_path, root):
-    """The walk rewritten with Mixamo's names and hierarchy (no LowerBack, Neck1 or hip joints,
-    a Spine2 more, one finger joint a hand) in centimetres: every character bone the rewritten
-    skeleton names turns as it does from the walk itself (the rotations are copied by name,
-    globally), the legs' IK reaches the same ankles and the pelvis lands at the same place (the
-    person's size cancels in the legs' length ratio); the bones it has no joint for follow their
-    parents. With the root's rest place as its OFFSET, its position channels read either as its
-    place (Blender's export) or as its place less the offset give the same."""
+    """The walk rewritten with Mixamo's names and hierarchy (its spine Spine, Spine1, Spine2, no
+    Neck1 or hip joints, one finger joint a hand) in centimetres: every character bone the
+    rewritten skeleton has a joint for turns as it does from the walk itself (the rotations are
+    copied globally, by name, the spine by its place: Mixamo's Spine2, which the shoulders hang
+    from, is the chest), the legs' IK reaches the same ankles and the pelvis lands at the same
+    place (the person's size cancels in the legs' length ratio); the bones it has no joint for
+    (Neck1, the fingers) follow their parents. With the root's rest place as its OFFSET, its
+    position channels read either as its place (Blender's export) or as its place less the offset
+    give the same."""
     header, motion = read_bvh(mocap / "cmu_131_01_walk_3dsmax.bvh")
     rows = motion[1:121:6]  # 20 frames of the walk, 0.05 s apart
     other_path = tmp_path / "walk_mixamo.bvh"
     hips = (0.0, 0.0, 0.0) if root == "zero offset" else (0.01, 0.93, -0.02)
     rewrite(header, rows, other_path, hips, absolute="absolute" in root)
     other, other_rows = read_bvh(other_path)
-    assert not other.cmu and "Spine2" in other.skeleton.names and "LowerBack" not in other.skeleton.names
+    assert not other.cmu and other.skeleton.names[9:13] == ("LowerBack", "Spine", "Spine1", "Neck")
     assert np.allclose(other.root_shift, np.array(hips) * CMU_UNIT_M * 100 if "absolute" in root else 0.0)
 
     runs = []
@@ -143,7 +143,7 @@ def test_tryon_body_runs_a_clip_of_another_skeleton_and_says_what_it_leaves_unmo
     rewrite(header, motion[:8], clip)
     assert main(["body", "--clip", str(clip), "--no-png", "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
-    assert ("clip walk_mixamo.bvh is not the CMU skeleton: its joints named as the character's bones drive 23 of "
-            "the character's 31 bones; of those a CMU clip moves, LowerBack, Neck1 follow their parents (name the "
-            "joints for them in walk_mixamo.bones.toml)") in out
+    assert ("clip walk_mixamo.bvh is not the CMU skeleton: its joints named as the character's bones drive 24 of "
+            "the character's 31 bones; of those a CMU clip moves, Neck1 follows its parent (name the joint for it "
+            "in walk_mixamo.bones.toml)") in out
     assert "walk_mixamo: 8 frames" in out and "NaN frames 0" in out
