@@ -332,10 +332,42 @@ def garment_meshes(folder: Path) -> list[Path]:
     return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in MESH_SUFFIXES)
 
 
+MIX = "+"  # joins the outfits, or single garments of them, that a mixed outfit is made of
+
+
+def mix_terms(path: str | Path) -> list[tuple[Path, str | None]] | None:
+    """A mixed outfit: `a+b.top` beside outfits a and b (its name's terms joined by MIX), each
+    term an outfit there (all its garments) or one garment of one (`<outfit>.<part>`, as the
+    garment is named: `female_casualsuit01.top`). Returns (the outfit's path, the garment's name
+    or None for all) per term; None where path is not a mix (it exists, or has no MIX in its
+    name). GarmentError naming a term that is neither, and the outfits there."""
+    path = Path(path)
+    if path.exists() or MIX not in path.name:
+        return None
+    terms: list[tuple[Path, str | None]] = []
+    for term in path.name.split(MIX):
+        outfit = term.rpartition(".")[0]
+        if term and (path.parent / term).exists():
+            terms.append((path.parent / term, None))
+        elif outfit and (path.parent / outfit).is_dir():
+            terms.append((path.parent / outfit, term))
+        else:
+            there = sorted(p.name for p in path.parent.glob("*") if p.is_dir() or p.suffix.lower() in MESH_SUFFIXES)
+            raise GarmentError(f"outfit {path.name!r}: {term!r} is neither an outfit in {path.parent} nor a garment "
+                               f"of one (<outfit>.<part>, as `tryon catalog` names them); there are {there}")
+    return terms
+
+
 def outfit_source(path: str | Path) -> str:
     """What an outfit path holds: "mhclo" (a MakeHuman outfit folder), "meshes" (a folder of
-    garment mesh files), "mesh" (one garment mesh file); GarmentError naming what was expected."""
+    garment mesh files), "mesh" (one garment mesh file), "mix" (garments of other outfits,
+    `mix_terms`); GarmentError naming what was expected."""
     path = Path(path)
+    terms = mix_terms(path)
+    if terms is not None:
+        for outfit, _ in terms:
+            outfit_source(outfit)
+        return "mix"
     if path.is_dir():
         if any(path.glob("*.mhclo")):
             return "mhclo"
@@ -349,15 +381,36 @@ def outfit_source(path: str | Path) -> str:
     raise GarmentError(f"{path}: no such file or folder")
 
 
+def _load_mix(path: Path, base_vertices_m: np.ndarray, skin: np.ndarray) -> list[Garment]:
+    """A mixed outfit's garments (`mix_terms`), in the order its name gives them."""
+    garments: list[Garment] = []
+    for outfit, name in mix_terms(path):
+        pieces = load_garments(outfit, base_vertices_m, skin)
+        if name is not None:
+            chosen = [g for g in pieces if g.name == name]
+            if not chosen:
+                raise GarmentError(f"outfit {path.name!r}: {outfit.name} has no garment {name!r}; it has "
+                                   f"{[g.name for g in pieces]}")
+            pieces = chosen
+        for g in pieces:
+            if any(h.name == g.name for h in garments):
+                raise GarmentError(f"outfit {path.name!r}: garment {g.name!r} comes twice")
+            garments.append(g)
+    return garments
+
+
 def load_garments(path: str | Path, base_vertices_m: np.ndarray, skin: np.ndarray) -> list[Garment]:
     """An outfit's garments on the rest body (metres, world frame): a MakeHuman outfit folder
     (`load_outfit`, fitted on base_vertices_m, helpers included), or garment meshes already placed
     on the rest body (`load_garment_file`: one file, or every one in a folder), each checked to lie
-    on the skin (`check_placed`; skin: the rest body's visible vertices)."""
+    on the skin (`check_placed`; skin: the rest body's visible vertices), or garments of such
+    outfits mixed (`mix_terms`)."""
     path = Path(path)
     kind = outfit_source(path)
     if kind == "mhclo":
         return load_outfit(path, base_vertices_m)
+    if kind == "mix":
+        return _load_mix(path, base_vertices_m, skin)
     garments: list[Garment] = []
     for f in [path] if kind == "mesh" else garment_meshes(path):
         pieces = load_garment_file(f)

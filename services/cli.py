@@ -605,7 +605,8 @@ FABRIC_HELP = ("a fabric preset for every garment, or one per garment: garment=p
                "per garment)")
 OUTFIT_HELP = ("outfit folder in <data>/garments, or a path: a MakeHuman outfit folder (.mhclo), a garment mesh "
                "(OBJ, PLY, GLB, ...) in metres already on the rest body (Y up, feet at y = 0, facing +Z), or a folder "
-               "of those")
+               "of those; or garments of the outfits there mixed, joined by '+' "
+               "(female_casualsuit01.top+female_elegantsuit01.bottom)")
 
 
 class _Parser(argparse.ArgumentParser):

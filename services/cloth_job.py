@@ -19,7 +19,7 @@ import pinocchio as pin
 from cloth.collision import BodyMesh, BodyPose
 from cloth.fabric import (OUTFIT_FABRICS, Fabric, FabricError, fabric as fabric_preset, fabric_choice,
                           garment_fabrics, outfit_fabrics)
-from cloth.garment import Garment, load_garments, outfit_source, worn_from_waist
+from cloth.garment import Garment, load_garments, mix_terms, outfit_source, worn_from_waist
 from cloth.geometry import vertex_normals as geometry_vertex_normals
 from cloth.layers import LayerModel, LayerState, layer_outfit, stack_layer
 from cloth.model import ClothModel, SimSettings
@@ -52,11 +52,12 @@ START_FRAME = 1
 
 def find_outfit(data: Path, name: str | Path) -> Path:
     """An outfit: a path to a MakeHuman outfit folder, to a garment mesh file already placed on the
-    rest body, or to a folder of such files, or the name of one in <data>/garments.
+    rest body, or to a folder of such files, or the name of one in <data>/garments, or garments of
+    those there mixed (`female_casualsuit01.top+female_elegantsuit01.bottom`, `cloth.garment.mix_terms`).
     FileNotFoundError naming where it looked and which outfits there are; GarmentError where what
     is there holds no outfit (`cloth.garment.outfit_source`)."""
     path = Path(name) if Path(name).exists() else Path(data) / "garments" / str(name)
-    if not path.exists():
+    if not path.exists() and mix_terms(path) is None:
         there = sorted(p.name for p in (Path(data) / "garments").glob("*") if p.is_dir())
         raise FileNotFoundError(f"outfit {str(name)!r} not found (looked for {path}); available: {there}")
     outfit_source(path)
@@ -140,15 +141,28 @@ def garment_fabric_list(outfit_dir: Path, garments: list[Garment],
         return [fabrics] * len(garments)
     names = [g.name for g in garments]
     chosen = garment_fabrics(fabrics, names) if fabrics else {}
-    own = Path(outfit_dir) / OUTFIT_FABRICS
     made = {}
-    if own.is_file():  # the outfit's own fabrics
+    terms = mix_terms(outfit_dir)
+    if terms is not None:  # a mix: each garment's outfit's own fabrics
+        for outfit, _ in terms:
+            if (outfit / OUTFIT_FABRICS).is_file():
+                made.update((n, f) for n, f in outfit_fabrics(outfit / OUTFIT_FABRICS).items() if n in names)
+    elif (Path(outfit_dir) / OUTFIT_FABRICS).is_file():  # the outfit's own fabrics
+        own = Path(outfit_dir) / OUTFIT_FABRICS
         made = outfit_fabrics(own)
         stray = sorted(set(made) - set(names))
         if stray:
             raise FabricError(f"{own}: [garments] names {stray}, which the outfit does not have; it has {names}")
     made.update(chosen)
     return [made[n] if n in made else fabric_preset(DEFAULT_FABRICS.get(n, "cotton")) for n in names]
+
+
+def outfit_digest(path: Path) -> str:
+    """A digest of an outfit's files (`folder_digest`), of each of a mix's outfits' with the mix's name."""
+    terms = mix_terms(path)
+    if terms is None:
+        return folder_digest(path)
+    return object_digest((Path(path).name, [folder_digest(outfit) for outfit, _ in terms]))
 
 
 def outfit_name(path: Path) -> str:
@@ -177,7 +191,7 @@ def build_outfit(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit
         return build()
     rest = animator.pose(animator.rest_configuration()).vertices  # what the garments are fitted on
     parts = ("outfit models", body_digest or object_digest(body), object_digest((rest, animator.world_offset)),
-             outfit_name(outfit_dir), folder_digest(outfit_dir), fabrics, settings, surface)
+             outfit_name(outfit_dir), outfit_digest(outfit_dir), fabrics, settings, surface)
     return cache.get(parts, build)
 
 

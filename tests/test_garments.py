@@ -358,3 +358,64 @@ def test_a_fabric_per_garment_from_the_command_line(body, data, rest_world, tmp_
     assert {m.name: m.fabric.name for m in mine.models} == {"tee": "denim", "jeans": "jersey"}
     with pytest.raises(FabricError, match=r"no garment 'top' in the outfit; it has \['"):
         load_outfit_models(body, animator, mesh, tmp_path, fabric_choice("top=denim"))
+
+
+def test_an_outfit_mixed_from_others_garments(body, data, rest_world, tmp_path):
+    """`female_casualsuit01.top+female_elegantsuit01.bottom`: the T-shirt of one outfit with the
+    skirt of another, each as its own outfit fits it, with its default fabric and its waistband;
+    a term may be a whole outfit, or a garment mesh file beside them. Each outfit's fabrics.toml
+    gives the fabric of its garments taken (naming one not taken is no error). A term that is
+    neither an outfit there nor a garment of one, a part an outfit lacks, or a garment taken
+    twice is refused naming it."""
+    import os
+
+    from cloth.fabric import fabric
+    from cloth.garment import load_garments, mix_terms
+    from services.cloth_job import collision_body, find_outfit, load_outfit_models, outfit_digest
+    from skinning.animate import BodyAnimator
+
+    base, skin = rest_world
+    garments = tmp_path / "garments"
+    garments.mkdir()
+    for outfit in OUTFITS:
+        os.symlink(data / "garments" / outfit, garments / outfit)
+    casual = load_outfit(garments / "female_casualsuit01", base)
+    elegant = load_outfit(garments / "female_elegantsuit01", base)
+    _write_obj(garments / "tee.obj", casual[0].vertices, casual[0].faces)
+
+    mix = find_outfit(tmp_path, "female_casualsuit01.top+female_elegantsuit01.bottom")
+    assert mix_terms(mix) == [(garments / "female_casualsuit01", "female_casualsuit01.top"),
+                              (garments / "female_elegantsuit01", "female_elegantsuit01.bottom")]
+    got = load_garments(mix, base, skin)
+    assert [g.name for g in got] == ["female_casualsuit01.top", "female_elegantsuit01.bottom"]
+    np.testing.assert_array_equal(got[0].vertices, casual[0].vertices)
+    np.testing.assert_array_equal(got[1].faces, elegant[1].faces)
+    models = load_outfit_models(body, BodyAnimator(body, contact=None), collision_body(body), mix).models
+    assert [(m.fabric.name, bool(m.grip.any())) for m in models] == [("cotton", False), ("cotton", True)]
+    whole = load_garments(find_outfit(tmp_path, "tee.obj+female_elegantsuit01"), base, skin)
+    assert [g.name for g in whole] == ["tee", "female_elegantsuit01.top", "female_elegantsuit01.bottom"]
+    assert outfit_digest(mix) != outfit_digest(find_outfit(tmp_path, "female_casualsuit01.top+female_sportsuit01"))
+
+    # the skirt's outfit's own fabrics.toml names its blouse too, which the mix does not take
+    own = tmp_path / "elegant"
+    own.mkdir()
+    for f in (data / "garments" / "female_elegantsuit01").iterdir():
+        os.symlink(f, own / f.name)
+    (own / "fabrics.toml").write_text('[garments]\n"elegant.bottom" = "denim"\n"elegant.top" = "silk"\n')
+    os.symlink(own, garments / "elegant")
+    models = load_outfit_models(body, BodyAnimator(body, contact=None), collision_body(body),
+                                find_outfit(tmp_path, "female_casualsuit01.top+elegant.bottom")).models
+    assert [m.fabric for m in models] == [fabric("cotton"), fabric("denim")]
+
+    for name, says in (("female_casualsuit02.top+female_elegantsuit01", r"'female_casualsuit02.top' is neither an "
+                        r"outfit in .*garments nor a garment of one .*; there are \['elegant', 'female_casualsuit01'"),
+                       ("female_casualsuit01.top+", r"'' is neither an outfit")):
+        with pytest.raises(GarmentError, match=says):
+            find_outfit(tmp_path, name)
+    for name, says in (("female_casualsuit01.shoes+female_elegantsuit01",
+                        r"female_casualsuit01 has no garment 'female_casualsuit01.shoes'; it has "
+                        r"\['female_casualsuit01.top', 'female_casualsuit01.bottom'\]"),
+                       ("female_casualsuit01+female_casualsuit01.top",
+                        "garment 'female_casualsuit01.top' comes twice")):
+        with pytest.raises(GarmentError, match=says):
+            load_garments(find_outfit(tmp_path, name), base, skin)

@@ -500,6 +500,10 @@ def test_the_catalog_lists_each_outfits_garments_and_the_fabrics(tmp_path, capsy
     assert f"  raw_denim: stretch {fabric('denim').stretch_stiffness:g} N/m" in out and "cotton:" not in out
     assert main(["catalog", "--outfit", "no-such-outfit"]) == 2
     assert "outfit 'no-such-outfit' not found" in capsys.readouterr().err
+    # garments of two outfits mixed (`cloth.garment.mix_terms`), each with its own default fabric
+    assert main(["catalog", "--outfit", "female_sportsuit01.top+female_casualsuit01.bottom"]) == 0
+    assert ("  female_sportsuit01.top+female_casualsuit01.bottom: female_sportsuit01.top (jersey), "
+            "female_casualsuit01.bottom (denim, waistband)") in capsys.readouterr().out
     # a data folder without garments (a user's body and motion alone) is named, not an OS error's path
     (tmp_path / "bare").mkdir()
     assert main(["--data", str(tmp_path / "bare"), "catalog"]) == 2
