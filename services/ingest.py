@@ -44,7 +44,7 @@ from skinning.body import Body
 from skinning.bvh import plain_name
 from skinning.contact import ContactSettings
 from skinning.retarget import IKSettings, missing_bones
-from skinning.skeleton import Skeleton
+from skinning.skeleton import CMU_BONES, Skeleton, spine_by_place
 from skinning.source import PoseFrame
 
 from .bus import Latched, Stats, fetch_latched, key, put_reliably, wait_matching
@@ -126,6 +126,8 @@ def skeleton_from_message(msg: Message, key_expr: str) -> tuple[Skeleton, float]
     ft = msg.meta.get("frame_time")
     if not isinstance(ft, (int, float)) or not 0 < ft < 1:
         raise MessageError(key_expr, f"meta 'frame_time' must be seconds in (0, 1), got {ft!r}")
+    if not all(s in CMU_BONES for s in names):  # (another skeleton's spine by its place, as a BVH's)
+        names = spine_by_place(names, parents)
     sk = Skeleton(tuple(names), parents.astype(np.int32), msg.arrays["heads"].astype(np.float64),
                   msg.arrays["tails"].astype(np.float64))
     return sk, float(ft)

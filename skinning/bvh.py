@@ -21,7 +21,7 @@ from typing import IO, Iterator
 import numpy as np
 
 from .kinematics import channels_to_local, forward_kinematics
-from .skeleton import CMU_BONES, CMU_PARENTS, LEGS, NEEDED_BONES, Skeleton, bone_tails
+from .skeleton import CMU_BONES, CMU_PARENTS, LEGS, NEEDED_BONES, SPINE, Skeleton, bone_tails, spine_by_place
 
 CMU_UNIT_M = 0.056444
 
@@ -264,7 +264,7 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
     names, cmu = _canonical_names(path, [(j["name"], j["line"]) for j in joints], bone_names)
     parents = np.array([j["parent"] for j in joints], dtype=np.int32)
     if not cmu and not set(SPINE) & set(bone_names.values()):
-        names = _spine_by_place(names, parents)
+        names = spine_by_place(names, parents)
     if cmu:
         for j, canon in zip(joints, names):
             parent = names[j["parent"]] if j["parent"] >= 0 else None
@@ -299,35 +299,6 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
         motion_line=lineno + 1,
         cmu=cmu,
     )
-
-
-# the character's spine from the chest down: the chest is where the shoulders hang from
-SPINE = ("Spine1", "Spine", "LowerBack")
-
-
-def _spine_by_place(names: list[str], parents: np.ndarray) -> list[str]:
-    """Another skeleton's spine named by its place, not its names: the joint the shoulders (or,
-    without them, the upper arms) hang from is the chest (Spine1), and the two joints below it,
-    down to the pelvis, Spine and LowerBack. Mixamo's chest is its Spine2, under Spine1 and Spine:
-    by name, the character's chest would turn with Mixamo's mid-spine, short of the chest's bend
-    that the shoulders, copied by name, have."""
-    arm = next((names.index(n) for n in ("LeftShoulder", "RightShoulder", "LeftArm", "RightArm") if n in names), -1)
-    if arm < 0 or parents[arm] < 0:
-        return names
-    out = list(names)
-    chain = []  # the chest, then down towards the pelvis
-    b = int(parents[arm])
-    while b >= 0 and names[b] != "Hips" and len(chain) < len(SPINE):
-        chain.append(b)
-        b = int(parents[b])
-    if [names[b] for b in chain] == list(SPINE[:len(chain)]):
-        return names
-    for b, new in zip(chain, SPINE):
-        for other in range(len(out)):  # (a joint of that name elsewhere gives it up)
-            if out[other] == new and other not in chain:
-                out[other] = names[other] + "_"
-        out[b] = new
-    return out
 
 
 def _check_other_skeleton(path, names: list[str], parents: np.ndarray, offsets: np.ndarray) -> None:

@@ -44,6 +44,35 @@ LEGS = {
 NEEDED_BONES = ("Hips", *LEGS["left"], *LEGS["right"])
 
 
+# the character's spine from the chest down: the chest is where the shoulders hang from
+SPINE = ("Spine1", "Spine", "LowerBack")
+
+
+def spine_by_place(names: list[str], parents: np.ndarray) -> list[str]:
+    """Another skeleton's spine named by its place, not its names: the joint the shoulders (or,
+    without them, the upper arms) hang from is the chest (Spine1), and the two joints below it,
+    down to the pelvis, Spine and LowerBack. Mixamo's chest is its Spine2, under Spine1 and Spine:
+    by name, the character's chest would turn with Mixamo's mid-spine, short of the chest's bend
+    that the shoulders, copied by name, have."""
+    arm = next((names.index(n) for n in ("LeftShoulder", "RightShoulder", "LeftArm", "RightArm") if n in names), -1)
+    if arm < 0 or parents[arm] < 0:
+        return names
+    out = list(names)
+    chain = []  # the chest, then down towards the pelvis
+    b = int(parents[arm])
+    while b >= 0 and names[b] != "Hips" and len(chain) < len(SPINE):
+        chain.append(b)
+        b = int(parents[b])
+    if [names[b] for b in chain] == list(SPINE[:len(chain)]):
+        return names
+    for b, new in zip(chain, SPINE):
+        for other in range(len(out)):  # (a joint of that name elsewhere gives it up)
+            if out[other] == new and other not in chain:
+                out[other] = names[other] + "_"
+        out[b] = new
+    return out
+
+
 @dataclass(frozen=True)
 class Skeleton:
     """Bones in parent-first order. `heads[b]` is the rest position of bone b's joint."""

@@ -1336,7 +1336,7 @@ def test_a_skeleton_message_the_ingest_cannot_use_is_rejected_naming_it(data, ch
 
 def test_a_skeleton_message_is_read_by_its_bone_names_without_namespace_prefixes(data):
     """A capture system publishing Mixamo's names (`mixamorig:Hips`, ...): read as a BVH's are,
-    the prefix left off."""
+    the prefix left off, the spine by its place (`skinning.skeleton.spine_by_place`)."""
     from services.ingest import skeleton_from_message, skeleton_message
 
     with BVHSource(mocap_clip(data)) as clip:
@@ -1345,6 +1345,11 @@ def test_a_skeleton_message_is_read_by_its_bone_names_without_namespace_prefixes
     msg.meta["names"] = [f"mixamorig:{n}" for n in names]
     skeleton, frame_time = skeleton_from_message(decode(encode(msg), "tryon/sk/skeleton"), "tryon/sk/skeleton")
     assert list(skeleton.names) == names and frame_time == clip.frame_time
+    # Mixamo's spine (Spine, Spine1, and Spine2, the chest the shoulders hang from) named by its place
+    mixamo = {"LowerBack": "Spine", "Spine": "Spine1", "Spine1": "Spine2"}
+    msg.meta["names"] = [f"mixamorig:{mixamo.get(n, n)}" for n in names]
+    skeleton, _ = skeleton_from_message(decode(encode(msg), "tryon/sk/skeleton"), "tryon/sk/skeleton")
+    assert list(skeleton.names) == names
 
 
 def live_poses(hub, data, session: str, edit) -> tuple[list[tuple[int, bool]], Stats]:
