@@ -230,7 +230,9 @@ class BusPoseSource:
             quaternions_to_matrices(q, self._rot)
             self._pos[:] = msg.arrays["root_position"]
             self.origin_ns = msg.origin_ns
-            yield PoseFrame(msg.frame, msg.time, self._rot, self._pos)
+            # (where the order went back, the motion does not continue the pose before: a capture
+            # restarted, or the pose before was a stray; the ingest starts the garments again there)
+            yield PoseFrame(msg.frame, msg.time, self._rot, self._pos, jump=jumped_from is not None)
 
 
 class IngestService:

@@ -1308,6 +1308,61 @@ def test_live_pose_stream_drives_the_body_like_the_file(hub, body, data):
         ingest_bus.close()
 
 
+def test_a_capture_restarted_without_its_end_starts_the_garments_again(hub, body, data):
+    """A capture system that stops without its end message and starts again numbering its poses
+    from 1: before, the ingest rejected every pose of the new run (behind the old run's last).
+    Now FrameOrder.RESYNC_FRAMES poses in a row show the stream going on, and the motion jumps
+    there: the ingest announces the session again from that pose, and the cloth service starts
+    the garments again there, every body frame of the new run served (none lost to the order)."""
+    from services.bus import Latched, wait_matching
+    from services.ingest import matrices_to_quaternions, skeleton_message
+
+    port, _ = hub
+    capture_bus, ingest_bus = peer(port), peer(port)
+    latched = Latched(capture_bus)
+    garments = Collector(ingest_bus, key("restarted", "garment", GARMENTS[0]))
+    try:
+        with BVHSource(mocap_clip(data), every=2, max_frames=7) as clip:
+            frames = list(clip)[1:]
+            latched.publish(key("restarted", "skeleton"),
+                            encode(skeleton_message("restarted", clip.skeleton, clip.frame_time)))
+        source = BusPoseSource(ingest_bus, "restarted", Stats("ingest", "restarted"), wait_skeleton=10,
+                               idle_timeout=3)
+        svc = IngestService(ingest_bus, "restarted", body, source, {"outfit": OUTFIT, "level": LEVEL})
+        pub = capture_bus.declare_publisher(key("restarted", "pose"),
+                                            congestion_control=zenoh.CongestionControl.BLOCK)
+
+        def capture():
+            assert wait_matching(pub, 10)
+            # (the second run numbered from 1 again); the poses that come while the ingest waits
+            # for the garments to be settled are dropped as stale (by design): wait there
+            for k, f in enumerate(frames + frames):
+                pub.put(encode(Message("pose", "restarted", f.index, f.time,
+                                       {"local_rotations": matrices_to_quaternions(f.local_rot),
+                                        "root_position": f.root_position.copy()})))
+                if k == 0:
+                    wait_until(svc._ready.is_set, 30, "the garments settled")
+                elif k == 6 + 2:
+                    wait_until(lambda: svc.restarts == 1 and svc._ready.is_set(), 30, "the garments again")
+                time.sleep(0.02)
+
+        t = threading.Thread(target=capture, daemon=True)
+        t.start()
+        assert svc.run(wait_subscribers=10, wait_ready=30) == 6 + 4
+        t.join(10)
+        assert svc.restarts == 1 and source.stats.counts["resyncs"] == 1
+        wait_until(lambda: len(garments.frames(f"garment/{GARMENTS[0]}")) == 10, 30, "the garments")
+        assert garments.frames(f"garment/{GARMENTS[0]}") == [1, 2, 3, 4, 5, 6, 3, 4, 5, 6]
+        pub.undeclare()
+        svc.close()
+        source.close()
+    finally:
+        garments.close()
+        latched.close()
+        capture_bus.close()
+        ingest_bus.close()
+
+
 @pytest.mark.parametrize("change, problem", [
     ("no bones", "at least one bone"),
     ("other names", "lacks the bones the retargeting needs: Hips, LeftUpLeg"),
@@ -1352,10 +1407,10 @@ def test_a_skeleton_message_is_read_by_its_bone_names_without_namespace_prefixes
     assert list(skeleton.names) == names
 
 
-def live_poses(hub, data, session: str, edit) -> tuple[list[tuple[int, bool]], Stats]:
+def live_poses(hub, data, session: str, edit) -> tuple[list[tuple[int, bool, bool]], Stats]:
     """The first six poses of the short clip published live on tryon/<session>/pose, each as
-    edit(index, quaternions) gives them (a list of (index, quaternions); index of None: as it is);
-    returns (index, finite) of each pose the ingest's BusPoseSource yields, and its stats."""
+    edit(index, quaternions) gives them (a list of (index, quaternions)); returns (index, finite,
+    jump) of each pose the ingest's BusPoseSource yields, and its stats."""
     from services.bus import Latched, wait_matching
     from services.ingest import matrices_to_quaternions, skeleton_message
 
@@ -1374,7 +1429,7 @@ def live_poses(hub, data, session: str, edit) -> tuple[list[tuple[int, bool]], S
             for index, q in edit(f.index, matrices_to_quaternions(f.local_rot)):
                 pub.put(encode(Message("pose", session, index, f.time, {"local_rotations": q,
                                                                          "root_position": f.root_position.copy()})))
-        got = [(f.index, bool(np.isfinite(f.local_rot).all())) for f in source]
+        got = [(f.index, bool(np.isfinite(f.local_rot).all()), f.jump) for f in source]
         pub.undeclare()
         source.close()
         return got, stats
@@ -1395,7 +1450,7 @@ def test_a_pose_with_a_zero_quaternion_is_rejected_and_the_stream_goes_on(hub, d
 
     with caplog.at_level(logging.WARNING):
         got, stats = live_poses(hub, data, "zq", zero_row)
-    assert got == [(1, True), (2, True), (4, True), (5, True), (6, True)]
+    assert got == [(i, True, False) for i in (1, 2, 4, 5, 6)]
     assert stats.counts["rejected"] == 1 and stats.counts["received"] == 5
     assert "tryon/zq/pose" in caplog.text and "local_rotations row 4" in caplog.text
 
@@ -1403,13 +1458,14 @@ def test_a_pose_with_a_zero_quaternion_is_rejected_and_the_stream_goes_on(hub, d
 def test_a_stray_pose_far_ahead_is_taken_and_the_stream_goes_on(hub, data, caplog):
     """A pose numbered far ahead of the capture's (a second publisher, a corrupt counter) had every
     real pose after it rejected: now the first FrameOrder.RESYNC_FRAMES - 1 behind it are, and the
-    stream goes on from the next (services.frame_order)."""
+    stream goes on from the next (services.frame_order), which is a jump (the ingest starts the
+    garments again there, as where a looped clip starts again)."""
     def stray_after_2(index, q):
         return [(index, q)] + ([(10**6, q.copy())] if index == 2 else [])
 
     with caplog.at_level(logging.WARNING):
         got, stats = live_poses(hub, data, "strayq", stray_after_2)
-    assert [i for i, _ in got] == [1, 2, 10**6, 5, 6]
+    assert [(i, jump) for i, _, jump in got] == [(1, False), (2, False), (10**6, False), (5, True), (6, False)]
     assert stats.counts["rejected"] == 2 and stats.counts["resyncs"] == 1
     assert "tryon/strayq/pose" in caplog.text and "behind frame 1000000, a stray" in caplog.text
 
