@@ -116,8 +116,8 @@ def plain_name(name: str) -> str:
 def _canonical_names(path, raw: list[tuple[str, int]], bone_names: dict[str, str]) -> tuple[list[str], bool]:
     """Each joint's name as the character's bones go by (a namespace prefix such as Mixamo's
     `mixamorig:` left off, then `bone_names`, the 3dsMax naming, the finger aliases), and whether
-    every one is a CMU skeleton bone: then the file is the CMU skeleton, its hierarchy checked
-    against it; else another skeleton, kept as it is."""
+    every one is a CMU skeleton bone without a map: then the file is the CMU skeleton, its
+    hierarchy checked against it; else another skeleton (a rig its map names), kept as it is."""
     plain = [bone_names.get(n, bone_names.get(plain_name(n), plain_name(n))) for n, _ in raw]
     max3ds = bool(_MAX3DS_MARKERS & set(plain)) and not bone_names
     out = []
@@ -127,7 +127,7 @@ def _canonical_names(path, raw: list[tuple[str, int]], bone_names: dict[str, str
         if canon in out:
             raise BVHError(path, line, f"joint {raw_name!r} appears twice (as {canon!r})")
         out.append(canon)
-    return out, all(n in CMU_BONES for n in out)
+    return out, all(n in CMU_BONES for n in out) and not bone_names
 
 
 class _Tokens:

@@ -1,3 +1,4 @@
+import re
 import time
 
 import numpy as np
@@ -492,6 +493,12 @@ def test_a_bone_name_map_beside_the_clip_names_its_joints(tmp_path):
     with pytest.raises(BVHError, match=r"in the rest pose 'LeftFoot' is not below 'LeftUpLeg' along Y \(the hip to "
                                        r"the ankle: \[0.0, 0.0, -90.0\] file units\): BVH motion is read Y up"):
         read_bvh(write(tmp_path, zup, "zup.bvh"))
+    # a rig mapped wholly onto CMU names is still its own skeleton (its hierarchy is not CMU's)
+    (tmp_path / "mapped.bones.toml").write_text("[bones]\n" + "\n".join(
+        f'"{n}" = "{n.split(":")[1]}"' for n in re.findall(r"(mixamorig:\w+)", MIXAMO) if "Spine2" not in n)
+        + '\n"mixamorig:Spine2" = "Spine1"\n')
+    header = read_bvh(write(tmp_path, MIXAMO, "mapped.bvh"))[0]
+    assert not header.cmu and header.skeleton.names[7:9] == ("Spine", "Spine1")
     # a leg whose knee does not hang from its hip
     text = MIXAMO.replace("mixamorig:LeftLeg", "TMP").replace("mixamorig:RightLeg", "mixamorig:LeftLeg") \
         .replace("TMP", "mixamorig:RightLeg")
