@@ -237,9 +237,14 @@ class Latched:
         first = key_expr not in self._payloads
         self._payloads[key_expr] = payload
         if first:  # a query may name the key or a wildcard over it: answer with the key itself
-            self._queryables.append(self.bus.declare_queryable(
-                key_expr, lambda query, k=key_expr: query.reply(k, self._payloads[k])))
+            self._queryables.append(self.bus.declare_queryable(key_expr,
+                                                               lambda query, k=key_expr: self._answer(query, k)))
         put_reliably(self.bus, key_expr, payload)
+
+    def _answer(self, query, key_expr: str) -> None:
+        payload = self._payloads.get(key_expr)
+        if payload is not None:  # (None: closed while the query was on its way)
+            query.reply(key_expr, payload)
 
     def close(self) -> None:
         """Stop answering (a later `publish` answers again)."""

@@ -1340,10 +1340,10 @@ def test_a_capture_restarted_without_its_end_starts_the_garments_again(hub, body
                 pub.put(encode(Message("pose", "restarted", f.index, f.time,
                                        {"local_rotations": matrices_to_quaternions(f.local_rot),
                                         "root_position": f.root_position.copy()})))
-                if k == 0:
-                    wait_until(svc._ready.is_set, 30, "the garments settled")
+                if k == 0:  # (published once the ingest has stopped waiting and dropped what went stale)
+                    wait_until(lambda: svc.last_index == 1, 30, "the garments settled")
                 elif k == 6 + 2:
-                    wait_until(lambda: svc.restarts == 1 and svc._ready.is_set(), 30, "the garments again")
+                    wait_until(lambda: svc.restarts == 1 and svc.last_index == 3, 30, "the garments again")
                 time.sleep(0.02)
 
         t = threading.Thread(target=capture, daemon=True)
