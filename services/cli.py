@@ -439,7 +439,8 @@ def cmd_catalog(args) -> int:
                 paths.append(path)
     body = load_body(data)
     animator = BodyAnimator(body, contact=None)
-    print(f"outfits ({len(paths)}; --outfit NAME, --fabric GARMENT=FABRIC,...):")
+    print(f"outfits ({len(paths)}; --outfit NAME, or garments of several: --outfit A.top+B.bottom; "
+          f"--fabric GARMENT=FABRIC,...):")
     for path in paths:
         garments, _, skin = outfit_garments(body, animator, path)
         worn = [f"{g.name} ({fab.name}{', waistband' if worn_from_waist(g, skin) else ''})"

@@ -485,6 +485,7 @@ def test_the_catalog_lists_each_outfits_garments_and_the_fabrics(tmp_path, capsy
     is named with what there is."""
     assert main(["catalog"]) == 0
     out = capsys.readouterr().out
+    assert out.startswith("outfits (3; --outfit NAME, or garments of several: --outfit A.top+B.bottom; ")
     assert "  female_casualsuit01: female_casualsuit01.top (cotton), female_casualsuit01.bottom (denim, waistband)" in out
     assert "  female_elegantsuit01: female_elegantsuit01.top (silk), female_elegantsuit01.bottom (cotton, waistband)" in out
     assert "female_sportsuit01.bottom (jersey, waistband)" in out
