@@ -51,6 +51,9 @@ from .topology import vertex_cells, vertex_neighbours
 from .winding import winding_number
 
 LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
+# both garments of a pair within LAYER_BAND of each other over more than this share of them at rest:
+# made to lie at the same depth (two tops; a shipped outfit's pair: at most 0.23 of either)
+SAME_DEPTH = 0.5
 LAYER_REACH = 0.03  # m: a vertex this near the other garment at rest is tested every frame
 LAYER_GAP = 0.002  # m: the outer surface is kept this far over the inner one
 LAYER_DEPTH = 0.01  # m: a vertex at most this far on the wrong side of the other surface is brought past it
@@ -107,6 +110,10 @@ class LayerModel:
     depth: float = LAYER_DEPTH
     max_lift: float = MAX_LAYER_LIFT
     keep_out: bool = True  # no move into the body (the Decision never into the body; False: the rooms alone)
+    # the share of the outer's and of the inner's rest vertices within LAYER_BAND of the other: a
+    # few tenths where a top's hem lies over a bottom's waistband, most of both where the two are
+    # made to lie at the same depth (two tops), which the layering cannot keep apart (`SAME_DEPTH`)
+    overlap: tuple[float, float] = (0.0, 0.0)
 
 
 class SheetMoves:
@@ -452,8 +459,11 @@ def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[Laye
             off_b, _ = nearest(rest[b][in_b], body_rest)
             outer, inner = (a, b) if np.median(off_a) >= np.median(off_b) else (b, a)
             mo, mi = models[outer], models[inner]
-            pairs.append(layer_pair(outer, inner, rest[outer], mo.tess.triangles, mo.d_edges, rest[inner],
-                                    mi.tess.triangles, mi.d_edges, outer_limit=mo.d_max, inner_limit=mi.d_max))
+            pair = layer_pair(outer, inner, rest[outer], mo.tess.triangles, mo.d_edges, rest[inner],
+                              mi.tess.triangles, mi.d_edges, outer_limit=mo.d_max, inner_limit=mi.d_max)
+            share = {a: float(in_a.mean()), b: float(in_b.mean())}
+            pair.overlap = (share[outer], share[inner])
+            pairs.append(pair)
     return stacking_order(pairs, len(models))
 
 
@@ -473,7 +483,7 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
     return sorted(pairs, key=lambda m: (depth[m.outer], m.outer, m.inner))
 
 
-__all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "LayerModel", "LayerState",
-           "SheetMoves", "SheetTrack", "apply_lifts", "ease_lifts", "keep_within_bounds",
+__all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "SAME_DEPTH", "LayerModel",
+           "LayerState", "SheetMoves", "SheetTrack", "apply_lifts", "ease_lifts", "keep_within_bounds",
            "layer_outfit", "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "press_room", "rest_surface",
            "sheet_track", "stack_layer", "stacking_order"]

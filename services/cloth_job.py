@@ -7,6 +7,8 @@ starts with the garments on and at rest.
 
 from __future__ import annotations
 
+import logging
+
 import os
 import time
 from collections.abc import Callable
@@ -21,7 +23,7 @@ from cloth.fabric import (OUTFIT_FABRICS, Fabric, FabricError, fabric as fabric_
                           garment_fabrics, outfit_fabrics)
 from cloth.garment import Garment, load_garments, mix_terms, outfit_source, worn_from_waist
 from cloth.geometry import vertex_normals as geometry_vertex_normals
-from cloth.layers import LayerModel, LayerState, layer_outfit, stack_layer
+from cloth.layers import LAYER_BAND, SAME_DEPTH, LayerModel, LayerState, layer_outfit, stack_layer
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
 from cloth.snapshot import StateSnapshot
@@ -34,6 +36,8 @@ from skinning.source import BVHSource
 
 from .model_cache import ModelCache, folder_digest, object_digest
 from .spin import SpinPool
+
+log = logging.getLogger("tryon.cloth")
 
 OUTFITS = ("female_casualsuit01", "female_elegantsuit01", "female_sportsuit01")
 # Default fabric per garment (blouse: silk, skirt: cotton, T-shirt: cotton, jeans: denim, sportswear: jersey).
@@ -188,11 +192,20 @@ def build_outfit(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit
         return outfit, surfaces, outfit_layers(outfit, surfaces, body.n_visible)
 
     if cache is None or cache.folder is None:
-        return build()
-    rest = animator.pose(animator.rest_configuration()).vertices  # what the garments are fitted on
-    parts = ("outfit models", body_digest or object_digest(body), object_digest((rest, animator.world_offset)),
-             outfit_name(outfit_dir), outfit_digest(outfit_dir), fabrics, settings, surface)
-    return cache.get(parts, build)
+        built = build()
+    else:
+        rest = animator.pose(animator.rest_configuration()).vertices  # what the garments are fitted on
+        parts = ("outfit models", body_digest or object_digest(body), object_digest((rest, animator.world_offset)),
+                 outfit_name(outfit_dir), outfit_digest(outfit_dir), fabrics, settings, surface)
+        built = cache.get(parts, build)
+    for m in built[2]:
+        if min(m.overlap) > SAME_DEPTH:
+            names = [built[0].models[m.outer].name, built[0].models[m.inner].name]
+            log.warning("outfit %s: %s and %s lie at the same depth (%.0f %% and %.0f %% of them within %.0f mm of "
+                        "the other at rest): each is simulated against the body alone, and they will cross each "
+                        "other; an outfit layers garments made for different places (a top over a bottom)",
+                        outfit_name(outfit_dir), *names, *(100 * o for o in m.overlap), LAYER_BAND * 1000)
+    return built
 
 
 @dataclass

@@ -419,3 +419,28 @@ def test_an_outfit_mixed_from_others_garments(body, data, rest_world, tmp_path):
                         "garment 'female_casualsuit01.top' comes twice")):
         with pytest.raises(GarmentError, match=says):
             load_garments(find_outfit(tmp_path, name), base, skin)
+
+
+def test_a_mix_of_two_garments_made_for_the_same_depth_is_named(body, data, caplog):
+    """The T-shirt under the silk blouse (`female_casualsuit01+female_elegantsuit01.top`): the two
+    tops lie within a centimetre of each other over most of both at rest, which the layering
+    cannot keep apart (each garment is simulated against the body alone): the outfit is built,
+    and a warning names the pair. A top over a bottom (a shipped outfit) is not named."""
+    import logging
+
+    from cloth.surface import SurfaceSettings
+    from services.cloth_job import build_outfit, collision_body, find_outfit
+    from skinning.animate import BodyAnimator
+
+    animator, body_mesh = BodyAnimator(body, contact=None), collision_body(body)
+    with caplog.at_level(logging.WARNING, logger="tryon.cloth"):
+        for name in ("female_elegantsuit01", "female_casualsuit01+female_elegantsuit01.top"):
+            _, _, layers = build_outfit(body, animator, body_mesh, find_outfit(data, name),
+                                        surface=SurfaceSettings(level=3))
+    same = [r.getMessage() for r in caplog.records if "lie at the same depth" in r.getMessage()]
+    assert len(same) == 1, same
+    assert same[0].startswith("outfit female_casualsuit01+female_elegantsuit01.top: female_")
+    assert "female_casualsuit01.top" in same[0] and "female_elegantsuit01.top" in same[0]
+    assert "lie at the same depth (" in same[0] and "they will cross each other" in same[0]
+    shares = {min(m.overlap) for m in layers}
+    assert max(shares) > 0.5 and min(shares) < 0.25  # the two tops; each top over the jeans' waistband
