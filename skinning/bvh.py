@@ -275,14 +275,14 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
         missing = [b for b in CMU_BONES if b not in names and b not in OPTIONAL_BONES]
         if missing:
             raise BVHError(path, None, f"required joints missing: {', '.join(missing)}")
-    else:
-        _check_other_skeleton(path, names, parents, np.array([j["offset"] for j in joints], dtype=np.float64))
 
     offsets = np.array([j["offset"] for j in joints], dtype=np.float64) * unit
     heads = offsets.copy()
     for b in range(len(joints)):
         if parents[b] >= 0:
             heads[b] += heads[parents[b]]
+    if not cmu:
+        _check_other_skeleton(path, names, parents, heads, unit)
     ends = {b: heads[b] + off * unit for b, off in end_sites.items()}
     tails = bone_tails(tuple(names), parents, heads, ends)
     chan_joint = np.array([b for b, j in enumerate(joints) for _ in j["channels"]], dtype=np.int32)
@@ -301,10 +301,10 @@ def _read_header(path: Path, fh: IO[str], unit: float) -> BVHHeader:
     )
 
 
-def _check_other_skeleton(path, names: list[str], parents: np.ndarray, offsets: np.ndarray) -> None:
+def _check_other_skeleton(path, names: list[str], parents: np.ndarray, heads: np.ndarray, unit: float) -> None:
     """A skeleton other than CMU's drives the character through the bones it names alike: it
     needs the pelvis and both legs' chains (NEEDED_BONES, each leg's joints in descent), the
-    legs hanging down along Y at rest (offsets: each joint's OFFSET, file units)."""
+    legs hanging down along Y at rest (heads: the rest joints, m; unit: m per file unit)."""
     missing = [b for b in NEEDED_BONES if b not in names]
     if missing:
         unknown = [n for n in names if n not in CMU_BONES]
@@ -319,14 +319,11 @@ def _check_other_skeleton(path, names: list[str], parents: np.ndarray, offsets: 
                 b = int(parents[b])
             if b != a:
                 raise BVHError(path, None, f"joint {lower!r} does not descend from {upper!r}")
-    at = np.zeros((len(names), 3))
-    for b, off in enumerate(offsets):  # (the rest pose: each joint at its ancestors' offsets summed)
-        at[b] = off + (at[parents[b]] if parents[b] >= 0 else 0.0)
     for side in LEGS.values():
-        leg = at[names.index(side[-1])] - at[names.index(side[0])]
+        leg = heads[names.index(side[-1])] - heads[names.index(side[0])]
         if -leg[1] < 0.5 * np.linalg.norm(leg):
             raise BVHError(path, None, f"in the rest pose {side[-1]!r} is not below {side[0]!r} along Y (the hip "
-                                       f"to the ankle: {np.round(leg, 3).tolist()} file units): BVH motion is "
+                                       f"to the ankle: {np.round(leg / unit, 3).tolist()} file units): BVH motion is "
                                        f"read Y up, as CMU's (a Z-up file needs converting)")
 
 
