@@ -51,8 +51,9 @@ from .topology import vertex_cells, vertex_neighbours
 from .winding import winding_number
 
 LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
-# both garments of a pair within LAYER_BAND of each other over more than this share of them at rest:
-# made to lie at the same depth (two tops; a shipped outfit's pair: at most 0.23 of either)
+# both garments' coarse cloths within LAYER_BAND of the other over more than this share of them at rest:
+# made to lie at the same depth (two tops; a shipped outfit's pair: at most 0.23 of either), worn one
+# over the other from the coarse cloth up (`cloth.coarse_layers`)
 SAME_DEPTH = 0.5
 LAYER_REACH = 0.03  # m: a vertex this near the other garment at rest is tested every frame
 LAYER_GAP = 0.002  # m: the outer surface is kept this far over the inner one
@@ -112,7 +113,7 @@ class LayerModel:
     keep_out: bool = True  # no move into the body (the Decision never into the body; False: the rooms alone)
     # the share of the outer's and of the inner's rest vertices within LAYER_BAND of the other: a
     # few tenths where a top's hem lies over a bottom's waistband, most of both where the two are
-    # made to lie at the same depth (two tops), which the layering cannot keep apart (`SAME_DEPTH`)
+    # made to lie at the same depth (two tops, `SAME_DEPTH`: their coarse cloths are kept apart too)
     overlap: tuple[float, float] = (0.0, 0.0)
 
 
@@ -440,10 +441,12 @@ def rest_surface(model: SurfaceModel) -> np.ndarray:
     return surface_at_rest(model.tess, model.cloth.rest_positions)
 
 
-def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[LayerModel]:
+def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray,
+                 worn_over: set[tuple[int, int]] = frozenset()) -> list[LayerModel]:
     """The layer pairs of an outfit's garments, fitted together on the body at rest (body_rest:
     (n, 3) the rest body's vertices, m): for every two garments whose rest surfaces come within
-    LAYER_BAND, the one farther from the body where they do is outer. In the order they are to
+    LAYER_BAND, the one farther from the body where they do is outer, or the one worn_over names
+    first (outer, inner): garments of the same depth (`cloth.coarse_layers`). In the order they are to
     be stacked (`stacking_order`): a garment is lifted over another only once that one has been
     lifted over what it is worn over (a jacket over a shirt over trousers)."""
     rest = [rest_surface(m) for m in models]
@@ -458,6 +461,8 @@ def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray) -> list[Laye
             off_a, _ = nearest(rest[a][in_a], body_rest)
             off_b, _ = nearest(rest[b][in_b], body_rest)
             outer, inner = (a, b) if np.median(off_a) >= np.median(off_b) else (b, a)
+            if (inner, outer) in worn_over:
+                outer, inner = inner, outer
             mo, mi = models[outer], models[inner]
             pair = layer_pair(outer, inner, rest[outer], mo.tess.triangles, mo.d_edges, rest[inner],
                               mi.tess.triangles, mi.d_edges, outer_limit=mo.d_max, inner_limit=mi.d_max)

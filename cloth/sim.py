@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .coarse_layers import hold_over
 from .coarsen import coarsen
 from .collision import (ALL_REGIONS, FACE_TREE_STACK, PART_SLOTS, REGION_DTYPE, UNION_HITS, BodyMesh, BodyPose,
                         attach_to_body, collide_particles, face_normals, follow_body, leave_body_union, part_scratch,
@@ -361,6 +362,10 @@ class ClothSim:
         self.stats = ClothStats()
         self.stage_seconds = np.zeros(2)  # integration, collision (filled when profiling)
         self.union_tested = np.zeros(2, dtype=np.int64)  # particles the last frame's union passes tested
+        # (CoarseLayerModel, CoarseLayerState) of each garment this one is worn over (`cloth.coarse_layers`),
+        # the inner cloth carried into the frame's pose by the owner before the step
+        self.worn_over: list[tuple] = []
+        self.over_moved = 0  # particles put over an inner garment's cloth in the last frame
         st = model.settings
         self.own_pose = BodyPose(body, st.needs_face_tree, st.union_passes > 0)  # when no shared pose is given
         self.pose = self.own_pose  # the body pose of the last step, for the detailed surface stage
@@ -455,6 +460,8 @@ class ClothSim:
             s.nearest[idx] = near
             s.nearest_any[idx] = near
             part_seeds(s.x, body_x, b.regions, m.region_mask, s.part_nearest, idx)
+        # over the garments it is worn over before the contact passes, which have the last word (the body)
+        self.over_moved = sum(hold_over(lm, ls, s, m.inv_mass) for lm, ls in self.worn_over)
         body_pose.wait_queries()  # its grids and tree may still be updated (or grown) on another thread
         grid, tree, winding = self._pose_arguments(body_pose)
         self.stats.union_pushes += finish_frame(self._model_args, self._body_args, self._state_args, body_x, face_n,

@@ -18,12 +18,13 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 
+from cloth.coarse_layers import CoarseLayerModel, CoarseLayerState, carry_inner, same_depth_pairs
 from cloth.collision import BodyMesh, BodyPose
 from cloth.fabric import (OUTFIT_FABRICS, Fabric, FabricError, fabric as fabric_preset, fabric_choice,
                           garment_fabrics, outfit_fabrics)
 from cloth.garment import Garment, load_garments, mix_terms, outfit_source, worn_from_waist
 from cloth.geometry import vertex_normals as geometry_vertex_normals
-from cloth.layers import LAYER_BAND, SAME_DEPTH, LayerModel, LayerState, layer_outfit, stack_layer
+from cloth.layers import LAYER_BAND, LayerModel, LayerState, layer_outfit, stack_layer
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
 from cloth.snapshot import StateSnapshot
@@ -104,12 +105,16 @@ class Outfit:
     garments: list[Garment]
     models: list[ClothModel]
     rest_body: np.ndarray  # the skinned rest body they were fitted on (world frame)
+    # garments made to lie at the same depth (two tops), the later worn over the earlier (`cloth.coarse_layers`)
+    over: list[CoarseLayerModel] = field(default_factory=list)
 
 
 def outfit_layers(outfit: "Outfit", surface_models: list, n_visible: int) -> list[LayerModel]:
     """The outfit's layer pairs (`cloth.layers`): which garment is worn over which, from the
-    garments' detailed surfaces and the body at rest."""
-    return layer_outfit(surface_models, np.ascontiguousarray(outfit.rest_body[:n_visible], dtype=np.float64))
+    garments' detailed surfaces and the body at rest (garments of the same depth: as their coarse
+    cloths are, `Outfit.over`)."""
+    return layer_outfit(surface_models, np.ascontiguousarray(outfit.rest_body[:n_visible], dtype=np.float64),
+                        {(m.outer, m.inner) for m in outfit.over})
 
 
 def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit_dir: Path,
@@ -122,7 +127,9 @@ def load_outfit_models(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, 
     garments, rest_body, skin = outfit_garments(body, animator, outfit_dir)
     models = [prepare_cloth(g, fab, rest_body, body_mesh, settings, grip_waistband=worn_from_waist(g, skin))
               for g, fab in zip(garments, garment_fabric_list(outfit_dir, garments, fabrics))]
-    return Outfit(outfit_name(outfit_dir), garments, models, rest_body)
+    over = same_depth_pairs([m.rest_positions for m in models], [m.triangles for m in models],
+                            [m.fabric.thickness for m in models])
+    return Outfit(outfit_name(outfit_dir), garments, models, rest_body, over)
 
 
 def outfit_garments(body: Body, animator: BodyAnimator, outfit_dir: Path) -> tuple[list[Garment], np.ndarray,
@@ -198,13 +205,11 @@ def build_outfit(body: Body, animator: BodyAnimator, body_mesh: BodyMesh, outfit
         parts = ("outfit models", body_digest or object_digest(body), object_digest((rest, animator.world_offset)),
                  outfit_name(outfit_dir), outfit_digest(outfit_dir), fabrics, settings, surface)
         built = cache.get(parts, build)
-    for m in built[2]:
-        if min(m.overlap) > SAME_DEPTH:
-            names = [built[0].models[m.outer].name, built[0].models[m.inner].name]
-            log.warning("outfit %s: %s and %s lie at the same depth (%.0f %% and %.0f %% of them within %.0f mm of "
-                        "the other at rest): each is simulated against the body alone, and they will cross each "
-                        "other; an outfit layers garments made for different places (a top over a bottom)",
-                        outfit_name(outfit_dir), *names, *(100 * o for o in m.overlap), LAYER_BAND * 1000)
+    for m in built[0].over:
+        names = [built[0].models[m.outer].name, built[0].models[m.inner].name]
+        log.info("outfit %s: %s is worn over %s, named before it (the two lie at the same depth: %.0f %% and %.0f %% "
+                 "of them within %.0f mm of the other at rest)", outfit_name(outfit_dir), *names,
+                 *(100 * o for o in m.overlap), LAYER_BAND * 1000)
     return built
 
 
@@ -259,6 +264,10 @@ class OutfitSession:
         inner ones (and the inner ones under the outer) after every garment has stepped."""
         self.body, self.animator, self.outfit, self.body_mesh = body, animator, outfit, body_mesh
         self.sims = [ClothSim(m, body_mesh, outfit.rest_body) for m in outfit.models]
+        # garments worn over others of the same depth: the outer's coarse cloth kept over the inner's
+        self.over = [(m, CoarseLayerState(m, outfit.models[m.inner].n_particles)) for m in outfit.over]
+        for m, s in self.over:
+            self.sims[m.outer].worn_over.append((m, s))
         if surface_models is None and surface is not None:
             surface_models = [build_surface_model(m, surface) for m in outfit.models]
         self.surfaces = [DetailedSurface(sm) for sm in surface_models or []]
@@ -313,6 +322,9 @@ class OutfitSession:
         it is (`services.warmup` compiles S102-S106 so, without S101's kernels)."""
         surface = surface and bool(self.surfaces)
         self.pose.update_surface(body_vertices, tips=surface)
+        if coarse:  # before any garment steps: what an outer garment meets does not depend on the threads
+            for m, s in self.over:
+                carry_inner(m, s, self.sims[m.inner].state, self.pose.x, self.body_mesh.triangles, self.pose.face_n)
         self._frame = (body_vertices, dt, surface, surface_dt or dt, on_garment, coarse)
         helpers = self._pool.acquire() if self._pool is not None and self._threads > 1 else None
         order = sorted(range(len(self.sims)), key=self.garment_seconds.__getitem__)
@@ -406,7 +418,8 @@ class OutfitSession:
 
     def states(self) -> tuple:
         """The objects holding every garment's per-frame state (coarse, detailed, layering)."""
-        return (*(s.state for s in self.sims), *(sf.state for sf in self.surfaces), *(ls for _, ls in self.layers))
+        return (*(s.state for s in self.sims), *(sf.state for sf in self.surfaces), *(ls for _, ls in self.layers),
+                *(s for _, s in self.over))
 
     def preroll(self, q_first: np.ndarray, dt: float, blend_seconds: float = 1.0, settle_seconds: float = 0.5,
                 contact: bool = True, stop: Callable[[], bool] | None = None) -> bool:

@@ -421,26 +421,35 @@ def test_an_outfit_mixed_from_others_garments(body, data, rest_world, tmp_path):
             load_garments(find_outfit(tmp_path, name), base, skin)
 
 
-def test_a_mix_of_two_garments_made_for_the_same_depth_is_named(body, data, caplog):
-    """The T-shirt under the silk blouse (`female_casualsuit01+female_elegantsuit01.top`): the two
-    tops lie within a centimetre of each other over most of both at rest, which the layering
-    cannot keep apart (each garment is simulated against the body alone): the outfit is built,
-    and a warning names the pair. A top over a bottom (a shipped outfit) is not named."""
+def test_of_two_garments_made_for_the_same_depth_the_later_is_worn_over_the_earlier(body, data, caplog):
+    """The T-shirt and the silk blouse (`female_casualsuit01+female_elegantsuit01.top`): the two
+    tops' coarse cloths lie within a centimetre of each other over most of both at rest: the
+    blouse, named later, is worn over the T-shirt (its coarse cloth kept over the T-shirt's, and
+    the detailed layering's pair the same way round), and the build says so. Named the other way
+    round, the T-shirt is worn over the blouse. No shipped outfit's top and bottom are such a pair."""
     import logging
 
     from cloth.surface import SurfaceSettings
-    from services.cloth_job import build_outfit, collision_body, find_outfit
+    from services.cloth_job import OUTFITS, build_outfit, collision_body, find_outfit
     from skinning.animate import BodyAnimator
 
     animator, body_mesh = BodyAnimator(body, contact=None), collision_body(body)
-    with caplog.at_level(logging.WARNING, logger="tryon.cloth"):
-        for name in ("female_elegantsuit01", "female_casualsuit01+female_elegantsuit01.top"):
-            _, _, layers = build_outfit(body, animator, body_mesh, find_outfit(data, name),
-                                        surface=SurfaceSettings(level=3))
-    same = [r.getMessage() for r in caplog.records if "lie at the same depth" in r.getMessage()]
-    assert len(same) == 1, same
-    assert same[0].startswith("outfit female_casualsuit01+female_elegantsuit01.top: female_")
-    assert "female_casualsuit01.top" in same[0] and "female_elegantsuit01.top" in same[0]
-    assert "lie at the same depth (" in same[0] and "they will cross each other" in same[0]
-    shares = {min(m.overlap) for m in layers}
-    assert max(shares) > 0.5 and min(shares) < 0.25  # the two tops; each top over the jeans' waistband
+    for name in OUTFITS:
+        outfit, _, _ = build_outfit(body, animator, body_mesh, find_outfit(data, name))
+        assert outfit.over == [], name
+    with caplog.at_level(logging.INFO, logger="tryon.cloth"):
+        outfit, _, layers = build_outfit(body, animator, body_mesh,
+                                         find_outfit(data, "female_casualsuit01+female_elegantsuit01.top"),
+                                         surface=SurfaceSettings(level=3))
+    names = [m.name for m in outfit.models]
+    assert names == ["female_casualsuit01.top", "female_casualsuit01.bottom", "female_elegantsuit01.top"]
+    assert [(m.outer, m.inner) for m in outfit.over] == [(2, 0)]
+    assert min(outfit.over[0].overlap) > 0.5 and outfit.over[0].gap == outfit.models[2].fabric.thickness
+    assert (2, 0) in {(m.outer, m.inner) for m in layers}
+    said = [r.getMessage() for r in caplog.records if "is worn over" in r.getMessage()]
+    assert said == [said[0]] and said[0].startswith("outfit female_casualsuit01+female_elegantsuit01.top: "
+                                                    "female_elegantsuit01.top is worn over female_casualsuit01.top")
+    outfit, _, _ = build_outfit(body, animator, body_mesh,
+                                find_outfit(data, "female_elegantsuit01.top+female_casualsuit01.top"))
+    assert [(m.outer, m.inner) for m in outfit.over] == [(1, 0)]
+    assert outfit.models[1].name == "female_casualsuit01.top"
