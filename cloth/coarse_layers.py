@@ -8,7 +8,7 @@ apart by several centimetres in places (a loose silk blouse, a tight T-shirt), a
 through the other in patches the size of a hand.
 
 Decision (worn over, not in the patent): where two garments' coarse cloths at rest lie within
-LAYER_BAND of each other over more than SAME_DEPTH of both (`same_depth_pairs`), the one named
+LAYER_BAND of each other over more than SAME_DEPTH of either (`same_depth_pairs`), the one named
 later in the outfit (a mix's terms in order: `shirt+jacket`) is worn over the one named
 earlier. Each frame, after its substeps and before its contact passes, every particle of the
 outer garment that lies behind the inner garment's coarse surface, or in front of it by less
@@ -194,7 +194,7 @@ def same_depth_pairs(rest: list[np.ndarray], triangles: list[np.ndarray],
         for b in range(a + 1, len(rest)):
             share_a = float(np.mean(mesh_distances(rest[a], rest[b], triangles[b]) < LAYER_BAND))
             share_b = float(np.mean(mesh_distances(rest[b], rest[a], triangles[a]) < LAYER_BAND))
-            if min(share_a, share_b) > SAME_DEPTH:
+            if max(share_a, share_b) > SAME_DEPTH:
                 pair = coarse_pair(b, a, rest[b], rest[a], triangles[a], thickness[b])
                 pair.overlap = (share_b, share_a)
                 pairs.append(pair)

@@ -51,7 +51,7 @@ from .topology import vertex_cells, vertex_neighbours
 from .winding import winding_number
 
 LAYER_BAND = 0.01  # m: two garments' rest surfaces this close overlap there
-# both garments' coarse cloths within LAYER_BAND of the other over more than this share of them at rest:
+# a garment's coarse cloth within LAYER_BAND of another's over more than this share of it at rest (either):
 # made to lie at the same depth (two tops; a shipped outfit's pair: at most 0.23 of either), worn one
 # over the other from the coarse cloth up (`cloth.coarse_layers`)
 SAME_DEPTH = 0.5

@@ -133,6 +133,11 @@ def test_garments_at_the_same_depth_are_worn_the_later_over_the_earlier_and_the_
     assert [(m.outer, m.inner) for m in layer_outfit([a, b], floor(), {(1, 0)})] == [(1, 0)]
     band = sheet(0.12, 0.010, "denim")  # 2 of either sheet's 5 columns over the other
     assert same_depth_pairs([rest[0], band.cloth.rest_positions], [tris[0], band.cloth.triangles], [0.003] * 2) == []
+    # a small garment lying on a larger one (a crop top under a shirt): all of it within the band, a third of the other
+    small = sheet(0.04, 0.008, "cotton", nx=3, nz=2)
+    pairs = same_depth_pairs([small.cloth.rest_positions, rest[0]], [small.cloth.triangles, tris[0]], [0.003] * 2)
+    assert [(p.outer, p.inner) for p in pairs] == [(1, 0)]
+    assert pairs[0].overlap[1] == 1.0 and pairs[0].overlap[0] < 0.5
 
 
 def _behind(outer_x, inner_x, m, depth=0.005):

@@ -453,3 +453,8 @@ def test_of_two_garments_made_for_the_same_depth_the_later_is_worn_over_the_earl
                                 find_outfit(data, "female_elegantsuit01.top+female_casualsuit01.top"))
     assert [(m.outer, m.inner) for m in outfit.over] == [(1, 0)]
     assert outfit.models[1].name == "female_casualsuit01.top"
+    # three tops: the T-shirt over the sports top (which lies within a centimetre of it, not it of the
+    # sports top over most of it), the blouse over both
+    outfit, _, _ = build_outfit(body, animator, body_mesh, find_outfit(
+        data, "female_sportsuit01.top+female_casualsuit01.top+female_elegantsuit01.top"))
+    assert [(m.outer, m.inner) for m in outfit.over] == [(1, 0), (2, 0), (2, 1)]
