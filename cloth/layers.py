@@ -38,6 +38,7 @@ nearest vertex of the other garment by a walk over that one's mesh (as S101 trac
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,6 +76,9 @@ WALK_STEPS = 256  # at most this many vertices walked per tracked vertex and fra
 RING_STRETCH = 1.5  # the detailed edges are taken to stretch at most this much (for ring_reach)
 KEEP_OUT_HALVINGS = 3  # a move into the body is halved at most this many times, then dropped
 OVER_SIDE, UNDER_SIDE = 1.0, -1.0  # the side of the other surface a garment is kept on (the way it moves)
+# a garment with more candidates is measured against the other in two halves, one on a helper thread
+# (`stack_layer`'s helper): two tops have 8,000-11,000 each, a top over a bottom's waistband a few hundred
+SPLIT_CANDIDATES = 4000
 
 
 @dataclass
@@ -141,6 +145,7 @@ class LayerState:
         self.lift = SheetMoves(m.over)
         self.press = SheetMoves(m.under)
         self.q = np.zeros(3)
+        self.helper_q = np.zeros(3)  # the helper thread's half's scratch
 
 
 @kernel
@@ -330,13 +335,42 @@ def keep_out_of_body(p, n, side, candidates, move, room, body_x, wfaces, wlo, ws
     return held
 
 
+def _offsets_part(args: tuple) -> int:
+    return offsets_from_sheet(*args)
+
+
+def _keep_out_part(args: tuple) -> int:
+    return keep_out_of_body(*args)
+
+
+def _halves(helper, part: Callable[[tuple], int], size: int, whole: Callable[[int, int, np.ndarray], tuple],
+            q: np.ndarray, helper_q: np.ndarray) -> int:
+    """part(whole(lo, hi, q)) over candidates [0, size): in two halves, the second on the helper
+    thread, where a helper is given and size reaches SPLIT_CANDIDATES (each candidate's result
+    depends on it alone: the same bit for bit); returns the sum of the parts' counts."""
+    if helper is None or size < SPLIT_CANDIDATES:
+        return part(whole(0, size, q))
+    half = size // 2
+    helper.submit(part, whole(half, size, helper_q))
+    try:
+        mine = part(whole(0, half, q))
+    finally:
+        theirs = helper.result()
+    return mine + theirs
+
+
 def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: np.ndarray, p_ref: np.ndarray,
-                n_ref: np.ndarray, side: float, q: np.ndarray, body: tuple | None = None) -> None:
+                n_ref: np.ndarray, side: float, q: np.ndarray, body: tuple | None = None, helper=None,
+                helper_q: np.ndarray | None = None) -> None:
     """One garment of a pair moved to its side of the other (its room already set); body: (body_x,
-    winding faces, the pose's winding grid arrays), out of which no move takes a vertex (None: no body)."""
+    winding faces, the pose's winding grid arrays), out of which no move takes a vertex (None: no body);
+    helper: a thread that measures half of a large garment's candidates (`_halves`; None: all here)."""
     s.held = 0
-    s.moved = offsets_from_sheet(p, n, p_ref, n_ref, t.candidates, s.nearest, t.nbr_start, t.nbr_ids, t.tri_start,
-                                 t.tri_ids, t.triangles, t.ring_reach, side, m.gap, m.depth, s.room, q, s.move)
+    s.moved = _halves(helper, _offsets_part, len(t.candidates),
+                      lambda lo, hi, scratch: (p, n, p_ref, n_ref, t.candidates[lo:hi], s.nearest[lo:hi], t.nbr_start,
+                                               t.nbr_ids, t.tri_start, t.tri_ids, t.triangles, t.ring_reach, side,
+                                               m.gap, m.depth, s.room[lo:hi], scratch, s.move[lo:hi]),
+                      q, helper_q)
     if s.moved:
         ease_lifts(t.spread_start, t.spread_nbrs, t.spread_nbr_drop, s.move, s.queue, s.queued)
         keep_within_bounds(p, n, side, t.candidates, t.spread_edges, t.spread_limit, s.move, s.room, BOUND_SWEEPS,
@@ -345,12 +379,14 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
                            True)
         apply_lifts(p, n, side, t.candidates, s.move, s.room)
         if body is not None:
-            s.held = keep_out_of_body(p, n, side, t.candidates, s.move, s.room, *body)
+            s.held = _halves(helper, _keep_out_part, len(t.candidates),
+                             lambda lo, hi, scratch: (p, n, side, t.candidates[lo:hi], s.move[lo:hi], s.room[lo:hi],
+                                                      *body), q, helper_q)
 
 
 def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarray, p_in: np.ndarray,
                 n_in: np.ndarray, outer: SurfaceState | None = None, inner: SurfaceState | None = None,
-                max_height: float = 0.0, body: tuple | None = None) -> None:
+                max_height: float = 0.0, body: tuple | None = None, helper=None) -> None:
     """Lift the outer garment's detailed positions p_out (N, 3), in place, over the inner
     garment's detailed surface (p_in, n_in) of the same frame, then press p_in, in place, under
     what is left above it (the module's Decision). n_out, n_in: the shading normals (unit, away
@@ -359,21 +395,23 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     max_height, its SurfaceSettings'); inner: the inner's, whose vertices are pressed along
     their reference normals (n_pn) no lower than their body floors; None: no body near. body: (body_x,
     winding faces, the pose's `WindingGrid.arrays()`): no move takes a vertex into the body as a whole
-    (`keep_out_of_body`; None: no body)."""
+    (`keep_out_of_body`; None: no body). helper: an idle thread (`services.spin.SpinWorker`: submit,
+    result) that measures half of a garment's candidates where it has SPLIT_CANDIDATES or more (two
+    tops); the result is the same with or without it, bit for bit."""
     lift, press = s.lift, s.press
     if outer is None:
         lift_room(m.over.candidates, lift.no_heights, lift.no_heights, 0.0, m.max_lift, lift.room)
     else:
         lift_room(m.over.candidates, outer.height, outer.ceiling, max_height, m.max_lift, lift.room)
     body = body if m.keep_out else None
-    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, OVER_SIDE, s.q, body)
+    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, OVER_SIDE, s.q, body, helper, s.helper_q)
     if inner is None:
         press_room(m.under.candidates, press.no_heights, press.no_floor, m.max_lift, press.room)
         n_press = n_in
     else:
         press_room(m.under.candidates, inner.height, inner.body_floor, m.max_lift, press.room)
         n_press = inner.n_pn
-    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, UNDER_SIDE, s.q, body)
+    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, UNDER_SIDE, s.q, body, helper, s.helper_q)
 
 
 def nearest(points: np.ndarray, targets: np.ndarray, within: float = np.inf) -> tuple[np.ndarray, np.ndarray]:

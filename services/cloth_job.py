@@ -334,39 +334,47 @@ class OutfitSession:
         out: list = [None] * len(self.sims)
         submitted, failed = [], []
         try:
-            for helper, share in zip(helpers or [], shares[1:]):
-                helper.submit(self._step_share, share)
-                submitted.append((helper, share))
-            self.pose.update_queries()
-            for k in shares[0]:
-                out[k] = self._step_garment(k)
+            try:
+                for helper, share in zip(helpers or [], shares[1:]):
+                    helper.submit(self._step_share, share)
+                    submitted.append((helper, share))
+                self.pose.update_queries()
+                for k in shares[0]:
+                    out[k] = self._step_garment(k)
+            finally:
+                # every call handed out is taken back, even after a failure, so the pool goes back idle
+                for helper, share in submitted:
+                    try:
+                        for k, x in zip(share, helper.result()):
+                            out[k] = x
+                    except Exception as err:  # noqa: BLE001 - raised below, after the others are in
+                        failed.append(err)
+            if failed:
+                raise failed[0]
+            if self._frame[2]:
+                self._stack_layers(helpers[0] if helpers else None)
         finally:
-            # every call handed out is taken back, even after a failure, so the pool goes back idle
-            for helper, share in submitted:
-                try:
-                    for k, x in zip(share, helper.result()):
-                        out[k] = x
-                except Exception as err:  # noqa: BLE001 - raised below, after the others are in
-                    failed.append(err)
             if helpers is not None:
                 self._pool.release()
-        if failed:
-            raise failed[0]
         if self._frame[2]:
-            t0 = time.perf_counter()
-            body = None if self.pose.winding is None else (self.pose.x, self.body_mesh.winding_faces,
-                                                           *self.pose.winding.arrays())
-            for lm, ls in self.layers:
-                (p_out, n_out), (p_in, n_in) = self._detailed[lm.outer], self._detailed[lm.inner]
-                outer, inner = self.surfaces[lm.outer], self.surfaces[lm.inner]
-                stack_layer(lm, ls, p_out, n_out, p_in, n_in, outer.state, inner.state,
-                            outer.model.settings.max_height, body)
-            self.layer_seconds = time.perf_counter() - t0
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
             if on_garment is not None:
                 for k in sorted(self.layered_garments):
                     on_garment(k, out[k])
         return out
+
+    def _stack_layers(self, helper) -> None:
+        """The layering of every pair (`cloth.layers.stack_layer`), after every garment has stepped;
+        helper: an idle helper thread, which measures half of a garment with many candidates (two tops)."""
+        t0 = time.perf_counter()
+        body = None if self.pose.winding is None else (self.pose.x, self.body_mesh.winding_faces,
+                                                       *self.pose.winding.arrays())
+        for lm, ls in self.layers:
+            (p_out, n_out), (p_in, n_in) = self._detailed[lm.outer], self._detailed[lm.inner]
+            outer, inner = self.surfaces[lm.outer], self.surfaces[lm.inner]
+            stack_layer(lm, ls, p_out, n_out, p_in, n_in, outer.state, inner.state, outer.model.settings.max_height,
+                        body, helper)
+        self.layer_seconds = time.perf_counter() - t0
 
     def garment_surface(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Garment k's detailed (positions, normals) of the frame last stepped."""

@@ -375,3 +375,32 @@ def test_no_lift_or_press_takes_a_vertex_into_the_body():
     p = po.copy()
     stack_layer(m, LayerState(m), p, up(len(p)), pi.copy(), up(len(pi)))
     np.testing.assert_allclose(p[under_box, 1], 0.004 + LAYER_GAP, atol=1e-12)
+
+
+def test_a_helper_thread_measuring_half_of_each_garment_changes_nothing(monkeypatch):
+    """The previous test's sheets and box, every garment measured in two halves (the second on a
+    helper thread, as two tops are: SPLIT_CANDIDATES lowered for sheets this small): the lifts,
+    presses, holds and counts are those of one thread, bit for bit."""
+    import cloth.layers as layers
+    from cloth.winding import WindingGrid
+    from services.spin import SpinWorker
+    from tests.test_cloth_dynamics import box
+    bx, bt = box(half=0.05, n=4)
+    bx = np.ascontiguousarray(bx + [0.2, 0.055, 0.1])
+    g = WindingGrid(bt.astype(np.int32), len(bx), cell=0.01)
+    g.update(bx)
+    body = (bx, bt.astype(np.int32), *g.arrays())
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    runs = []
+    worker = SpinWorker(0.0)
+    try:
+        for helper, split in ((None, layers.SPLIT_CANDIDATES), (worker, 10)):
+            monkeypatch.setattr(layers, "SPLIT_CANDIDATES", split)
+            p, q, s = po.copy(), pi.copy(), LayerState(m)
+            stack_layer(m, s, p, up(len(p)), q, up(len(q)), body=body, helper=helper)
+            runs.append((p, q, s.lift.moved, s.lift.held, s.press.moved, s.lift.nearest.copy()))
+    finally:
+        worker.close()
+    assert runs[0][3] > 0  # some lifts were held back out of the box: keep_out_of_body was split too
+    for a, b in zip(*runs):
+        np.testing.assert_array_equal(a, b)
