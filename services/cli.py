@@ -607,7 +607,8 @@ FABRIC_HELP = ("a fabric preset for every garment, or one per garment: garment=p
 OUTFIT_HELP = ("outfit folder in <data>/garments, or a path: a MakeHuman outfit folder (.mhclo), a garment mesh "
                "(OBJ, PLY, GLB, ...) in metres already on the rest body (Y up, feet at y = 0, facing +Z), or a folder "
                "of those; or garments of the outfits there mixed, joined by '+' "
-               "(female_casualsuit01.top+female_elegantsuit01.bottom)")
+               "(female_casualsuit01.top+female_elegantsuit01.bottom); of two made for the same depth (two tops) the "
+               "later is worn over the earlier")
 
 
 class _Parser(argparse.ArgumentParser):
