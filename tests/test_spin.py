@@ -104,7 +104,7 @@ def test_a_garment_failing_on_a_helper_is_raised_and_leaves_the_pool_idle():
     pool = SpinPool(1, 0.0)
     session._pool, session._threads, session.sims = pool, 2, [None, None]
     session.garment_seconds, session._order, session._shares = np.zeros(2), [0, 1], {1: [[0, 1]], 2: [[0], [1]]}
-    session.surfaces = []
+    session.surfaces, session.over = [], []
     session.pose = SimpleNamespace(update_surface=lambda v, tips=True: None, update_queries=lambda: None)
     calls = []
 
@@ -132,7 +132,7 @@ def test_the_callers_thread_steps_the_cheapest_garment():
     when they change order."""
     session = OutfitSession.__new__(OutfitSession)  # the stepping logic alone, on stand-in garments
     pool = SpinPool(1, 0.0)
-    session._pool, session._threads, session.sims, session.surfaces = pool, 2, [None, None], []
+    session._pool, session._threads, session.sims, session.surfaces, session.over = pool, 2, [None, None], [], []
     session.garment_seconds, session._order = np.array([0.004, 0.003]), [0, 1]
     session._shares = session._share_out(session._order)
     session.pose = SimpleNamespace(update_surface=lambda v, tips=True: None, update_queries=lambda: None)
