@@ -24,7 +24,7 @@ from cloth.fabric import (OUTFIT_FABRICS, Fabric, FabricError, fabric as fabric_
                           garment_fabrics, outfit_fabrics)
 from cloth.garment import Garment, load_garments, mix_terms, outfit_source, worn_from_waist
 from cloth.geometry import vertex_normals as geometry_vertex_normals
-from cloth.layers import LAYER_BAND, LayerModel, LayerState, layer_outfit, stack_layer
+from cloth.layers import LAYER_BAND, SPLIT_CANDIDATES, LayerModel, LayerState, layer_outfit, stack_layer
 from cloth.model import ClothModel, SimSettings
 from cloth.sim import ClothSim, prepare_cloth
 from cloth.snapshot import StateSnapshot
@@ -274,6 +274,8 @@ class OutfitSession:
         if layers is None:
             layers = outfit_layers(outfit, surface_models, body.n_visible) if surface_models else []
         self.layers = [(lm, LayerState(lm)) for lm in layers]
+        self._split_layers = any(max(len(lm.over.candidates), len(lm.under.candidates)) >= SPLIT_CANDIDATES
+                                 for lm in layers)
         # handed to on_garment only once layered (the outer lifted, the inner pressed)
         self.layered_garments = {lm.outer for lm in layers} | {lm.inner for lm in layers}
         self.layer_seconds = 0.0
@@ -333,6 +335,8 @@ class OutfitSession:
         shares = self._shares[min(self._threads, 1 + len(helpers)) if helpers else 1]
         out: list = [None] * len(self.sims)
         submitted, failed = [], []
+        # the helpers are kept for the layering only where a helper measures half of a garment (two tops)
+        keep = helpers is not None and surface and self._split_layers
         try:
             try:
                 for helper, share in zip(helpers or [], shares[1:]):
@@ -349,14 +353,16 @@ class OutfitSession:
                             out[k] = x
                     except Exception as err:  # noqa: BLE001 - raised below, after the others are in
                         failed.append(err)
+                if helpers is not None and not keep:
+                    self._pool.release()
             if failed:
                 raise failed[0]
-            if self._frame[2]:
-                self._stack_layers(helpers[0] if helpers else None)
+            if surface:
+                self._stack_layers(helpers[0] if keep and helpers else None)
         finally:
-            if helpers is not None:
+            if keep:
                 self._pool.release()
-        if self._frame[2]:
+        if surface:
             self.detailed = [self._detailed[k] for k in range(len(self.sims))]
             if on_garment is not None:
                 for k in sorted(self.layered_garments):

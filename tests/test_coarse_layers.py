@@ -193,3 +193,42 @@ def test_two_tops_stay_one_over_the_other_through_the_walk_whichever_thread_step
     _, threaded = run(2)
     for a, b in zip(threaded, ends):
         np.testing.assert_array_equal(a, b)
+
+
+def test_two_tops_layered_on_two_threads_are_the_same_bit_for_bit(body, data):
+    """The two tops at level 6 (each with more than SPLIT_CANDIDATES vertices to layer: on two
+    threads the helper measures half of each): a few walk frames stepped on one thread and on two
+    give the same coarse cloths and the same layered detailed surfaces, bit for bit."""
+    from cloth.layers import SPLIT_CANDIDATES
+    from cloth.surface import SurfaceSettings
+    from services.cloth_job import OutfitSession, build_outfit, collision_body, find_outfit
+    from skinning.animate import BodyAnimator
+    from skinning.source import BVHSource
+
+    frames = []
+    with BVHSource(data / "mocap" / "cmu_131_01_walk_3dsmax.bvh", every=2, max_frames=6) as source:
+        animator = BodyAnimator(body, source.skeleton)
+        for f in source:
+            out = animator(f.local_rot, f.root_position)
+            if f.index == 1:
+                q0 = out.retarget.q.copy()
+            if f.index >= 1:
+                frames.append(out.vertices.copy())
+    mesh = collision_body(body)
+    outfit, surfaces, layers = build_outfit(body, animator, mesh,
+                                            find_outfit(data, "female_casualsuit01.top+female_elegantsuit01.top"),
+                                            surface=SurfaceSettings())
+    assert min(len(layers[0].over.candidates), len(layers[0].under.candidates)) >= SPLIT_CANDIDATES
+
+    def run(threads):
+        session = OutfitSession(body, animator, mesh, outfit, surface_models=surfaces, layers=layers, threads=threads)
+        assert session._split_layers
+        session.preroll(q0, 1 / 60, blend_seconds=0.1, settle_seconds=0.1)
+        for v in frames:
+            session.step_cloth(v, 1 / 60)
+        got = [s.state.x.copy() for s in session.sims] + [a.copy() for p, n in session.detailed for a in (p, n)]
+        session.close()
+        return got
+
+    for a, b in zip(run(1), run(2)):
+        np.testing.assert_array_equal(a, b)
