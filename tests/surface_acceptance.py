@@ -59,7 +59,8 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
             rest = [rest_surface(s.model) for s in session.surfaces]
             # the garment pairs worn one over the other (found even where the session's layering is off)
             models = [sf.model for sf in session.surfaces]
-            for lm in layer_outfit(models, np.ascontiguousarray(session.outfit.rest_body[: body.n_visible])):
+            worn_over = {(m.outer, m.inner) for m in session.outfit.over}  # two tops: as named (coarse_layers)
+            for lm in layer_outfit(models, np.ascontiguousarray(session.outfit.rest_body[: body.n_visible]), worn_over):
                 d_oi, _ = nearest(rest[lm.outer], rest[lm.inner])
                 d_io, _ = nearest(rest[lm.inner], rest[lm.outer])
                 # the outer's vertices more than LAYER_BAND in from its edges (a hem): an inner vertex
