@@ -458,3 +458,19 @@ def test_of_two_garments_made_for_the_same_depth_the_later_is_worn_over_the_earl
     outfit, _, _ = build_outfit(body, animator, body_mesh, find_outfit(
         data, "female_sportsuit01.top+female_casualsuit01.top+female_elegantsuit01.top"))
     assert [(m.outer, m.inner) for m in outfit.over] == [(1, 0), (2, 0), (2, 1)]
+
+
+def test_in_a_folder_of_garment_meshes_the_later_file_name_is_worn_over(body, data, rest_world, tmp_path):
+    """A user's folder with the T-shirt as 2_tee.obj and the blouse as 1_blouse.obj, both on the
+    rest body: the tee, later by name, is worn over the blouse."""
+    from services.cloth_job import collision_body, load_outfit_models
+    from skinning.animate import BodyAnimator
+
+    base, _ = rest_world
+    tee = load_outfit(data / "garments" / "female_casualsuit01", base)[0]
+    blouse = load_outfit(data / "garments" / "female_elegantsuit01", base)[0]
+    _write_obj(tmp_path / "2_tee.obj", tee.vertices, tee.faces)
+    _write_obj(tmp_path / "1_blouse.obj", blouse.vertices, blouse.faces)
+    outfit = load_outfit_models(body, BodyAnimator(body, contact=None), collision_body(body), tmp_path)
+    assert [m.name for m in outfit.models] == ["1_blouse", "2_tee"]
+    assert [(m.outer, m.inner) for m in outfit.over] == [(1, 0)]
