@@ -179,18 +179,20 @@ def test_two_tops_stay_one_over_the_other_through_the_walk_whichever_thread_step
         if not worn_over:
             session.sims[m.outer].worn_over = []
         session.preroll(q0, 1 / 60, blend_seconds=0.5, settle_seconds=0.25)
-        shares = []
+        shares, moved = [], 0
         for v in frames:
             session.step_cloth(v, 1 / 60)
             shares.append(_behind(session.sims[1].state.x, session.sims[0].state.x, m))
+            moved += session.sims[1].over_moved
         ends = [s.state.x.copy() for s in session.sims]
         session.close()
-        return float(np.mean(shares)), ends
+        return float(np.mean(shares)), ends, moved
 
-    worn, ends = run(1)
-    apart, _ = run(1, worn_over=False)
+    worn, ends, moved = run(1)
+    apart, _, none = run(1, worn_over=False)
     assert worn < 0.02 and apart > 3 * worn, (worn, apart)
-    _, threaded = run(2)
+    assert moved > len(frames) and none == 0  # the pushes are counted (ClothSim.over_moved)
+    _, threaded, _ = run(2)
     for a, b in zip(threaded, ends):
         np.testing.assert_array_equal(a, b)
 
