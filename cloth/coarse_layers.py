@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import closest_in_fan, closest_point_triangle, vertex_normals, walk_nearest_vertex
+from .geometry import closest_on_sheet, closest_point_triangle, vertex_normals, walk_nearest_vertex
 from .jit import kernel
 from .layers import FACING, LAYER_BAND, RING_STRETCH, SAME_DEPTH, UNDER
 from .topology import unique_edges, vertex_cells, vertex_neighbours
@@ -105,13 +105,9 @@ def keep_over(x, v, normals, inv_mass, candidates, nearest, p_in, n_in, nbr_star
         far = depth + ring_reach[u]
         if (p_in[u, 0] - px) ** 2 + (p_in[u, 1] - py) ** 2 + (p_in[u, 2] - pz) ** 2 > far * far:
             continue
-        best, t, a, b, e, bv, bw, qx, qy, qz = closest_in_fan(px, py, pz, p_in, u, tri_start, tri_ids, tris, q)
+        best, t, qx, qy, qz, nx, ny, nz = closest_on_sheet(px, py, pz, p_in, n_in, u, tri_start, tri_ids, tris, q)
         if t < 0:
             continue
-        bu = 1.0 - bv - bw
-        nx = bu * n_in[a, 0] + bv * n_in[b, 0] + bw * n_in[e, 0]
-        ny = bu * n_in[a, 1] + bv * n_in[b, 1] + bw * n_in[e, 1]
-        nz = bu * n_in[a, 2] + bv * n_in[b, 2] + bw * n_in[e, 2]
         nn = math.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue

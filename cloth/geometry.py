@@ -114,6 +114,21 @@ def closest_in_fan(px, py, pz, x, v, tri_start, tri_ids, tris, q):
     return best, bt, ba, bb, bc, bv, bw, qx, qy, qz
 
 
+@helper
+def closest_on_sheet(px, py, pz, x, normals, v, tri_start, tri_ids, tris, q):
+    """The closest point to p on the triangles around vertex v of a sheet (x, tris;
+    `closest_in_fan`) and the sheet's normal there, interpolated from its vertex normals (not
+    unit): (d², triangle (-1: none), qx, qy, qz, nx, ny, nz)."""
+    best, t, a, b, c, wb, wc, qx, qy, qz = closest_in_fan(px, py, pz, x, v, tri_start, tri_ids, tris, q)
+    if t < 0:
+        return best, t, qx, qy, qz, 0.0, 0.0, 0.0
+    wa = 1.0 - wb - wc
+    nx = wa * normals[a, 0] + wb * normals[b, 0] + wc * normals[c, 0]
+    ny = wa * normals[a, 1] + wb * normals[b, 1] + wc * normals[c, 1]
+    nz = wa * normals[a, 2] + wb * normals[b, 2] + wc * normals[c, 2]
+    return best, t, qx, qy, qz, nx, ny, nz
+
+
 @kernel
 def region_masks(points, vertices, regions, radius, out):
     """OR of the regions of every vertex within radius of each point (at least the nearest one's)."""

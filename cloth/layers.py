@@ -44,7 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .collision import outside_at
-from .geometry import closest_in_fan, nearest_vertices, walk_nearest_vertex
+from .geometry import closest_on_sheet, nearest_vertices, walk_nearest_vertex
 from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
 from .surface import rest_surface as surface_at_rest
@@ -173,8 +173,8 @@ def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_i
                        ring_reach, side, gap, depth, room, q, move):
     """How far each candidate of a garment (p, its normals n) moves along side × n to lie `gap`
     on its side of the other garment's surface (p_ref: its closest point q on the triangles
-    around its nearest vertex there, `closest_in_fan`; the other's normal n_q at q interpolated
-    from its shading normals n_ref): side +1 keeps an outer garment over the inner one, side -1
+    around its nearest vertex there, and the other's normal n_q at q interpolated
+    from its shading normals n_ref, `closest_on_sheet`): side +1 keeps an outer garment over the inner one, side -1
     an inner one under the outer. With h = side (p - q)·n_q how far p lies on its side: where
     h < gap but h > -depth, the move s = (gap - h) / max(n·n_q, LEAN) puts it gap past the
     other's tangent plane at q, within room. None where p lies beside the other surface rather
@@ -190,13 +190,9 @@ def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_i
         far = max(gap, depth) + ring_reach[v]
         if (p_ref[v, 0] - px) ** 2 + (p_ref[v, 1] - py) ** 2 + (p_ref[v, 2] - pz) ** 2 > far * far:
             continue  # nowhere near the other surface (most of a loose top's band, most frames)
-        best, t, a, b, e, bv, bw, qx, qy, qz = closest_in_fan(px, py, pz, p_ref, v, tri_start, tri_ids, tris, q)
+        best, t, qx, qy, qz, nx, ny, nz = closest_on_sheet(px, py, pz, p_ref, n_ref, v, tri_start, tri_ids, tris, q)
         if t < 0:
             continue
-        bu = 1.0 - bv - bw
-        nx = bu * n_ref[a, 0] + bv * n_ref[b, 0] + bw * n_ref[e, 0]
-        ny = bu * n_ref[a, 1] + bv * n_ref[b, 1] + bw * n_ref[e, 1]
-        nz = bu * n_ref[a, 2] + bv * n_ref[b, 2] + bw * n_ref[e, 2]
         nn = math.sqrt(nx * nx + ny * ny + nz * nz)
         if nn == 0.0:
             continue

@@ -150,17 +150,14 @@ def _behind(outer_x, inner_x, m, depth=0.005):
     return float(np.mean((h < -depth) & (dist < 0.03)))
 
 
-def test_two_tops_stay_one_over_the_other_through_the_walk_whichever_thread_steps_them(body, data):
-    """The silk blouse over the T-shirt, coarse cloths, the walk's first 100 frames at 60 Hz: the
-    blouse's particles more than 5 mm behind the T-shirt's cloth are under 2 % on average
-    (measured: 0.8 %), where each simulated against the body alone leaves more than three times
-    as many (6.8 %). Stepped on two threads, the result is the same bit for bit."""
-    from services.cloth_job import OutfitSession, collision_body, find_outfit, load_outfit_models
+def walk_frames(body, data, n: int):
+    """The walk at 60 Hz from its frame 1 (the first is the converter's T-pose): (the animator, the
+    first frame's configuration, n - 1 frames of skinned body vertices)."""
     from skinning.animate import BodyAnimator
     from skinning.source import BVHSource
 
     frames = []
-    with BVHSource(data / "mocap" / "cmu_131_01_walk_3dsmax.bvh", every=2, max_frames=101) as source:
+    with BVHSource(data / "mocap" / "cmu_131_01_walk_3dsmax.bvh", every=2, max_frames=n) as source:
         animator = BodyAnimator(body, source.skeleton)
         for f in source:
             out = animator(f.local_rot, f.root_position)
@@ -168,6 +165,17 @@ def test_two_tops_stay_one_over_the_other_through_the_walk_whichever_thread_step
                 q0 = out.retarget.q.copy()
             if f.index >= 1:
                 frames.append(out.vertices.copy())
+    return animator, q0, frames
+
+
+def test_two_tops_stay_one_over_the_other_through_the_walk_whichever_thread_steps_them(body, data):
+    """The silk blouse over the T-shirt, coarse cloths, the walk's first 100 frames at 60 Hz: the
+    blouse's particles more than 5 mm behind the T-shirt's cloth are under 2 % on average
+    (measured: 0.8 %), where each simulated against the body alone leaves more than three times
+    as many (6.8 %). Stepped on two threads, the result is the same bit for bit."""
+    from services.cloth_job import OutfitSession, collision_body, find_outfit, load_outfit_models
+
+    animator, q0, frames = walk_frames(body, data, 101)
     mesh = collision_body(body)
     outfit = load_outfit_models(body, animator, mesh, find_outfit(data, "female_casualsuit01.top+"
                                                                         "female_elegantsuit01.top"))
@@ -204,18 +212,8 @@ def test_two_tops_layered_on_two_threads_are_the_same_bit_for_bit(body, data):
     from cloth.layers import SPLIT_CANDIDATES
     from cloth.surface import SurfaceSettings
     from services.cloth_job import OutfitSession, build_outfit, collision_body, find_outfit
-    from skinning.animate import BodyAnimator
-    from skinning.source import BVHSource
 
-    frames = []
-    with BVHSource(data / "mocap" / "cmu_131_01_walk_3dsmax.bvh", every=2, max_frames=6) as source:
-        animator = BodyAnimator(body, source.skeleton)
-        for f in source:
-            out = animator(f.local_rot, f.root_position)
-            if f.index == 1:
-                q0 = out.retarget.q.copy()
-            if f.index >= 1:
-                frames.append(out.vertices.copy())
+    animator, q0, frames = walk_frames(body, data, 6)
     mesh = collision_body(body)
     outfit, surfaces, layers = build_outfit(body, animator, mesh,
                                             find_outfit(data, "female_casualsuit01.top+female_elegantsuit01.top"),

@@ -338,18 +338,24 @@ def test_a_lower_lift_rises_until_neighbours_are_within_their_edge_bound(side):
     assert np.all(lift == 0.0) and d == pytest.approx(0.01, abs=1e-15)
 
 
-def test_no_lift_or_press_takes_a_vertex_into_the_body():
-    """The Decision never into the body: the first test's sheets with a body part (a box, its
-    bottom at y = 5 mm) right over the middle of the outer sheet: the outer's lift to LAYER_GAP over
-    the inner (6 mm) would end inside it, so there it is halved (3 mm, outside); elsewhere the lift
-    is whole. The inner is then pressed under the outer that is left, away from the body, as before."""
+def box_over_the_sheets() -> tuple:
+    """A body part over the middle of outer_and_inner's sheets: a 10 cm box, its bottom at y = 5 mm,
+    as stack_layer's body (its vertices, triangles and winding grid)."""
     from cloth.winding import WindingGrid
     from tests.test_cloth_dynamics import box
     bx, bt = box(half=0.05, n=4)
     bx = np.ascontiguousarray(bx + [0.2, 0.055, 0.1])
     g = WindingGrid(bt.astype(np.int32), len(bx), cell=0.01)
     g.update(bx)
-    body = (bx, bt.astype(np.int32), *g.arrays())
+    return (bx, bt.astype(np.int32), *g.arrays())
+
+
+def test_no_lift_or_press_takes_a_vertex_into_the_body():
+    """The Decision never into the body: the first test's sheets with a body part (a box, its
+    bottom at y = 5 mm) right over the middle of the outer sheet: the outer's lift to LAYER_GAP over
+    the inner (6 mm) would end inside it, so there it is halved (3 mm, outside); elsewhere the lift
+    is whole. The inner is then pressed under the outer that is left, away from the body, as before."""
+    body = box_over_the_sheets()
     po, eo, pi, ti, ei, m = outer_and_inner(0.004)
     p, q = po.copy(), pi.copy()
     s = LayerState(m)
@@ -382,14 +388,8 @@ def test_a_helper_thread_measuring_half_of_each_garment_changes_nothing(monkeypa
     helper thread, as two tops are: SPLIT_CANDIDATES lowered for sheets this small): the lifts,
     presses, holds and counts are those of one thread, bit for bit."""
     import cloth.layers as layers
-    from cloth.winding import WindingGrid
     from services.spin import SpinWorker
-    from tests.test_cloth_dynamics import box
-    bx, bt = box(half=0.05, n=4)
-    bx = np.ascontiguousarray(bx + [0.2, 0.055, 0.1])
-    g = WindingGrid(bt.astype(np.int32), len(bx), cell=0.01)
-    g.update(bx)
-    body = (bx, bt.astype(np.int32), *g.arrays())
+    body = box_over_the_sheets()
     po, eo, pi, ti, ei, m = outer_and_inner(0.004)
     runs = []
     worker = SpinWorker(0.0)
