@@ -43,7 +43,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .collision import outside_at
 from .geometry import closest_on_sheet, nearest_vertices, walk_nearest_vertex
 from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
@@ -146,17 +145,25 @@ class LayerState:
         self.press = SheetMoves(m.under)
         self.q = np.zeros(3)
         self.helper_q = np.zeros(3)  # the helper thread's half's scratch
+        # the inner garment's drawn heights over its body floors this frame (offsets_from_sheet's ref_height), and
+        # none for the outer (an inner vertex in front of the outer is brought under it within LAYER_DEPTH only)
+        self.inner_height = np.zeros(len(m.over.nbr_start) - 1)
+        self.outer_height = np.zeros(len(m.under.nbr_start) - 1)
 
 
 @kernel
-def lift_room(candidates, height, ceiling, free_ceiling, max_lift, room):
+def lift_room(candidates, height, ceiling, facing, free_ceiling, max_lift, room):
     """How far each outer candidate may rise without going into the body: where S103 found a
-    body part above it or another one near it (its S106 ceiling under free_ceiling, the
-    max_height it has with none), its ceiling less its drawn height (Δh, or the fold across the
-    compression drawn there); elsewhere max_lift."""
+    body part above it (facing < 0, its S106 ceiling under free_ceiling, the max_height it has
+    with none), its ceiling less its drawn height (Δh, or the fold across the compression drawn
+    there); elsewhere max_lift. Decision (eighty-third session): another body part merely near
+    (S106's ceiling from the ball around the particle) does not stop a lift; `keep_out_of_body`
+    keeps it out of that part exactly (a skirt pinched between the thighs in the stride is lifted
+    over the leggings there)."""
     for c in range(candidates.shape[0]):
         i = candidates[c]
-        room[c] = max_lift if ceiling[i] >= free_ceiling else min(max_lift, max(0.0, ceiling[i] - height[i]))
+        free = ceiling[i] >= free_ceiling or facing[i] >= 0.0
+        room[c] = max_lift if free else min(max_lift, max(0.0, ceiling[i] - height[i]))
 
 
 @kernel
@@ -169,15 +176,18 @@ def press_room(candidates, height, body_floor, max_lift, room):
 
 
 @kernel
-def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids, tris,
-                       ring_reach, side, gap, depth, room, q, move):
+def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids,
+                       tris, ring_reach, side, gap, depth, room, q, move):
     """How far each candidate of a garment (p, its normals n) moves along side × n to lie `gap`
     on its side of the other garment's surface (p_ref: its closest point q on the triangles
     around its nearest vertex there, and the other's normal n_q at q interpolated
     from its shading normals n_ref, `closest_on_sheet`): side +1 keeps an outer garment over the inner one, side -1
     an inner one under the outer. With h = side (p - q)·n_q how far p lies on its side: where
     h < gap but h > -depth, the move s = (gap - h) / max(n·n_q, LEAN) puts it gap past the
-    other's tangent plane at q, within room. None where p lies beside the other surface rather
+    other's tangent plane at q, within room. Decision (eighty-third session): where the other
+    sheet stands farther off the body than depth at its nearest vertex v (ref_height[v], at most
+    MAX_LAYER_LIFT: leggings bridging the crotch), a p that far behind it lies between it and the
+    body, not on another sheet, and is moved too. None where p lies beside the other surface rather
     than over or under it (past its edge: (p - q) more than 45° off n_q, farther than gap), and
     none where n turns away from n_q. Returns how many candidates move."""
     moved = 0
@@ -187,7 +197,8 @@ def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_i
         v = walk_nearest_vertex(px, py, pz, p_ref, nbr_start, nbr_ids, nearest[c], WALK_STEPS)
         nearest[c] = v
         move[c] = 0.0
-        far = max(gap, depth) + ring_reach[v]
+        behind = max(depth, min(ref_height[v], MAX_LAYER_LIFT))  # how far behind the other sheet p may lie
+        far = max(gap, behind) + ring_reach[v]
         if (p_ref[v, 0] - px) ** 2 + (p_ref[v, 1] - py) ** 2 + (p_ref[v, 2] - pz) ** 2 > far * far:
             continue  # nowhere near the other surface (most of a loose top's band, most frames)
         best, t, qx, qy, qz, nx, ny, nz = closest_on_sheet(px, py, pz, p_ref, n_ref, v, tri_start, tri_ids, tris, q)
@@ -200,7 +211,7 @@ def offsets_from_sheet(p, n, p_ref, n_ref, candidates, nearest, nbr_start, nbr_i
         if facing < FACING:
             continue  # the sheet turned away from the other one (a fold's far side): not over it
         h = side * ((px - qx) * nx + (py - qy) * ny + (pz - qz) * nz) / nn
-        if h >= gap or -h > depth:
+        if h >= gap or -h > behind:
             continue  # on its side by the gap already, or another sheet far on the other side
         if h * h < UNDER * best and best >= gap * gap:
             continue  # beside the other surface (past its edge), neither over nor under it
@@ -301,30 +312,39 @@ def apply_lifts(p, n, side, candidates, move, room):
             p[i, 2] += s * n[i, 2]
 
 
+@helper
+def _inside(x, y, z, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
+    """Inside the body as a whole: a winding number of one or more over wfaces. Where the skinned
+    body folds over itself (the hip crease in a stride, an arm on the torso) a pocket reads -1: the
+    skin turned inside out, outside the flesh (the acceptance's independent test agrees)."""
+    return winding_number(x, y, z, body_x, wfaces, wlo, wstart, wids, wspan, wextent) > 0
+
+
 @kernel
 def keep_out_of_body(p, n, side, candidates, move, room, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
     """The module's Decision (never into the body), after `apply_lifts`: each candidate that its
-    move took from outside the body as a whole (winding number 0 over wfaces, the pose's grid wlo
-    ... wextent) to inside is moved back by half its move, and again, at most KEEP_OUT_HALVINGS
-    times, then all the way; room is cut to the move kept. Returns how many were held back."""
+    move left inside the body as a whole (`_inside` over wfaces, the pose's grid wlo ... wextent)
+    is moved back by half its move, and again, at most KEEP_OUT_HALVINGS times, then all the way;
+    room is cut to the move kept. One inside before its move too (S103 left it there) is moved
+    back all the way: along its normal it went deeper into another part as often as out (the
+    walk's T-shirt in the crease of the arm, -0.2 -> -1.7 mm). Returns how many were held back."""
     held = 0
     for c in range(candidates.shape[0]):
         s = side * min(move[c], room[c])
         i = candidates[c]
-        if s == 0.0 or winding_number(p[i, 0], p[i, 1], p[i, 2], body_x, wfaces, wlo, wstart, wids, wspan,
-                                      wextent) == 0:
+        if s == 0.0 or not _inside(p[i, 0], p[i, 1], p[i, 2], body_x, wfaces, wlo, wstart, wids, wspan, wextent):
             continue
         bx, by, bz = p[i, 0] - s * n[i, 0], p[i, 1] - s * n[i, 1], p[i, 2] - s * n[i, 2]
-        if winding_number(bx, by, bz, body_x, wfaces, wlo, wstart, wids, wspan, wextent) != 0:
-            continue  # inside before it moved: not this pass's doing
-        f = 0.5
-        for _ in range(KEEP_OUT_HALVINGS):
-            if outside_at(bx, by, bz, n[i, 0], n[i, 1], n[i, 2], f * s, body_x, wfaces, wlo, wstart, wids, wspan,
-                          wextent):
-                break
-            f *= 0.5
-        else:
-            f = 0.0
+        f = 0.0  # inside before it moved: back all the way
+        if not _inside(bx, by, bz, body_x, wfaces, wlo, wstart, wids, wspan, wextent):
+            f = 0.5
+            for _ in range(KEEP_OUT_HALVINGS):
+                if not _inside(bx + f * s * n[i, 0], by + f * s * n[i, 1], bz + f * s * n[i, 2], body_x, wfaces, wlo,
+                               wstart, wids, wspan, wextent):
+                    break
+                f *= 0.5
+            else:
+                f = 0.0
         p[i, 0], p[i, 1], p[i, 2] = bx + f * s * n[i, 0], by + f * s * n[i, 1], bz + f * s * n[i, 2]
         room[c] = f * min(move[c], room[c])
         held += 1
@@ -356,14 +376,16 @@ def _halves(helper, part: Callable[[tuple], int], size: int, whole: Callable[[in
 
 
 def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: np.ndarray, p_ref: np.ndarray,
-                n_ref: np.ndarray, side: float, q: np.ndarray, body: tuple | None = None, helper=None,
-                helper_q: np.ndarray | None = None) -> None:
-    """One garment of a pair moved to its side of the other (its room already set); body: (body_x,
+                n_ref: np.ndarray, ref_height: np.ndarray, side: float, q: np.ndarray, body: tuple | None = None,
+                helper=None, helper_q: np.ndarray | None = None) -> None:
+    """One garment of a pair moved to its side of the other (its room already set); ref_height: the
+    other's heights over the body (`offsets_from_sheet`); body: (body_x,
     winding faces, the pose's winding grid arrays), out of which no move takes a vertex (None: no body);
     helper: a thread that measures half of a large garment's candidates (`_halves`; None: all here)."""
     s.held = 0
     s.moved = _halves(helper, _offsets_part, len(t.candidates),
-                      lambda lo, hi, scratch: (p, n, p_ref, n_ref, t.candidates[lo:hi], s.nearest[lo:hi], t.nbr_start,
+                      lambda lo, hi, scratch: (p, n, p_ref, n_ref, ref_height, t.candidates[lo:hi], s.nearest[lo:hi],
+                                               t.nbr_start,
                                                t.nbr_ids, t.tri_start, t.tri_ids, t.triangles, t.ring_reach, side,
                                                m.gap, m.depth, s.room[lo:hi], scratch, s.move[lo:hi]),
                       q, helper_q)
@@ -387,27 +409,32 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     garment's detailed surface (p_in, n_in) of the same frame, then press p_in, in place, under
     what is left above it (the module's Decision). n_out, n_in: the shading normals (unit, away
     from the body). outer: the outer's surface state, whose drawn heights and S106 ceilings the
-    lifts keep to where S103 found a body part above or beside a vertex (a ceiling under
-    max_height, its SurfaceSettings'); inner: the inner's, whose vertices are pressed along
-    their reference normals (n_pn) no lower than their body floors; None: no body near. body: (body_x,
+    lifts keep to where S103 found a body part above a vertex (a ceiling under max_height, its
+    SurfaceSettings'); inner: the inner's, whose vertices are pressed along their reference normals
+    (n_pn) no lower than their body floors, and whose heights over those floors let an outer vertex
+    that far behind it be lifted (`offsets_from_sheet`); None: no body near. body: (body_x,
     winding faces, the pose's `WindingGrid.arrays()`): no move takes a vertex into the body as a whole
     (`keep_out_of_body`; None: no body). helper: an idle thread (`services.spin.SpinWorker`: submit,
     result) that measures half of a garment's candidates where it has SPLIT_CANDIDATES or more (two
     tops); the result is the same with or without it, bit for bit."""
     lift, press = s.lift, s.press
     if outer is None:
-        lift_room(m.over.candidates, lift.no_heights, lift.no_heights, 0.0, m.max_lift, lift.room)
+        lift_room(m.over.candidates, lift.no_heights, lift.no_heights, lift.no_heights, 0.0, m.max_lift, lift.room)
     else:
-        lift_room(m.over.candidates, outer.height, outer.ceiling, max_height, m.max_lift, lift.room)
+        lift_room(m.over.candidates, outer.height, outer.ceiling, outer.facing, max_height, m.max_lift, lift.room)
+    if inner is not None:  # how far the inner's drawn surface stands over its body floor
+        np.subtract(inner.height, inner.body_floor, out=s.inner_height)
+        np.maximum(s.inner_height, 0.0, out=s.inner_height)
     body = body if m.keep_out else None
-    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, OVER_SIDE, s.q, body, helper, s.helper_q)
+    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, s.inner_height, OVER_SIDE, s.q, body, helper, s.helper_q)
     if inner is None:
         press_room(m.under.candidates, press.no_heights, press.no_floor, m.max_lift, press.room)
         n_press = n_in
     else:
         press_room(m.under.candidates, inner.height, inner.body_floor, m.max_lift, press.room)
         n_press = inner.n_pn
-    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, UNDER_SIDE, s.q, body, helper, s.helper_q)
+    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, s.outer_height, UNDER_SIDE, s.q, body, helper,
+                s.helper_q)
 
 
 def nearest(points: np.ndarray, targets: np.ndarray, within: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
@@ -428,11 +455,14 @@ def nearest(points: np.ndarray, targets: np.ndarray, within: float = np.inf) -> 
 
 
 def sheet_track(rest: np.ndarray, edges: np.ndarray, other_rest: np.ndarray, other_triangles: np.ndarray,
-                other_edges: np.ndarray, reach: float = LAYER_REACH, limit: np.ndarray | None = None) -> SheetTrack:
+                other_edges: np.ndarray, reach: float = LAYER_REACH, limit: np.ndarray | None = None,
+                also: np.ndarray | None = None) -> SheetTrack:
     """One garment's side of a pair from the two detailed meshes at rest (m): its vertices within
-    reach of the other garment; limit: its maximum neighbour distance per edge (None: no limit)."""
-    dist, index = nearest(rest, other_rest, reach)
-    candidates = np.flatnonzero(dist < reach).astype(np.int32)
+    reach of the other garment, and those also names (a mask, None: none); limit: its maximum
+    neighbour distance per edge (None: no limit)."""
+    dist, index = nearest(rest, other_rest, np.inf if also is not None and also.any() else reach)
+    near = dist < reach if also is None else (dist < reach) | also
+    candidates = np.flatnonzero(near).astype(np.int32)
     slot = np.full(len(rest), -1, dtype=np.int64)
     slot[candidates] = np.arange(len(candidates))
     e = np.asarray(edges, dtype=np.int64)
@@ -462,12 +492,43 @@ def sheet_track(rest: np.ndarray, edges: np.ndarray, other_rest: np.ndarray, oth
 def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_triangles: np.ndarray, outer_edges: np.ndarray,
                inner_rest: np.ndarray, inner_triangles: np.ndarray, inner_edges: np.ndarray,
                reach: float = LAYER_REACH, outer_limit: np.ndarray | None = None,
-               inner_limit: np.ndarray | None = None) -> LayerModel:
+               inner_limit: np.ndarray | None = None, body_rest: np.ndarray | None = None) -> LayerModel:
     """The layer model of one pair from the two garments' detailed meshes at rest (m);
-    outer_limit, inner_limit: each one's maximum neighbour distance per edge (None: no limit)."""
-    over = sheet_track(outer_rest, outer_edges, inner_rest, inner_triangles, inner_edges, reach, outer_limit)
-    under = sheet_track(inner_rest, inner_edges, outer_rest, outer_triangles, outer_edges, reach, inner_limit)
+    outer_limit, inner_limit: each one's maximum neighbour distance per edge (None: no limit);
+    body_rest: the body at rest: the outer's vertices over the body the inner covers, and the
+    inner's vertices under the outer, are candidates too (`over_covered_body`, `under_covering_body`;
+    None: those within reach only)."""
+    over_also = under_also = None
+    if body_rest is not None:
+        over_also = over_covered_body(outer_rest, inner_rest, body_rest, reach)
+        under_also = under_covering_body(inner_rest, outer_rest, body_rest, reach)
+    over = sheet_track(outer_rest, outer_edges, inner_rest, inner_triangles, inner_edges, reach, outer_limit, over_also)
+    under = sheet_track(inner_rest, inner_edges, outer_rest, outer_triangles, outer_edges, reach, inner_limit,
+                        under_also)
     return LayerModel(outer, inner, over, under)
+
+
+def over_covered_body(outer_rest: np.ndarray, inner_rest: np.ndarray, body_rest: np.ndarray,
+                      reach: float = LAYER_REACH) -> np.ndarray:
+    """(No,) bool: the outer garment's rest vertices whose nearest body vertex the inner garment
+    covers (has a vertex within reach of it). Decision (eighty-third session): these are tested
+    every frame however far they hang from the inner garment at rest. Where the body moves inside
+    the outer garment, it brings the inner one with it: a striding thigh comes 5-10 cm forward
+    into a skirt that hung clear of the leggings at rest, and the leggings showed through."""
+    _, body_vertex = nearest(outer_rest, body_rest)
+    covered, _ = nearest(body_rest, inner_rest, reach)
+    return np.isfinite(covered)[body_vertex]
+
+
+def under_covering_body(inner_rest: np.ndarray, outer_rest: np.ndarray, body_rest: np.ndarray,
+                        reach: float = LAYER_REACH) -> np.ndarray:
+    """(Ni,) bool: the inner garment's rest vertices whose nearest body vertex lies within reach
+    of the body under the outer garment (the body vertices nearest to the outer's): the
+    counterpart of `over_covered_body` for the inner's vertices pressed under the outer."""
+    _, under = nearest(outer_rest, body_rest)
+    near, _ = nearest(body_rest, body_rest[np.unique(under)], reach)
+    _, body_vertex = nearest(inner_rest, body_rest)
+    return np.isfinite(near)[body_vertex]
 
 
 def rest_surface(model: SurfaceModel) -> np.ndarray:
@@ -499,7 +560,8 @@ def layer_outfit(models: list[SurfaceModel], body_rest: np.ndarray,
                 outer, inner = inner, outer
             mo, mi = models[outer], models[inner]
             pair = layer_pair(outer, inner, rest[outer], mo.tess.triangles, mo.d_edges, rest[inner],
-                              mi.tess.triangles, mi.d_edges, outer_limit=mo.d_max, inner_limit=mi.d_max)
+                              mi.tess.triangles, mi.d_edges, outer_limit=mo.d_max, inner_limit=mi.d_max,
+                              body_rest=body_rest)
             share = {a: float(in_a.mean()), b: float(in_b.mean())}
             pair.overlap = (share[outer], share[inner])
             pairs.append(pair)
@@ -524,5 +586,5 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "SAME_DEPTH", "LayerModel",
            "LayerState", "SheetMoves", "SheetTrack", "apply_lifts", "ease_lifts", "keep_within_bounds",
-           "layer_outfit", "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "press_room", "rest_surface",
-           "sheet_track", "stack_layer", "stacking_order"]
+           "layer_outfit", "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "over_covered_body", "press_room",
+           "rest_surface", "sheet_track", "stack_layer", "stacking_order", "under_covering_body"]

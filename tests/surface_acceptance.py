@@ -8,7 +8,10 @@ the share of their arc-length deficit the wrinkles recovered; where a garment is
 another (cloth.layers), every tenth frame, the share of the inner one's vertices near the outer
 one (more than 1 cm in from its edges) that stand farther from the skin than the outer's nearest
 vertex there (showing through it; which
-vertices are near is taken at rest by cloth.layers' rule, the distances are the independent ones).
+vertices are near is taken at rest by cloth.layers' rule, the distances are the independent ones),
+and by rays (tests/rays.py, eighty-third session: the measure above misses crossings deeper than 1 cm and
+inner vertices farther than 1 cm from the outer at rest): the share of the inner's vertices with the outer's
+surface within 3 cm along their normal that have it only under them.
 Run directly for a table: python -m tests.surface_acceptance [clip ...] [--outfit NAME ...]
 """
 
@@ -24,6 +27,7 @@ from cloth.surface import SurfaceSettings
 from cloth.topology import unique_edges
 from services.cloth_job import run_cloth_clip
 from tests.cloth_acceptance import clips_and_outfits
+from tests.rays import RayCaster
 from tests.signed_distance import SignedDistance
 
 
@@ -44,11 +48,34 @@ class SurfaceRecord:
     # the skin than that outer vertex
     overlap: int = 0
     showing: int = 0
+    # the same frames, by rays along each of its vertices' normals (tests/rays.py): its vertices with
+    # the outer's surface within CROSS_REACH under or over them, those with it under only (showing
+    # through it), and of those, with it more than CROSS_DEEP under
+    covered: int = 0
+    crossed: int = 0
+    crossed_deep: int = 0
+
+
+CROSS_REACH = 0.03  # m: how far the rays along an inner vertex's normal look for the outer garment
+CROSS_DEEP = 0.005  # m: an outer surface farther than this under an inner vertex lets it show through plainly
+
+
+def crossings(rays: RayCaster, outer_x: np.ndarray, inner_x: np.ndarray, inner_n: np.ndarray) -> tuple[int, int, int]:
+    """(covered, crossed, crossed deep): of an inner garment's vertices (inner_x, unit normals inner_n
+    away from the body), how many have the outer garment's surface within CROSS_REACH along their
+    normal either way, how many only inwards (the outer lies under them: they show through it), and
+    of those how many by more than CROSS_DEEP."""
+    inward = rays.first_hits(outer_x, inner_x, -inner_n, CROSS_REACH)
+    outward = rays.first_hits(outer_x, inner_x, inner_n, CROSS_REACH)
+    crossed = np.isfinite(inward) & ~np.isfinite(outward)
+    return (int(np.sum(np.isfinite(inward) | np.isfinite(outward))), int(crossed.sum()),
+            int(np.sum(crossed & (inward > CROSS_DEEP))))
 
 
 def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int | None = None,
             settings: SurfaceSettings | None = None):
     sd = SignedDistance(body.triangles, body.n_visible)
+    rays = {}  # outer garment: its RayCaster
     records: list[SurfaceRecord] = []
 
     bands = {}  # (outer, inner): each one's detailed vertices within LAYER_BAND of the other at rest
@@ -112,6 +139,12 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
                 close = d2[np.arange(len(pi)), near] < LAYER_BAND**2
                 records[i].overlap += int(close.sum())
                 records[i].showing += int(np.sum(close & (skin_distance[i][bi] > skin_distance[o][bo][near])))
+                if o not in rays:
+                    rays[o] = RayCaster(session.surfaces[o].model.tess.triangles)
+                counts = crossings(rays[o], session.detailed[o][0], *session.detailed[i])
+                records[i].covered += counts[0]
+                records[i].crossed += counts[1]
+                records[i].crossed_deep += counts[2]
 
     report = run_cloth_clip(body, data / "garments" / outfit, data / "mocap" / f"{clip}.bvh", every=every,
                             max_frames=max_frames, on_frame=on_frame, surface=settings or SurfaceSettings())
@@ -138,7 +171,9 @@ def main() -> None:
                       f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
                       f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}"
                       + (f" showing through the garment over it {r.showing / r.overlap * 100:4.1f} %"
-                         if r.overlap else ""),
+                         if r.overlap else "")
+                      + (f", by rays {r.crossed / r.covered * 100:4.1f} % (more than {CROSS_DEEP * 1000:.0f} mm "
+                         f"{r.crossed_deep / r.covered * 100:4.1f} %)" if r.covered else ""),
                       flush=True)
 
 

@@ -136,7 +136,7 @@ def test_the_lift_follows_the_inner_sheet_as_it_slides_and_keeps_out_of_a_body_a
     ceiling = np.full(len(po), max_height)
     held = over & (po[:, 2] < 0.05)
     ceiling[held] = 0.001
-    state = SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling)
+    state = SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling, facing=np.where(held, -1.0, 1.0))
     p = po.copy()
     stack_layer(m, s, p, up(len(p)), pi + [0.03, 0.0, 0.0], up(len(pi)), state, max_height=max_height)
     np.testing.assert_allclose(p[held, 1], 0.001, atol=1e-12)
@@ -150,7 +150,7 @@ def held_outer(inner_y: float = 0.004):
     ceiling = np.full(len(po), 0.03)
     held = po[:, 2] < 0.05 - 1e-9
     ceiling[held] = 0.0
-    return po, pi, m, SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling), held
+    return po, pi, m, SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling, facing=np.where(held, -1.0, 1.0)), held
 
 
 def test_where_the_outer_sheet_cannot_rise_the_inner_one_is_pressed_under_it_and_eases_off():
@@ -191,6 +191,63 @@ def test_the_press_stops_at_the_body_floor_and_not_beyond_the_depth():
     p, q = po.copy(), pi.copy()
     stack_layer(m, LayerState(m), p, up(len(p)), q, up(len(q)), outer, max_height=0.03)
     np.testing.assert_array_equal(q, pi)
+
+
+def test_a_body_part_merely_near_does_not_stop_a_lift():
+    """The held_outer sheets, but where the outer's ceiling is low S103 found another body part
+    near it, not above it (facing >= 0: the other thigh beside a skirt pinched in the stride):
+    the outer rises to LAYER_GAP over the inner everywhere, and the inner stays (but for its edges
+    across x, as in the first test)."""
+    po, pi, m, outer, held = held_outer()
+    outer.facing = np.ones(len(po))
+    p, q = po.copy(), pi.copy()
+    s = LayerState(m)
+    stack_layer(m, s, p, up(len(p)), q, up(len(q)), outer, max_height=0.03)
+    x = po[:, 0]
+    over = (x > 0.12 - 1e-9) & (x < 0.28 + 1e-9)
+    np.testing.assert_allclose(p[over, 1], 0.004 + LAYER_GAP, atol=1e-12)
+    rim = np.isclose(pi[:, 0], 0.1) | np.isclose(pi[:, 0], 0.3)
+    assert np.all(q[~rim, 1] == 0.004)
+
+
+@pytest.mark.parametrize("inner_height, lifted", [(0.02, True), (0.005, False)])
+def test_an_outer_sheet_between_the_inner_one_and_the_body_is_lifted_however_deep(inner_height, lifted):
+    """The inner sheet 15 mm over the outer one, beyond LAYER_DEPTH. Where the inner stands 20 mm
+    over its body floor (leggings bridging the crotch), the outer lies between it and the body:
+    it comes to LAYER_GAP over the inner. Where the inner stands 5 mm over it, 15 mm under the
+    inner is in the body or past it: the outer is another sheet, left alone."""
+    po, eo, pi, ti, ei, m = outer_and_inner(0.015)
+    inner = SimpleNamespace(height=np.full(len(pi), inner_height), body_floor=np.zeros(len(pi)), n_pn=up(len(pi)))
+    p, q = po.copy(), pi.copy()
+    stack_layer(m, LayerState(m), p, up(len(p)), q, up(len(q)), None, inner)
+    x = po[:, 0]
+    over = (x > 0.12 - 1e-9) & (x < 0.28 + 1e-9)
+    if lifted:
+        np.testing.assert_allclose(p[over, 1], 0.015 + LAYER_GAP, atol=1e-12)
+    else:
+        np.testing.assert_array_equal(p, po)
+    np.testing.assert_array_equal(q, pi)
+
+
+def test_the_candidates_reach_over_the_body_the_inner_garment_covers():
+    """A floor of body vertices over x in [-0.1, 0.5]; the inner sheet 5 mm over it on x in
+    [0.1, 0.3], the outer one 8 cm over it on [0, 0.4] (a skirt hanging clear of the leggings at
+    rest). By distance alone (LAYER_REACH) none of the outer is a candidate; with the body, the
+    outer's vertices over the body within LAYER_REACH of the inner sheet are (the thigh striding
+    into the skirt brings the leggings with it), and every inner vertex under the outer is."""
+    body = grid(-0.1, 0.5, 0.0)[0]
+    po, to, eo = grid(0.0, 0.4, 0.08)
+    pi, ti, ei = grid(0.1, 0.3, 0.005)
+    assert len(layer_pair(0, 1, po, to, eo, pi, ti, ei).over.candidates) == 0
+    m = layer_pair(0, 1, po, to, eo, pi, ti, ei, body_rest=body)
+    x = po[m.over.candidates, 0]
+    assert x.min() == pytest.approx(0.08) and x.max() == pytest.approx(0.32)  # 5 mm up, 2 cm across: within 3 cm
+    assert len(m.over.candidates) == 25 * 21
+    np.testing.assert_array_equal(m.under.candidates, np.arange(len(pi)))
+    # an inner sheet reaching beyond the outer: its vertices more than LAYER_REACH past the outer's edge are not
+    pi, ti, ei = grid(0.1, 0.5, 0.005)
+    m = layer_pair(0, 1, po, to, eo, pi, ti, ei, body_rest=body)
+    assert pi[m.under.candidates, 0].max() == pytest.approx(0.42)  # (0.43: exactly LAYER_REACH, not within)
 
 
 def sheet(x0: float, y: float, material: str, nx: int = 5, nz: int = 3, spacing: float = 0.04):
@@ -381,6 +438,34 @@ def test_no_lift_or_press_takes_a_vertex_into_the_body():
     p = po.copy()
     stack_layer(m, LayerState(m), p, up(len(p)), pi.copy(), up(len(pi)))
     np.testing.assert_allclose(p[under_box, 1], 0.004 + LAYER_GAP, atol=1e-12)
+
+
+def test_no_move_ends_inside_the_body_from_a_fold_s_pocket_nor_from_inside():
+    """keep_out_of_body on three vertices lifted 3 cm up (+Y), a body of two 5 cm boxes: A over y in
+    [0, 0.05], and under it B over [-0.06, -0.01] with its faces turned inside out (winding number -1
+    inside: the skin folded over itself at a crease, outside the flesh). From inside B into A the lift
+    is halved until it ends between them (before, a start read "not outside" was left alone and
+    ended 1 mm in the hip); from inside A it is undone (along the normal it went deeper into
+    another part as often as out); from outside, ending in the open, it stays."""
+    from cloth.layers import keep_out_of_body
+    from cloth.winding import WindingGrid
+    from tests.test_cloth_dynamics import box
+    a, ta = box(half=0.025, n=4)
+    b, tb = box(half=0.025, n=4)
+    x = np.ascontiguousarray(np.concatenate([a + [0.0, 0.025, 0.0], b + [0.0, -0.035, 0.0]]))
+    tris = np.ascontiguousarray(np.concatenate([ta, tb[:, ::-1] + len(a)]).astype(np.int32))
+    g = WindingGrid(tris, len(x), cell=0.01)
+    g.update(x)
+    start = np.array([[0.001, -0.02, 0.002], [0.001, 0.012, 0.002], [0.1, 0.0, 0.0]])
+    lift = 0.03
+    p = start + [0.0, lift, 0.0]
+    move, room = np.full(3, lift), np.full(3, 0.05)
+    held = keep_out_of_body(p, up(3), 1.0, np.arange(3, dtype=np.int32), move, room, x, tris, *g.arrays())
+    assert held == 2
+    np.testing.assert_allclose(p[0], start[0] + [0.0, 0.5 * lift, 0.0], atol=1e-15)  # y = -5 mm: between the boxes
+    np.testing.assert_allclose(p[1], start[1], atol=1e-15)
+    np.testing.assert_allclose(p[2], start[2] + [0.0, lift, 0.0], atol=1e-15)
+    np.testing.assert_allclose(room, [0.5 * lift, 0.0, 0.05])
 
 
 def test_a_helper_thread_measuring_half_of_each_garment_changes_nothing(monkeypatch):

@@ -1,0 +1,40 @@
+"""The acceptance's independent ray casts (tests/rays.py) on cases whose answers are known."""
+
+import numpy as np
+import trimesh
+
+from tests.rays import RayCaster
+
+
+def test_rays_meet_a_flat_sheet_where_it_is_and_nowhere_else():
+    """A 10 cm square at z = 0 (two triangles): rays up from 1 cm under it meet it at 1 cm, a
+    ray slanted 45° at √2 cm; past its edge, away from it, or with a reach shorter than the
+    distance, none."""
+    x = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.1, 0.1, 0.0], [0.0, 0.1, 0.0]])
+    rays = RayCaster(np.array([[0, 1, 2], [0, 2, 3]]))
+    s = np.sqrt(0.5)
+    origins = np.array([[0.03, 0.07, -0.01], [0.05, 0.05, -0.01], [0.15, 0.05, -0.01], [0.05, 0.05, -0.01],
+                        [0.05, 0.05, -0.02]])
+    dirs = np.array([[0.0, 0.0, 1.0], [s, 0.0, s], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
+    t = rays.first_hits(x, origins, dirs, 0.015)
+    np.testing.assert_allclose(t[:2], [0.01, 0.01 * np.sqrt(2)], atol=1e-15)
+    assert np.all(np.isinf(t[2:]))
+
+
+def test_rays_from_the_centre_of_a_sphere_meet_its_facets_at_the_first_of_two_shells():
+    """From the centre of an icosphere (radius 10 cm), 500 rays in random directions meet it between
+    its facets' distance and its radius, each once; with a second sphere of radius 12 cm around it
+    the first hit is still the inner one; with a reach of 5 cm, none."""
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    outer = trimesh.creation.icosphere(subdivisions=3, radius=0.12)
+    x = np.concatenate([sphere.vertices, outer.vertices])
+    tris = np.concatenate([sphere.faces, outer.faces + len(sphere.vertices)])
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    centre = np.zeros((500, 3))
+    facet = np.min(np.abs(np.einsum("ij,ij->i", sphere.triangles_center, sphere.face_normals)))
+    for mesh_x, mesh_t in ((sphere.vertices, sphere.faces), (x, tris)):
+        t = RayCaster(mesh_t).first_hits(mesh_x, centre, d, 0.2)
+        assert np.all((t >= facet - 1e-12) & (t <= 0.1 + 1e-12))
+    assert np.all(np.isinf(RayCaster(tris).first_hits(x, centre, d, 0.05)))
