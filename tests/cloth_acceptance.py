@@ -27,7 +27,9 @@ def clips_and_outfits(argv: list[str]) -> tuple[list[str], list[str]]:
     """The clips and outfits a table runs over: positional clip names, --outfit (repeatable)."""
     parser = argparse.ArgumentParser()
     parser.add_argument("clips", nargs="*", default=CLIPS)
-    parser.add_argument("--outfit", action="append", choices=OUTFITS, help="default: every outfit")
+    parser.add_argument("--outfit", action="append",
+                        help="a shipped outfit, or garments of them mixed (female_sportsuit01.bottom+"
+                             "female_elegantsuit01.bottom); default: every shipped outfit")
     args = parser.parse_args(argv)
     return args.clips, args.outfit or list(OUTFITS)
 

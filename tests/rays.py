@@ -3,7 +3,8 @@ through another (tests/surface_acceptance.py). Shares no code with cloth/: Möll
 tests over the triangles bucketed by tests/signed_distance.py's hashed grid.
 
     rays = RayCaster(triangles)
-    t = rays.first_hits(vertices, origins, directions, reach)   # (k,) m along each unit direction; inf: none
+    t, face = rays.first_hits(vertices, origins, directions, reach)   # (k,) m along each unit direction
+                                                                      # (inf: none), (k,) the triangle met (-1)
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def _ray_triangle(ox, oy, oz, dx, dy, dz, x, tri):
 
 
 @njit(cache=True)
-def _first_hits(origins, dirs, reach, x, tris, cell, start, ids, out):
+def _first_hits(origins, dirs, reach, x, tris, cell, start, ids, out, face):
     """Each ray's nearest hit within reach: every triangle in the grid cells that the segment's
     bounding box overlaps (a triangle the segment meets overlaps one of them)."""
     mask = start.shape[0] - 2
@@ -49,6 +50,7 @@ def _first_hits(origins, dirs, reach, x, tris, cell, start, ids, out):
         dx, dy, dz = dirs[r, 0], dirs[r, 1], dirs[r, 2]
         ex, ey, ez = ox + reach * dx, oy + reach * dy, oz + reach * dz
         best = np.inf
+        face[r] = -1
         for i in range(int(math.floor(min(ox, ex) / cell)), int(math.floor(max(ox, ex) / cell)) + 1):
             for j in range(int(math.floor(min(oy, ey) / cell)), int(math.floor(max(oy, ey) / cell)) + 1):
                 for k in range(int(math.floor(min(oz, ez) / cell)), int(math.floor(max(oz, ez) / cell)) + 1):
@@ -57,6 +59,7 @@ def _first_hits(origins, dirs, reach, x, tris, cell, start, ids, out):
                         t = _ray_triangle(ox, oy, oz, dx, dy, dz, x, tris[ids[e]])
                         if t <= reach and t < best:
                             best = t
+                            face[r] = ids[e]
         out[r] = best
 
 
@@ -70,9 +73,9 @@ class RayCaster:
         self.ids = np.zeros(len(self.tris) * 8, dtype=np.int64)
 
     def first_hits(self, vertices: np.ndarray, origins: np.ndarray, directions: np.ndarray,
-                   reach: float) -> np.ndarray:
+                   reach: float) -> tuple[np.ndarray, np.ndarray]:
         """(k,) m: how far along each unit direction from its origin the mesh is first met, within
-        reach (inf: not within it)."""
+        reach (inf: not within it); (k,) int64: the triangle met there (-1: none)."""
         x = np.ascontiguousarray(vertices, dtype=np.float64)
         while True:
             used = _build_grid(x, self.tris, self.cell, self.start, self.ids)
@@ -80,6 +83,7 @@ class RayCaster:
                 break
             self.ids = np.zeros(int(used), dtype=np.int64)
         out = np.empty(len(origins))
+        face = np.empty(len(origins), dtype=np.int64)
         _first_hits(np.ascontiguousarray(origins, dtype=np.float64), np.ascontiguousarray(directions, dtype=np.float64),
-                    float(reach), x, self.tris, self.cell, self.start, self.ids, out)
-        return out
+                    float(reach), x, self.tris, self.cell, self.start, self.ids, out, face)
+        return out, face

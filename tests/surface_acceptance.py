@@ -60,22 +60,25 @@ CROSS_REACH = 0.03  # m: how far the rays along an inner vertex's normal look fo
 CROSS_DEEP = 0.005  # m: an outer surface farther than this under an inner vertex lets it show through plainly
 
 
-def crossings(rays: RayCaster, outer_x: np.ndarray, inner_x: np.ndarray, inner_n: np.ndarray) -> tuple[int, int, int]:
+def crossings(rays: RayCaster, outer_x: np.ndarray, inner_x: np.ndarray, inner_n: np.ndarray,
+              rim_face: np.ndarray) -> tuple[int, int, int]:
     """(covered, crossed, crossed deep): of an inner garment's vertices (inner_x, unit normals inner_n
     away from the body), how many have the outer garment's surface within CROSS_REACH along their
     normal either way, how many only inwards (the outer lies under them: they show through it), and
-    of those how many by more than CROSS_DEEP."""
-    inward = rays.first_hits(outer_x, inner_x, -inner_n, CROSS_REACH)
-    outward = rays.first_hits(outer_x, inner_x, inner_n, CROSS_REACH)
-    crossed = np.isfinite(inward) & ~np.isfinite(outward)
-    return (int(np.sum(np.isfinite(inward) | np.isfinite(outward))), int(crossed.sum()),
-            int(np.sum(crossed & (inward > CROSS_DEEP))))
+    of those how many by more than CROSS_DEEP. A ray that meets one of the outer's faces within
+    LAYER_BAND of its edges at rest (rim_face: a hem tucked under the inner's waistband) is not counted."""
+    inward, face_in = rays.first_hits(outer_x, inner_x, -inner_n, CROSS_REACH)
+    outward, face_out = rays.first_hits(outer_x, inner_x, inner_n, CROSS_REACH)
+    under = np.isfinite(inward) & ~rim_face[np.maximum(face_in, 0)]
+    over = np.isfinite(outward) & ~rim_face[np.maximum(face_out, 0)]
+    crossed = under & ~np.isfinite(outward)
+    return int(np.sum(under | over)), int(crossed.sum()), int(np.sum(crossed & (inward > CROSS_DEEP)))
 
 
 def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int | None = None,
             settings: SurfaceSettings | None = None):
     sd = SignedDistance(body.triangles, body.n_visible)
-    rays = {}  # outer garment: its RayCaster
+    rays = {}  # outer garment: its RayCaster, and its faces within LAYER_BAND of its edges at rest
     records: list[SurfaceRecord] = []
 
     bands = {}  # (outer, inner): each one's detailed vertices within LAYER_BAND of the other at rest
@@ -95,6 +98,8 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
                 edges, uses = unique_edges(session.surfaces[lm.outer].model.tess.triangles)
                 rim = np.unique(edges[uses == 1])
                 d_rim, _ = nearest(rest[lm.outer], rest[lm.outer][rim])
+                tris = session.surfaces[lm.outer].model.tess.triangles
+                rays[lm.outer] = RayCaster(tris), np.any(d_rim[tris] < LAYER_BAND, axis=1)
                 bands[lm.outer, lm.inner] = (np.flatnonzero((d_oi < LAYER_BAND) & (d_rim > LAYER_BAND)),
                                              np.flatnonzero(d_io < LAYER_BAND))
         skin = body_frame.vertices[: body.n_visible]
@@ -139,9 +144,7 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
                 close = d2[np.arange(len(pi)), near] < LAYER_BAND**2
                 records[i].overlap += int(close.sum())
                 records[i].showing += int(np.sum(close & (skin_distance[i][bi] > skin_distance[o][bo][near])))
-                if o not in rays:
-                    rays[o] = RayCaster(session.surfaces[o].model.tess.triangles)
-                counts = crossings(rays[o], session.detailed[o][0], *session.detailed[i])
+                counts = crossings(rays[o][0], session.detailed[o][0], *session.detailed[i], rays[o][1])
                 records[i].covered += counts[0]
                 records[i].crossed += counts[1]
                 records[i].crossed_deep += counts[2]

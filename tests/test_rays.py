@@ -16,9 +16,10 @@ def test_rays_meet_a_flat_sheet_where_it_is_and_nowhere_else():
     origins = np.array([[0.03, 0.07, -0.01], [0.05, 0.05, -0.01], [0.15, 0.05, -0.01], [0.05, 0.05, -0.01],
                         [0.05, 0.05, -0.02]])
     dirs = np.array([[0.0, 0.0, 1.0], [s, 0.0, s], [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [0.0, 0.0, 1.0]])
-    t = rays.first_hits(x, origins, dirs, 0.015)
+    t, face = rays.first_hits(x, origins, dirs, 0.015)
     np.testing.assert_allclose(t[:2], [0.01, 0.01 * np.sqrt(2)], atol=1e-15)
     assert np.all(np.isinf(t[2:]))
+    np.testing.assert_array_equal(face, [1, 0, -1, -1, -1])  # (0.03, 0.07) lies in the second triangle
 
 
 def test_rays_from_the_centre_of_a_sphere_meet_its_facets_at_the_first_of_two_shells():
@@ -35,6 +36,23 @@ def test_rays_from_the_centre_of_a_sphere_meet_its_facets_at_the_first_of_two_sh
     centre = np.zeros((500, 3))
     facet = np.min(np.abs(np.einsum("ij,ij->i", sphere.triangles_center, sphere.face_normals)))
     for mesh_x, mesh_t in ((sphere.vertices, sphere.faces), (x, tris)):
-        t = RayCaster(mesh_t).first_hits(mesh_x, centre, d, 0.2)
+        t, face = RayCaster(mesh_t).first_hits(mesh_x, centre, d, 0.2)
         assert np.all((t >= facet - 1e-12) & (t <= 0.1 + 1e-12))
-    assert np.all(np.isinf(RayCaster(tris).first_hits(x, centre, d, 0.05)))
+        assert np.all((face >= 0) & (face < len(sphere.faces)))  # the inner sphere's
+    assert np.all(np.isinf(RayCaster(tris).first_hits(x, centre, d, 0.05)[0]))
+
+
+def test_the_acceptance_counts_an_inner_sheet_in_front_of_the_outer_one_as_showing_through():
+    """An outer sheet over x in [0, 0.4] at y = 0 and an inner one over [0.1, 0.3] (normals +Y): 4 mm
+    in front of it every inner vertex shows through, 8 mm in front more than CROSS_DEEP; 4 mm behind
+    it, none does and all are covered; with the outer's faces all taken as its rim, none is counted."""
+    from tests.surface_acceptance import CROSS_DEEP, crossings
+    from tests.test_layers import grid, up
+    po, to, _ = grid(0.0, 0.4, 0.0)
+    rays = RayCaster(to)
+    no_rim = np.zeros(len(to), dtype=bool)
+    for y, crossed, deep in ((0.004, True, False), (2 * CROSS_DEEP - 0.002, True, True), (-0.004, False, False)):
+        pi = grid(0.1, 0.3, y)[0]
+        n = len(pi)
+        assert crossings(rays, po, pi, up(n), no_rim) == (n, n if crossed else 0, n if deep else 0)
+    assert crossings(rays, po, grid(0.1, 0.3, 0.004)[0], up(n), np.ones(len(to), dtype=bool)) == (0, 0, 0)
