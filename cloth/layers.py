@@ -32,7 +32,9 @@ Which garment is outer, and which of its vertices can meet the inner one, is fou
 rest surfaces: where two garments come within LAYER_BAND of each other, the one farther from the
 body there is outer (the shipped tops sit 1-2 mm outside the bottoms' waistbands), and each
 garment's vertices within LAYER_REACH of the other are tested each frame, each tracking its
-nearest vertex of the other garment by a walk over that one's mesh (as S101 tracks the body's).
+nearest vertex of the other garment by a walk over that one's mesh (as S101 tracks the body's);
+since the eighty-third session also the outer's vertices over the body the inner covers, and the
+inner's under the outer, however far apart the two hang at rest (`over_covered_body`).
 """
 
 from __future__ import annotations
@@ -146,9 +148,9 @@ class LayerState:
         self.q = np.zeros(3)
         self.helper_q = np.zeros(3)  # the helper thread's half's scratch
         # the inner garment's drawn heights over its body floors this frame (offsets_from_sheet's ref_height), and
-        # none for the outer (an inner vertex in front of the outer is brought under it within LAYER_DEPTH only)
+        # none taken for the outer's: an inner vertex in front of the outer is brought under it within LAYER_DEPTH only
         self.inner_height = np.zeros(len(m.over.nbr_start) - 1)
-        self.outer_height = np.zeros(len(m.under.nbr_start) - 1)
+        self.press_ref_height = np.zeros(len(m.under.nbr_start) - 1)
 
 
 @kernel
@@ -385,9 +387,9 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
     s.held = 0
     s.moved = _halves(helper, _offsets_part, len(t.candidates),
                       lambda lo, hi, scratch: (p, n, p_ref, n_ref, ref_height, t.candidates[lo:hi], s.nearest[lo:hi],
-                                               t.nbr_start,
-                                               t.nbr_ids, t.tri_start, t.tri_ids, t.triangles, t.ring_reach, side,
-                                               m.gap, m.depth, s.room[lo:hi], scratch, s.move[lo:hi]),
+                                               t.nbr_start, t.nbr_ids, t.tri_start, t.tri_ids, t.triangles,
+                                               t.ring_reach, side, m.gap, m.depth, s.room[lo:hi], scratch,
+                                               s.move[lo:hi]),
                       q, helper_q)
     if s.moved:
         ease_lifts(t.spread_start, t.spread_nbrs, t.spread_nbr_drop, s.move, s.queue, s.queued)
@@ -433,7 +435,7 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     else:
         press_room(m.under.candidates, inner.height, inner.body_floor, m.max_lift, press.room)
         n_press = inner.n_pn
-    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, s.outer_height, UNDER_SIDE, s.q, body, helper,
+    _move_sheet(m.under, press, m, p_in, n_press, p_out, n_out, s.press_ref_height, UNDER_SIDE, s.q, body, helper,
                 s.helper_q)
 
 
@@ -586,5 +588,5 @@ def stacking_order(pairs: list[LayerModel], n_garments: int) -> list[LayerModel]
 
 __all__ = ["LAYER_BAND", "LAYER_DEPTH", "LAYER_GAP", "LAYER_REACH", "LAYER_SLOPE", "SAME_DEPTH", "LayerModel",
            "LayerState", "SheetMoves", "SheetTrack", "apply_lifts", "ease_lifts", "keep_within_bounds",
-           "layer_outfit", "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "over_covered_body", "press_room",
-           "rest_surface", "sheet_track", "stack_layer", "stacking_order", "under_covering_body"]
+           "layer_outfit", "layer_pair", "lift_room", "nearest", "offsets_from_sheet", "over_covered_body",
+           "press_room", "rest_surface", "sheet_track", "stack_layer", "stacking_order", "under_covering_body"]
