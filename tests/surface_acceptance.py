@@ -95,10 +95,10 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
                 d_io, _ = nearest(rest[lm.inner], rest[lm.outer])
                 # the outer's vertices more than LAYER_BAND in from its edges (a hem): an inner vertex
                 # near the hem's last row may lie just beyond it, not under the outer garment
-                edges, uses = unique_edges(session.surfaces[lm.outer].model.tess.triangles)
+                tris = session.surfaces[lm.outer].model.tess.triangles
+                edges, uses = unique_edges(tris)
                 rim = np.unique(edges[uses == 1])
                 d_rim, _ = nearest(rest[lm.outer], rest[lm.outer][rim])
-                tris = session.surfaces[lm.outer].model.tess.triangles
                 rays[lm.outer] = RayCaster(tris), np.any(d_rim[tris] < LAYER_BAND, axis=1)
                 bands[lm.outer, lm.inner] = (np.flatnonzero((d_oi < LAYER_BAND) & (d_rim > LAYER_BAND)),
                                              np.flatnonzero(d_io < LAYER_BAND))
