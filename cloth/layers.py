@@ -8,7 +8,9 @@ show through the T-shirt's hem in a jagged line.
 Decision (layering, not in the patent): after every garment of an outfit has run S101-S106,
 each outer garment's detailed vertices that lie within LAYER_GAP over the inner garment's
 detailed surface of this frame, or behind it by less than LAYER_DEPTH, are lifted along their
-own normals until they are LAYER_GAP over it; the lifts then ease off along the outer surface
+reference normals (the PN surface's, smooth across the wrinkles; since the eighty-third session:
+along the shading normals, which scatter 30° between neighbours on a wrinkle, lifts of a centimetre
+parted neighbours far beyond their bound) until they are LAYER_GAP over it; the lifts then ease off along the outer surface
 by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
 stepping), a lower lift rises where two neighbours' lifts part them beyond the outer's maximum
 neighbour distance (or their length before the lifts), and where its room stops it short the
@@ -410,9 +412,10 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     """Lift the outer garment's detailed positions p_out (N, 3), in place, over the inner
     garment's detailed surface (p_in, n_in) of the same frame, then press p_in, in place, under
     what is left above it (the module's Decision). n_out, n_in: the shading normals (unit, away
-    from the body). outer: the outer's surface state, whose drawn heights and S106 ceilings the
-    lifts keep to where S103 found a body part above a vertex (a ceiling under max_height, its
-    SurfaceSettings'); inner: the inner's, whose vertices are pressed along their reference normals
+    from the body). outer: the outer's surface state, whose vertices are lifted along their
+    reference normals (n_pn), and whose drawn heights and S106 ceilings the lifts keep to where S103
+    found a body part above a vertex (a ceiling under max_height, its SurfaceSettings'); None: along
+    n_out, no body near. inner: the inner's, whose vertices are pressed along their reference normals
     (n_pn) no lower than their body floors, and whose heights over those floors let an outer vertex
     that far behind it be lifted (`offsets_from_sheet`); None: no body near. body: (body_x,
     winding faces, the pose's `WindingGrid.arrays()`): no move takes a vertex into the body as a whole
@@ -422,13 +425,15 @@ def stack_layer(m: LayerModel, s: LayerState, p_out: np.ndarray, n_out: np.ndarr
     lift, press = s.lift, s.press
     if outer is None:
         lift_room(m.over.candidates, lift.no_heights, lift.no_heights, lift.no_heights, 0.0, m.max_lift, lift.room)
+        n_lift = n_out
     else:
         lift_room(m.over.candidates, outer.height, outer.ceiling, outer.facing, max_height, m.max_lift, lift.room)
+        n_lift = outer.n_pn
     if inner is not None:  # how far the inner's drawn surface stands over its body floor
         np.subtract(inner.height, inner.body_floor, out=s.inner_height)
         np.maximum(s.inner_height, 0.0, out=s.inner_height)
     body = body if m.keep_out else None
-    _move_sheet(m.over, lift, m, p_out, n_out, p_in, n_in, s.inner_height, OVER_SIDE, s.q, body, helper, s.helper_q)
+    _move_sheet(m.over, lift, m, p_out, n_lift, p_in, n_in, s.inner_height, OVER_SIDE, s.q, body, helper, s.helper_q)
     if inner is None:
         press_room(m.under.candidates, press.no_heights, press.no_floor, m.max_lift, press.room)
         n_press = n_in

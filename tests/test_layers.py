@@ -136,7 +136,8 @@ def test_the_lift_follows_the_inner_sheet_as_it_slides_and_keeps_out_of_a_body_a
     ceiling = np.full(len(po), max_height)
     held = over & (po[:, 2] < 0.05)
     ceiling[held] = 0.001
-    state = SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling, facing=np.where(held, -1.0, 1.0))
+    state = SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling, facing=np.where(held, -1.0, 1.0),
+                            n_pn=up(len(po)))
     p = po.copy()
     stack_layer(m, s, p, up(len(p)), pi + [0.03, 0.0, 0.0], up(len(pi)), state, max_height=max_height)
     np.testing.assert_allclose(p[held, 1], 0.001, atol=1e-12)
@@ -150,7 +151,9 @@ def held_outer(inner_y: float = 0.004):
     ceiling = np.full(len(po), 0.03)
     held = po[:, 2] < 0.05 - 1e-9
     ceiling[held] = 0.0
-    return po, pi, m, SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling, facing=np.where(held, -1.0, 1.0)), held
+    outer = SimpleNamespace(height=np.zeros(len(po)), ceiling=ceiling, facing=np.where(held, -1.0, 1.0),
+                            n_pn=up(len(po)))
+    return po, pi, m, outer, held
 
 
 def test_where_the_outer_sheet_cannot_rise_the_inner_one_is_pressed_under_it_and_eases_off():
@@ -191,6 +194,24 @@ def test_the_press_stops_at_the_body_floor_and_not_beyond_the_depth():
     p, q = po.copy(), pi.copy()
     stack_layer(m, LayerState(m), p, up(len(p)), q, up(len(q)), outer, max_height=0.03)
     np.testing.assert_array_equal(q, pi)
+
+
+def test_the_lift_goes_along_the_reference_normals_not_the_wrinkles_shading_normals():
+    """The first test's sheets, the outer's shading normals tilted 30° one way and the other in
+    alternate rows across x (a wrinkled surface), its reference normals (n_pn) +Y: each outer vertex
+    over the inner sheet rises straight up to LAYER_GAP over it, and its neighbours stay as far apart
+    across x as they were (along the shading normals they would part by 2 × 6 mm × tan 30°)."""
+    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    tilt = np.radians(30.0) * np.where(np.round(po[:, 0] / H).astype(int) % 2 == 0, 1.0, -1.0)
+    shading = np.stack([np.sin(tilt), np.cos(tilt), np.zeros(len(po))], axis=1)
+    outer = SimpleNamespace(height=np.zeros(len(po)), ceiling=np.full(len(po), 0.03), facing=np.ones(len(po)),
+                            n_pn=up(len(po)))
+    p = po.copy()
+    stack_layer(m, LayerState(m), p, shading, pi.copy(), up(len(pi)), outer, max_height=0.03)
+    x = po[:, 0]
+    over = (x > 0.12 - 1e-9) & (x < 0.28 + 1e-9)
+    np.testing.assert_allclose(p[over, 1], 0.004 + LAYER_GAP, atol=1e-12)
+    np.testing.assert_array_equal(p[:, [0, 2]], po[:, [0, 2]])
 
 
 def test_a_body_part_merely_near_does_not_stop_a_lift():
