@@ -8,10 +8,10 @@ show through the T-shirt's hem in a jagged line.
 Decision (layering, not in the patent): after every garment of an outfit has run S101-S106,
 each outer garment's detailed vertices that lie within LAYER_GAP over the inner garment's
 detailed surface of this frame, or behind it by less than LAYER_DEPTH, are lifted along their
-reference normals (the PN surface's, smooth across the wrinkles; since the eighty-third session:
-along the shading normals, which scatter 30° between neighbours on a wrinkle, lifts of a centimetre
-parted neighbours far beyond their bound) until they are LAYER_GAP over it; the lifts then ease off along the outer surface
-by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
+reference normals (the PN surface's, smooth across the wrinkles; until the eighty-third session
+along the shading normals, which scatter 30° between neighbours on a wrinkle: lifts of a centimetre
+parted neighbours far beyond their bound) until they are LAYER_GAP over it; the lifts then ease off
+along the outer surface by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
 stepping), a lower lift rises where two neighbours' lifts part them beyond the outer's maximum
 neighbour distance (or their length before the lifts), and where its room stops it short the
 higher lift gives way to that bound; lifts are never negative. A lift stops where S103 left a
