@@ -25,8 +25,8 @@ def test_surface_through_the_run_clip(body, data, outfit):
         for lm, ls in session.layers:  # take the layering's lifts and presses off again (cloth.layers.apply_lifts)
             lift = np.minimum(ls.lift.move, ls.lift.room)
             assert lift.min() >= 0.0 and lift.max() <= lm.max_lift
-            c = lm.over.candidates
-            layered[lm.outer][c] -= lift[:, None] * session.detailed[lm.outer][1][c]
+            c = lm.over.candidates  # the outer's along its reference normals
+            layered[lm.outer][c] -= lift[:, None] * session.surfaces[lm.outer].state.n_pn[c]
             # the inner's along its reference normals, down to no lower than its body floor
             inner = session.surfaces[lm.inner].state
             press = np.minimum(ls.press.move, ls.press.room)
