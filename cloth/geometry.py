@@ -35,6 +35,29 @@ def plane_barycentric(x, a, b, c, px, py, pz):
 
 
 @helper
+def ray_triangle(px, py, pz, dx, dy, dz, x, a, b, c):
+    """Where the line p + t d meets triangle (x[a], x[b], x[c]) (Möller and Trumbore, 1997):
+    (t, wb, wc), the weights of corners b and c there; t = inf where it misses (or lies in the
+    triangle's plane)."""
+    e1x, e1y, e1z = x[b, 0] - x[a, 0], x[b, 1] - x[a, 1], x[b, 2] - x[a, 2]
+    e2x, e2y, e2z = x[c, 0] - x[a, 0], x[c, 1] - x[a, 1], x[c, 2] - x[a, 2]
+    hx, hy, hz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+    det = e1x * hx + e1y * hy + e1z * hz
+    if abs(det) < 1e-14:
+        return math.inf, 0.0, 0.0
+    inv = 1.0 / det
+    sx, sy, sz = px - x[a, 0], py - x[a, 1], pz - x[a, 2]
+    wb = (sx * hx + sy * hy + sz * hz) * inv
+    if wb < 0.0 or wb > 1.0:
+        return math.inf, 0.0, 0.0
+    qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+    wc = (dx * qx + dy * qy + dz * qz) * inv
+    if wc < 0.0 or wb + wc > 1.0:
+        return math.inf, 0.0, 0.0
+    return (e2x * qx + e2y * qy + e2z * qz) * inv, wb, wc
+
+
+@helper
 def closest_point_triangle(px, py, pz, x, a, b, c, out):
     """Closest point to p on triangle (x[a], x[b], x[c]) (Ericson, Real-Time Collision Detection 5.1.5).
 

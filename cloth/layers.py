@@ -47,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import closest_on_sheet, nearest_vertices, walk_nearest_vertex
+from .geometry import closest_on_sheet, nearest_vertices, ray_triangle, walk_nearest_vertex
 from .jit import helper, kernel
 from .surface import SurfaceModel, SurfaceState
 from .surface import rest_surface as surface_at_rest
@@ -65,6 +65,9 @@ LAYER_DEPTH = 0.01  # m: a vertex at most this far on the wrong side of the othe
 # (the inner's wrinkles poking through are 6-10 mm high; farther behind it is another sheet)
 LAYER_SLOPE = 0.5  # m of lift given up per m along the surface away from a lifted (pressed) vertex
 MAX_LAYER_LIFT = 0.03  # m: no vertex is moved farther (the inner garment's heights reach 3 cm)
+# m: an outer vertex that the inner surface crosses over along its normal within this is lifted over it
+# (`offsets_from_sheet`'s rays: a skirt 1-3 cm over a silk blouse's hem at the hip)
+CROSS_REACH = 0.03
 # sweeps each way over the edges that keep moved neighbours within their bound (a second changed 0.1 % of edges)
 BOUND_SWEEPS = 1
 FACING = 0.25  # a vertex whose normal is within about 75° of the other surface's faces it
@@ -117,6 +120,7 @@ class LayerModel:
     gap: float = LAYER_GAP
     depth: float = LAYER_DEPTH
     max_lift: float = MAX_LAYER_LIFT
+    cross_reach: float = CROSS_REACH  # how far over an outer vertex along its normal the inner's surface is looked for
     keep_out: bool = True  # no move into the body (the Decision never into the body; False: the rooms alone)
     # the share of the outer's and of the inner's rest vertices within LAYER_BAND of the other: a
     # few tenths where a top's hem lies over a bottom's waistband, most of both where the two are
@@ -179,9 +183,40 @@ def press_room(candidates, height, body_floor, max_lift, room):
         room[c] = min(max_lift, max(0.0, height[i] - body_floor[i]))
 
 
+@helper
+def _crossing_move(p, n, i, side, p_ref, n_ref, v0, nbr_start, nbr_ids, tri_start, tri_ids, tris, gap, reach):
+    """How far candidate i moves along side × n_i to lie gap past the other garment's surface where
+    the ray from it that way crosses that surface last from behind, within reach (the triangles
+    around v0 and its neighbours; where the surface there faces the other way, cos < FACING, it is
+    a sheet turned over, not crossed): t + gap / max(cos, LEAN); -inf where it crosses none."""
+    dx, dy, dz = side * n[i, 0], side * n[i, 1], side * n[i, 2]
+    best = -math.inf
+    for r in range(nbr_start[v0] - 1, nbr_start[v0 + 1]):
+        v = v0 if r < nbr_start[v0] else nbr_ids[r]
+        for k in range(tri_start[v], tri_start[v + 1]):
+            f = tri_ids[k]
+            a, b, c = tris[f, 0], tris[f, 1], tris[f, 2]
+            if v != v0 and (a == v0 or b == v0 or c == v0):
+                continue  # in v0's own fan, met already
+            t, wb, wc = ray_triangle(p[i, 0], p[i, 1], p[i, 2], dx, dy, dz, p_ref, a, b, c)
+            if t < -gap or t > reach:
+                continue
+            wa = 1.0 - wb - wc
+            nx = wa * n_ref[a, 0] + wb * n_ref[b, 0] + wc * n_ref[c, 0]
+            ny = wa * n_ref[a, 1] + wb * n_ref[b, 1] + wc * n_ref[c, 1]
+            nz = wa * n_ref[a, 2] + wb * n_ref[b, 2] + wc * n_ref[c, 2]
+            nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+            if nn == 0.0:
+                continue
+            cos = (n[i, 0] * nx + n[i, 1] * ny + n[i, 2] * nz) / nn
+            if cos >= FACING:
+                best = max(best, t + gap / max(cos, LEAN))
+    return best
+
+
 @kernel
 def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids,
-                       tris, ring_reach, side, gap, depth, room, q, move):
+                       tris, ring_reach, side, gap, depth, cross_reach, room, q, move):
     """How far each candidate of a garment (p, its normals n) moves along side × n to lie `gap`
     on its side of the other garment's surface (p_ref: its closest point q on the triangles
     around its nearest vertex there, and the other's normal n_q at q interpolated
@@ -193,7 +228,11 @@ def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_
     MAX_LAYER_LIFT: leggings bridging the crotch), a p that far behind it lies between it and the
     body, not on another sheet, and is moved too. None where p lies beside the other surface rather
     than over or under it (past its edge: (p - q) more than 45° off n_q, farther than gap), and
-    none where n turns away from n_q. Returns how many candidates move."""
+    none where n turns away from n_q. Decision (eighty-fourth session): where that finds no move,
+    and the ray from p along side × n crosses the other's surface from behind within cross_reach
+    (`_crossing_move`; 0: not looked for), p moves past it: the closest point q can lie on a
+    fold of the other garment turned away, or beside the part of it that lies over p (a skirt
+    1-3 cm over a silk blouse's hem at the hip). Returns how many candidates move."""
     moved = 0
     for c in range(candidates.shape[0]):
         i = candidates[c]
@@ -201,29 +240,45 @@ def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_
         v = walk_nearest_vertex(px, py, pz, p_ref, nbr_start, nbr_ids, nearest[c], WALK_STEPS)
         nearest[c] = v
         move[c] = 0.0
+        if room[c] <= 0.0:
+            continue
         behind = max(depth, min(ref_height[v], MAX_LAYER_LIFT))  # how far behind the other sheet p may lie
-        far = max(gap, behind) + ring_reach[v]
-        if (p_ref[v, 0] - px) ** 2 + (p_ref[v, 1] - py) ** 2 + (p_ref[v, 2] - pz) ** 2 > far * far:
-            continue  # nowhere near the other surface (most of a loose top's band, most frames)
-        best, t, qx, qy, qz, nx, ny, nz = closest_on_sheet(px, py, pz, p_ref, n_ref, v, tri_start, tri_ids, tris, q)
-        if t < 0:
-            continue
-        nn = math.sqrt(nx * nx + ny * ny + nz * nz)
-        if nn == 0.0:
-            continue
-        facing = (n[i, 0] * nx + n[i, 1] * ny + n[i, 2] * nz) / nn
-        if facing < FACING:
-            continue  # the sheet turned away from the other one (a fold's far side): not over it
-        h = side * ((px - qx) * nx + (py - qy) * ny + (pz - qz) * nz) / nn
-        if h >= gap or -h > behind:
-            continue  # on its side by the gap already, or another sheet far on the other side
-        if h * h < UNDER * best and best >= gap * gap:
-            continue  # beside the other surface (past its edge), neither over nor under it
-        s = (gap - h) / max(facing, LEAN)  # along side × n, to the gap past the other's tangent plane at q
-        if room[c] > 0.0:
+        d2 = (p_ref[v, 0] - px) ** 2 + (p_ref[v, 1] - py) ** 2 + (p_ref[v, 2] - pz) ** 2
+        s = _closest_move(p, n, i, px, py, pz, p_ref, n_ref, v, tri_start, tri_ids, tris, ring_reach[v], side, gap,
+                          behind, d2, q)
+        if s == 0.0 and cross_reach > 0.0 and d2 <= (cross_reach + ring_reach[v]) ** 2:
+            s = _crossing_move(p, n, i, side, p_ref, n_ref, v, nbr_start, nbr_ids, tri_start, tri_ids, tris, gap,
+                               cross_reach)
+        if s > 0.0:
             move[c] = min(s, room[c])
             moved += 1
     return moved
+
+
+@helper
+def _closest_move(p, n, i, px, py, pz, p_ref, n_ref, v, tri_start, tri_ids, tris, reach, side, gap, behind, d2, q):
+    """`offsets_from_sheet`'s move by the closest point q on the other sheet around its vertex v
+    (p at d2 from v; reach: how far v's triangles reach from it); 0 where none."""
+    far = max(gap, behind) + reach
+    if d2 > far * far:
+        return 0.0  # nowhere near the other surface (most of a loose top's band, most frames)
+    best, t, qx, qy, qz, nx, ny, nz = closest_on_sheet(px, py, pz, p_ref, n_ref, v, tri_start, tri_ids, tris, q)
+    if t < 0:
+        return 0.0
+    nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn == 0.0:
+        return 0.0
+    facing = (n[i, 0] * nx + n[i, 1] * ny + n[i, 2] * nz) / nn
+    if facing < FACING:
+        return 0.0  # the sheet turned away from the other one (a fold's far side): not over it
+    h = side * ((px - qx) * nx + (py - qy) * ny + (pz - qz) * nz) / nn
+    if h >= gap:
+        return -1.0  # on its side by the gap already: no ray either
+    if -h > behind:
+        return 0.0  # another sheet far on the other side (or a sheet over it farther off: the ray's)
+    if h * h < UNDER * best and best >= gap * gap:
+        return 0.0  # beside the other surface (past its edge), neither over nor under it
+    return (gap - h) / max(facing, LEAN)  # along side × n, to the gap past the other's tangent plane at q
 
 
 @kernel
@@ -387,10 +442,11 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
     winding faces, the pose's winding grid arrays), out of which no move takes a vertex (None: no body);
     helper: a thread that measures half of a large garment's candidates (`_halves`; None: all here)."""
     s.held = 0
+    cross_reach = m.cross_reach if side == OVER_SIDE else 0.0  # the inner is pressed by its closest points only
     s.moved = _halves(helper, _offsets_part, len(t.candidates),
                       lambda lo, hi, scratch: (p, n, p_ref, n_ref, ref_height, t.candidates[lo:hi], s.nearest[lo:hi],
                                                t.nbr_start, t.nbr_ids, t.tri_start, t.tri_ids, t.triangles,
-                                               t.ring_reach, side, m.gap, m.depth, s.room[lo:hi], scratch,
+                                               t.ring_reach, side, m.gap, m.depth, cross_reach, s.room[lo:hi], scratch,
                                                s.move[lo:hi]),
                       q, helper_q)
     if s.moved:

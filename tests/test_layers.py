@@ -8,8 +8,8 @@ import pytest
 from cloth.coarsen import CoarseMesh
 from cloth.fabric import fabric
 from cloth.garment import Garment
-from cloth.geometry import closest_in_fan, closest_point_triangle
-from cloth.layers import (LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState,
+from cloth.geometry import closest_in_fan, closest_point_triangle, ray_triangle
+from cloth.layers import (CROSS_REACH, LAYER_BAND, LAYER_DEPTH, LAYER_GAP, LAYER_SLOPE, LEAN, LayerState,
                           ease_lifts, keep_within_bounds, layer_outfit, layer_pair, rest_surface, sheet_track,
                           stack_layer)
 from cloth.model import SimSettings, build_cloth_model
@@ -45,6 +45,18 @@ def outer_and_inner(inner_y: float, outer_y: float = 0.0):
     po, to, eo = grid(0.0, 0.4, outer_y)
     pi, ti, ei = grid(0.1, 0.3, inner_y)
     return po, eo, pi, ti, ei, layer_pair(0, 1, po, to, eo, pi, ti, ei)
+
+
+def test_ray_triangle_meets_a_triangle_where_the_line_crosses_it():
+    """The triangle (0,0,0), (1,0,0), (0,0,1) in the plane y = 0: the line up through (0.25, ., 0.5)
+    from 2 m below meets it at t = 2 with weights 0.25 (corner b) and 0.5 (corner c); from above,
+    going up, at t = -3 (a line, not a half line); through (0.8, ., 0.8) (past the long edge) or along
+    the plane, nowhere."""
+    x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(ray_triangle(0.25, -2.0, 0.5, 0.0, 1.0, 0.0, x, 0, 1, 2), (2.0, 0.25, 0.5), atol=1e-15)
+    assert ray_triangle(0.25, 3.0, 0.5, 0.0, 1.0, 0.0, x, 0, 1, 2)[0] == pytest.approx(-3.0)
+    assert ray_triangle(0.8, -2.0, 0.8, 0.0, 1.0, 0.0, x, 0, 1, 2)[0] == np.inf
+    assert ray_triangle(-1.0, 0.0, 0.2, 1.0, 0.0, 0.0, x, 0, 1, 2)[0] == np.inf
 
 
 def test_an_outer_sheet_behind_the_inner_one_is_brought_over_it_and_eases_off_beyond_its_edge():
@@ -83,15 +95,29 @@ def test_an_outer_sheet_over_the_inner_one_is_lifted_only_if_nearer_than_the_gap
         np.testing.assert_allclose(p[over, 1], lifted_to, atol=1e-12)
 
 
-def test_no_lift_behind_the_inner_sheet_beyond_the_depth_nor_where_the_outer_one_faces_away():
-    po, eo, pi, ti, ei, m = outer_and_inner(LAYER_DEPTH + 0.002)  # another sheet, not a wrinkle poking through
+def test_an_outer_sheet_behind_the_inner_one_beyond_the_depth_is_lifted_only_along_its_normal_within_reach():
+    """The inner sheet 12 mm over the outer one, beyond LAYER_DEPTH: by its closest points alone
+    (cross_reach 0, the rule until the eighty-fourth session) the outer is another sheet, left.
+    The ray along each outer vertex's normal crosses the inner sheet from behind 12 mm up, within
+    CROSS_REACH: the outer comes to LAYER_GAP over it (cos 1: 14 mm). An inner sheet farther up
+    than CROSS_REACH, or an outer sheet turned over (its normals away from the inner's), is left."""
+    po, eo, pi, ti, ei, m = outer_and_inner(LAYER_DEPTH + 0.002)
+    m.cross_reach = 0.0
     p = po.copy()
     stack_layer(m, LayerState(m), p, up(len(p)), pi, up(len(pi)))
     np.testing.assert_array_equal(p, po)
-    po, eo, pi, ti, ei, m = outer_and_inner(0.004)
+    po, eo, pi, ti, ei, m = outer_and_inner(LAYER_DEPTH + 0.002)
+    assert m.cross_reach == CROSS_REACH
     p = po.copy()
-    stack_layer(m, LayerState(m), p, -up(len(p)), pi, up(len(pi)))  # the outer sheet turned over
-    np.testing.assert_array_equal(p, po)
+    stack_layer(m, LayerState(m), p, up(len(p)), pi, up(len(pi)))
+    over = (po[:, 0] > 0.1 - 1e-9) & (po[:, 0] < 0.3 + 1e-9)
+    np.testing.assert_allclose(p[over, 1], LAYER_DEPTH + 0.002 + LAYER_GAP, atol=1e-12)
+    np.testing.assert_array_equal(p[:, [0, 2]], po[:, [0, 2]])
+    for inner_y, normals in ((CROSS_REACH + 0.002, up), (0.004, lambda k: -up(k))):
+        po, eo, pi, ti, ei, m = outer_and_inner(inner_y)
+        p = po.copy()
+        stack_layer(m, LayerState(m), p, normals(len(p)), pi, up(len(pi)))
+        np.testing.assert_array_equal(p, po)
 
 
 @pytest.mark.parametrize("degrees", [40.0, 60.0])
@@ -191,8 +217,10 @@ def test_the_press_stops_at_the_body_floor_and_not_beyond_the_depth():
     np.testing.assert_allclose(q[z < 0.035, 1], 0.001, atol=1e-12)
     assert np.all(q[:, 1] >= 0.001 - 1e-12)
     po, pi, m, outer, held = held_outer(LAYER_DEPTH + 0.002)
+    outer.ceiling[:], outer.facing[:] = 0.0, -1.0  # held everywhere: nothing rises, the press alone
     p, q = po.copy(), pi.copy()
     stack_layer(m, LayerState(m), p, up(len(p)), q, up(len(q)), outer, max_height=0.03)
+    np.testing.assert_array_equal(p, po)
     np.testing.assert_array_equal(q, pi)
 
 
@@ -233,11 +261,13 @@ def test_a_body_part_merely_near_does_not_stop_a_lift():
 
 @pytest.mark.parametrize("inner_height, lifted", [(0.02, True), (0.005, False)])
 def test_an_outer_sheet_between_the_inner_one_and_the_body_is_lifted_however_deep(inner_height, lifted):
-    """The inner sheet 15 mm over the outer one, beyond LAYER_DEPTH. Where the inner stands 20 mm
-    over its body floor (leggings bridging the crotch), the outer lies between it and the body:
-    it comes to LAYER_GAP over the inner. Where the inner stands 5 mm over it, 15 mm under the
-    inner is in the body or past it: the outer is another sheet, left alone."""
+    """The inner sheet 15 mm over the outer one, beyond LAYER_DEPTH, by the closest points alone
+    (no rays: cross_reach 0). Where the inner stands 20 mm over its body floor (leggings bridging
+    the crotch), the outer lies between it and the body: it comes to LAYER_GAP over the inner.
+    Where the inner stands 5 mm over it, 15 mm under the inner is in the body or past it: the
+    outer is another sheet, left alone."""
     po, eo, pi, ti, ei, m = outer_and_inner(0.015)
+    m.cross_reach = 0.0
     inner = SimpleNamespace(height=np.full(len(pi), inner_height), body_floor=np.zeros(len(pi)), n_pn=up(len(pi)))
     p, q = po.copy(), pi.copy()
     stack_layer(m, LayerState(m), p, up(len(p)), q, up(len(q)), None, inner)
