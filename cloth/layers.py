@@ -14,7 +14,11 @@ parted neighbours far beyond their bound) until they are LAYER_GAP over it; the 
 along the outer surface by LAYER_SLOPE (so the outer cloth drapes over the inner one's edge and bumps instead of
 stepping), a lower lift rises where two neighbours' lifts part them beyond the outer's maximum
 neighbour distance (or their length before the lifts), and where its room stops it short the
-higher lift gives way to that bound; lifts are never negative. A lift stops where S103 left a
+higher lift gives way to that bound; lifts are never negative. Since the eighty-fourth session,
+where the closest point finds no lift, an outer vertex whose own normal crosses the inner surface
+from behind within CROSS_REACH (a ray over the triangles around its nearest inner vertex) is lifted
+to LAYER_GAP past the crossing: the closest point can lie on a fold of the inner turned away, or
+beside the part of it lying 1-3 cm over the vertex. A lift stops where S103 left a
 body part above the outer vertex (a hand on the hip). What is left there is done from below:
 the inner garment's vertices still within LAYER_GAP under the (lifted) outer surface, or in
 front of it by less than LAYER_DEPTH, are pressed along their reference normals to LAYER_GAP
