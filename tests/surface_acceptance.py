@@ -11,7 +11,8 @@ vertex there (showing through it; which
 vertices are near is taken at rest by cloth.layers' rule, the distances are the independent ones),
 and by rays (tests/rays.py, eighty-third session: the measure above misses crossings deeper than 1 cm and
 inner vertices farther than 1 cm from the outer at rest): the share of the inner's vertices with the outer's
-surface within 3 cm along their normal that have it only under them.
+surface within 3 cm along their normal that have it only under them (the normals turned away from the body where
+they point into it, eighty-fourth session: `away_from_body`).
 Run directly for a table: python -m tests.surface_acceptance [clip ...] [--outfit NAME ...]
 """
 
@@ -54,10 +55,28 @@ class SurfaceRecord:
     covered: int = 0
     crossed: int = 0
     crossed_deep: int = 0
+    # the same frames: its vertices whose normals point into the body (`away_from_body`), of those tested
+    turned_in: int = 0
+    normals_tested: int = 0
 
 
 CROSS_REACH = 0.03  # m: how far the rays along an inner vertex's normal look for the outer garment
 CROSS_DEEP = 0.005  # m: an outer surface farther than this under an inner vertex lets it show through plainly
+
+
+NORMAL_STEP = 0.002  # m: the step either way along a normal that tells which way it points from the body
+
+
+def away_from_body(sd: SignedDistance, body_x: np.ndarray, x: np.ndarray, n: np.ndarray) -> tuple[np.ndarray,
+                                                                                                 np.ndarray]:
+    """(normals, turned in): each vertex's normal n, turned over where it points into the body (the
+    signed distance NORMAL_STEP along it less than NORMAL_STEP back: a fold of the garment turned
+    inside out, its shading normals with it), and which were. The rays of `crossings` go along these:
+    along a normal turned in, the garment over it reads as under it, and the vertex as showing through."""
+    ahead = sd(body_x, x + NORMAL_STEP * n)
+    back = sd(body_x, x - NORMAL_STEP * n)
+    turned = ahead < back
+    return np.where(turned[:, None], -n, n), turned
 
 
 def crossings(rays: RayCaster, outer_x: np.ndarray, inner_x: np.ndarray, inner_n: np.ndarray,
@@ -144,7 +163,11 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
                 close = d2[np.arange(len(pi)), near] < LAYER_BAND**2
                 records[i].overlap += int(close.sum())
                 records[i].showing += int(np.sum(close & (skin_distance[i][bi] > skin_distance[o][bo][near])))
-                counts = crossings(rays[o][0], session.detailed[o][0], *session.detailed[i], rays[o][1])
+                inner_x = session.detailed[i][0]
+                inner_n, turned = away_from_body(sd, skin, inner_x, session.detailed[i][1])
+                records[i].turned_in += int(turned.sum())
+                records[i].normals_tested += len(turned)
+                counts = crossings(rays[o][0], session.detailed[o][0], inner_x, inner_n, rays[o][1])
                 records[i].covered += counts[0]
                 records[i].crossed += counts[1]
                 records[i].crossed_deep += counts[2]
@@ -176,7 +199,8 @@ def main() -> None:
                       + (f" showing through the garment over it {r.showing / r.overlap * 100:4.1f} %"
                          if r.overlap else "")
                       + (f", by rays {r.crossed / r.covered * 100:4.1f} % (more than {CROSS_DEEP * 1000:.0f} mm "
-                         f"{r.crossed_deep / r.covered * 100:4.1f} %)" if r.covered else ""),
+                         f"{r.crossed_deep / r.covered * 100:4.1f} %; normals into the body "
+                         f"{r.turned_in / r.normals_tested * 100:4.1f} %)" if r.covered else ""),
                       flush=True)
 
 

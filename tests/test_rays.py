@@ -56,3 +56,28 @@ def test_the_acceptance_counts_an_inner_sheet_in_front_of_the_outer_one_as_showi
         n = len(pi)
         assert crossings(rays, po, pi, up(n), no_rim) == (n, n if crossed else 0, n if deep else 0)
     assert crossings(rays, po, grid(0.1, 0.3, 0.004)[0], up(n), np.ones(len(to), dtype=bool)) == (0, 0, 0)
+
+
+def test_the_acceptance_turns_normals_pointing_into_the_body_before_casting():
+    """A box body with its top at y = 0; the inner sheet 4 mm over it, the outer 8 mm, every inner
+    normal -Y (a fold turned inside out). Along those normals the outer reads as under every inner
+    vertex (all showing through); turned away from the body first (`away_from_body`, all of them),
+    it is over every one, and none shows. Normals already pointing out are left."""
+    from tests.signed_distance import SignedDistance
+    from tests.surface_acceptance import away_from_body, crossings
+    from tests.test_layers import grid, up
+    box = trimesh.creation.box(extents=(0.6, 0.2, 0.4))
+    body_x = box.vertices + [0.2, -0.1, 0.1]
+    sd = SignedDistance(box.faces, len(body_x), cell=0.05)
+    po, to, _ = grid(0.0, 0.4, 0.008)
+    pi = grid(0.1, 0.3, 0.004)[0]
+    n = len(pi)
+    rays, no_rim = RayCaster(to), np.zeros(len(to), dtype=bool)
+    assert crossings(rays, po, pi, -up(n), no_rim) == (n, n, 0)
+    normals, turned = away_from_body(sd, body_x, pi, -up(n))
+    assert turned.all()
+    np.testing.assert_array_equal(normals, up(n))
+    assert crossings(rays, po, pi, normals, no_rim) == (n, 0, 0)
+    normals, turned = away_from_body(sd, body_x, pi, up(n))
+    assert not turned.any()
+    np.testing.assert_array_equal(normals, up(n))
