@@ -232,11 +232,12 @@ def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_
     MAX_LAYER_LIFT: leggings bridging the crotch), a p that far behind it lies between it and the
     body, not on another sheet, and is moved too. None where p lies beside the other surface rather
     than over or under it (past its edge: (p - q) more than 45° off n_q, farther than gap), and
-    none where n turns away from n_q. Decision (eighty-fourth session): where that finds no move,
-    and the ray from p along side × n crosses the other's surface from behind within cross_reach
-    (`_crossing_move`; 0: not looked for), p moves past it: the closest point q can lie on a
-    fold of the other garment turned away, or beside the part of it that lies over p (a skirt
-    1-3 cm over a silk blouse's hem at the hip). Returns how many candidates move."""
+    none where n turns away from n_q. Decision (eighty-fourth session): where that finds no move
+    (but for p gap on its side of q already), and the ray from p along side × n crosses the
+    other's surface from behind within cross_reach (`_crossing_move`; 0: not looked for), p moves
+    past it: the closest point q can lie on a fold of the other garment turned away, or beside the
+    part of it that lies over p (a skirt 1-3 cm over a silk blouse's hem at the hip). Returns how
+    many candidates move."""
     moved = 0
     for c in range(candidates.shape[0]):
         i = candidates[c]
@@ -262,7 +263,8 @@ def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_
 @helper
 def _closest_move(p, n, i, px, py, pz, p_ref, n_ref, v, tri_start, tri_ids, tris, reach, side, gap, behind, d2, q):
     """`offsets_from_sheet`'s move by the closest point q on the other sheet around its vertex v
-    (p at d2 from v; reach: how far v's triangles reach from it); 0 where none."""
+    (p at d2 from v; reach: how far v's triangles reach from it); 0 where none, -1 where p lies gap
+    on its side of q already (no ray is cast for it)."""
     far = max(gap, behind) + reach
     if d2 > far * far:
         return 0.0  # nowhere near the other surface (most of a loose top's band, most frames)
