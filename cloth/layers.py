@@ -140,6 +140,7 @@ class SheetMoves:
         self.nearest = t.rest_nearest.copy()  # each candidate's nearest vertex of the other garment, tracked
         self.move = np.zeros(len(t.candidates))  # m, along its normal, out (lift) or in (press)
         self.room = np.zeros(len(t.candidates))  # m: how far each may move (lift_room, press_room)
+        self.limits = np.zeros(3)  # m: the pair's gap, depth and cross reach this frame (offsets_from_sheet)
         self.queue = np.zeros(len(t.candidates), dtype=np.int32)  # ease_lifts' scratch
         self.queued = np.zeros(len(t.candidates), dtype=np.uint8)
         self.moved = 0  # candidates moved in the last frame (before the easing)
@@ -220,7 +221,7 @@ def _crossing_move(p, n, i, side, p_ref, n_ref, v0, nbr_start, nbr_ids, tri_star
 
 @kernel
 def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_start, nbr_ids, tri_start, tri_ids,
-                       tris, ring_reach, side, gap, depth, cross_reach, room, q, move):
+                       tris, ring_reach, side, limits, room, q, move):
     """How far each candidate of a garment (p, its normals n) moves along side × n to lie `gap`
     on its side of the other garment's surface (p_ref: its closest point q on the triangles
     around its nearest vertex there, and the other's normal n_q at q interpolated
@@ -237,7 +238,9 @@ def offsets_from_sheet(p, n, p_ref, n_ref, ref_height, candidates, nearest, nbr_
     other's surface from behind within cross_reach (`_crossing_move`; 0: not looked for), p moves
     past it: the closest point q can lie on a fold of the other garment turned away, or beside the
     part of it that lies over p (a skirt 1-3 cm over a silk blouse's hem at the hip). Returns how
-    many candidates move."""
+    many candidates move. limits: (gap, depth, cross_reach), m (one array: numba 0.68's dispatcher
+    keeps 400 bytes of every call of a function of exactly 20 arguments, which this one had)."""
+    gap, depth, cross_reach = limits[0], limits[1], limits[2]
     moved = 0
     for c in range(candidates.shape[0]):
         i = candidates[c]
@@ -448,11 +451,12 @@ def _move_sheet(t: SheetTrack, s: SheetMoves, m: LayerModel, p: np.ndarray, n: n
     winding faces, the pose's winding grid arrays), out of which no move takes a vertex (None: no body);
     helper: a thread that measures half of a large garment's candidates (`_halves`; None: all here)."""
     s.held = 0
-    cross_reach = m.cross_reach if side == OVER_SIDE else 0.0  # the inner is pressed by its closest points only
+    s.limits[0], s.limits[1] = m.gap, m.depth
+    s.limits[2] = m.cross_reach if side == OVER_SIDE else 0.0  # the inner is pressed by its closest points only
     s.moved = _halves(helper, _offsets_part, len(t.candidates),
                       lambda lo, hi, scratch: (p, n, p_ref, n_ref, ref_height, t.candidates[lo:hi], s.nearest[lo:hi],
                                                t.nbr_start, t.nbr_ids, t.tri_start, t.tri_ids, t.triangles,
-                                               t.ring_reach, side, m.gap, m.depth, cross_reach, s.room[lo:hi], scratch,
+                                               t.ring_reach, side, s.limits, s.room[lo:hi], scratch,
                                                s.move[lo:hi]),
                       q, helper_q)
     if s.moved:
