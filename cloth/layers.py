@@ -573,33 +573,33 @@ def layer_pair(outer: int, inner: int, outer_rest: np.ndarray, outer_triangles: 
     None: those within reach only)."""
     over_also = under_also = None
     if body_rest is not None:
-        over_also = over_covered_body(outer_rest, inner_rest, body_rest, reach)
-        under_also = under_covering_body(inner_rest, outer_rest, body_rest, reach)
+        _, outer_body = nearest(outer_rest, body_rest)  # each outer vertex's nearest body vertex (both use it)
+        over_also = over_covered_body(outer_body, inner_rest, body_rest, reach)
+        under_also = under_covering_body(inner_rest, outer_body, body_rest, reach)
     over = sheet_track(outer_rest, outer_edges, inner_rest, inner_triangles, inner_edges, reach, outer_limit, over_also)
     under = sheet_track(inner_rest, inner_edges, outer_rest, outer_triangles, outer_edges, reach, inner_limit,
                         under_also)
     return LayerModel(outer, inner, over, under)
 
 
-def over_covered_body(outer_rest: np.ndarray, inner_rest: np.ndarray, body_rest: np.ndarray,
+def over_covered_body(outer_body: np.ndarray, inner_rest: np.ndarray, body_rest: np.ndarray,
                       reach: float = LAYER_REACH) -> np.ndarray:
-    """(No,) bool: the outer garment's rest vertices whose nearest body vertex the inner garment
-    covers (has a vertex within reach of it). Decision (eighty-third session): these are tested
-    every frame however far they hang from the inner garment at rest. Where the body moves inside
+    """(No,) bool: the outer garment's rest vertices whose nearest body vertex (outer_body: its
+    index in body_rest, per outer vertex) the inner garment covers (has a vertex within reach of
+    it). Decision (eighty-third session): these are tested every frame however far they hang from
+    the inner garment at rest. Where the body moves inside
     the outer garment, it brings the inner one with it: a striding thigh comes 5-10 cm forward
     into a skirt that hung clear of the leggings at rest, and the leggings showed through."""
-    _, body_vertex = nearest(outer_rest, body_rest)
     covered, _ = nearest(body_rest, inner_rest, reach)
-    return np.isfinite(covered)[body_vertex]
+    return np.isfinite(covered)[outer_body]
 
 
-def under_covering_body(inner_rest: np.ndarray, outer_rest: np.ndarray, body_rest: np.ndarray,
+def under_covering_body(inner_rest: np.ndarray, outer_body: np.ndarray, body_rest: np.ndarray,
                         reach: float = LAYER_REACH) -> np.ndarray:
     """(Ni,) bool: the inner garment's rest vertices whose nearest body vertex lies within reach
-    of the body under the outer garment (the body vertices nearest to the outer's): the
+    of the body under the outer garment (outer_body: the body vertex nearest to each outer one): the
     counterpart of `over_covered_body` for the inner's vertices pressed under the outer."""
-    _, under = nearest(outer_rest, body_rest)
-    near, _ = nearest(body_rest, body_rest[np.unique(under)], reach)
+    near, _ = nearest(body_rest, body_rest[np.unique(outer_body)], reach)
     _, body_vertex = nearest(inner_rest, body_rest)
     return np.isfinite(near)[body_vertex]
 
