@@ -548,9 +548,8 @@ class ClothService:
             old, announced_ns = self._replaced.pop(session, (None, 0))
             if err is None:
                 self.sessions[session] = fut.result()
-                if old is not None:  # the session's counts go on
+                if old is not None:  # the session's counts go on (it has not ended: no closed_stats)
                     self.sessions[session].stats.carry(old.stats)
-                    self.closed_stats[session] = old.stats.snapshot()
                     old.close()
                 freeze_heap()  # the session's models and state: alive until it ends
             else:

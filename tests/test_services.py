@@ -824,6 +824,9 @@ def test_a_session_changes_its_outfit_mid_stream(hub, body, data, tmp_path):
             threading.Thread(target=lambda: answers.append(request_outfit(display, "change", new, wait=60)),
                              daemon=True).start()
             wait_until(lambda: svc._change is not None, 30, "the ingest to accept the change")
+        if index == START_FRAME + 5:  # the new garments are served: the session goes on, it has not ended
+            wait_until(lambda: any(m.frame == START_FRAME + 3 for _, m in garments.messages), 30, "the new garments")
+            assert "change" not in cloth.closed_stats
         return True
 
     try:
