@@ -5,6 +5,8 @@ subscribes to the garments like a display would. Latency of a frame = arrival of
 mesh here - publication of its body frame (same clock). Runs:
   * one session (one outfit, two garments) at 60 Hz input: p50/p99 latency, dropped frames;
   * the same at the clips' native 120 Hz;
+  * where those runs' time goes: the body frame's trip to another process, the cloth service's
+    stamps of each frame's garment messages, their trip to this subscriber;
   * sustained throughput: input as fast as possible;
   * concurrent 60 Hz sessions on one cloth service, 1..N: how many it holds (no dropped frame,
     latency not growing).
@@ -50,7 +52,9 @@ class Arrivals:
     def __init__(self, bus, sessions: list[str]):
         self.lock = threading.Lock()
         self.frames: dict[tuple[str, int], dict] = {}  # (session, frame) -> {garment: (arrival, origin)}
+        self.stamps: dict[tuple[str, int], list[int]] = {}  # (session, frame) -> its garments' own stamps
         self.body: dict[str, list[int]] = {s: [] for s in sessions}
+        self.body_delay: dict[str, list[int]] = {s: [] for s in sessions}  # body frame arrival here - its stamp
         self.garment_bytes: dict[str, int] = {}  # garment -> size of its last message
         self.subs = []
         for s in sessions:
@@ -67,12 +71,15 @@ class Arrivals:
         with self.lock:
             self.garment_bytes[parse_key(k)[1][1]] = len(data)
             self.frames.setdefault((m.session, m.frame), {})[parse_key(k)[1][1]] = (now, m.origin_ns, m.meta)
+            self.stamps.setdefault((m.session, m.frame), []).append(m.stamp_ns)
 
     def on_body(self, sample) -> None:
+        now = time.time_ns()
         k = str(sample.key_expr)
         m = decode(sample.payload.to_bytes(), k)
         with self.lock:
             self.body[m.session].append(m.frame)
+            self.body_delay[m.session].append(now - m.stamp_ns)
 
     def close(self):
         for s in self.subs:
@@ -88,6 +95,23 @@ class Arrivals:
         compute = np.array([sum(sum(v for k, v in meta.items() if k.endswith("_ms")) for _, _, meta in full[f].values())
                             for f in body if f in full])
         return lat, dropped, len(body), compute
+
+    def breakdown(self, session: str, garments: int = 2) -> list[float]:
+        """Where a frame's latency goes, p50 ms over its complete frames: the body frame's arrival
+        in this (another) process, the cloth service's stamps of its first and last garment message
+        (each stamped as it is encoded), and the last garment's arrival here, all after the body
+        frame's publication; then the garment messages' own trip (arrival - stamp), p50 and p99."""
+        with self.lock:
+            full = {f: g for (s, f), g in self.frames.items() if s == session and len(g) == garments}
+            stamps = {f: self.stamps[(session, f)] for f in full}
+            body = np.array(self.body_delay[session][1:]) / 1e6
+        origin = {f: max(o for _, o, _ in g.values()) for f, g in full.items()}
+        first = np.array([min(stamps[f]) - origin[f] for f in full]) / 1e6
+        last = np.array([max(stamps[f]) - origin[f] for f in full]) / 1e6
+        end = np.array([max(a for a, _, _ in g.values()) - origin[f] for f, g in full.items()]) / 1e6
+        trip = np.array([a - st for f, g in full.items() for (a, _, _), st in zip(g.values(), stamps[f])]) / 1e6
+        med = [float(np.median(x)) if len(x) else float("nan") for x in (body, first, last, end, trip)]
+        return med + [float(np.percentile(trip, 99)) if len(trip) else float("nan")]
 
 
 def cli(*args) -> list[str]:
@@ -146,7 +170,9 @@ def pct(lat: np.ndarray, q: float) -> str:
     return f"{np.percentile(lat, q):.0f}" if len(lat) else "-"
 
 
-def latency_rows(endpoint: str, seconds: float, level: int, label: str) -> None:
+def latency_rows(endpoint: str, seconds: float, level: int, label: str, breakdown: list[str]) -> None:
+    """One row of the latency table per input rate; appends the run's `Arrivals.breakdown` row to
+    breakdown (printed as a table of its own after the latency table)."""
     for rate, every in (("60 Hz", 2), ("120 Hz (native)", 1)):
         n = int(seconds * 120 / every)
         name = f"one-{label.strip('-').replace(' ', '-')}-{every}"  # a fresh session per run
@@ -154,6 +180,7 @@ def latency_rows(endpoint: str, seconds: float, level: int, label: str) -> None:
         lat, dropped, total, compute = a.result(name)
         print(f"| {label} | {rate} | {total} | {pct(lat, 50)} | {pct(lat, 99)} | {pct(lat, 100)} | {dropped} | "
               f"{np.median(compute) if len(compute) else float('nan'):.1f} |", flush=True)
+        breakdown.append(f"| {label} | {rate} | " + " | ".join(f"{x:.2f}" for x in a.breakdown(name)) + " |")
 
 
 def main() -> None:
@@ -180,15 +207,23 @@ def main() -> None:
     print("| cloth service | input | frames | latency p50 ms | p99 ms | max ms | frames without garments | "
           "compute ms/frame |")
     print("|---|---|---|---|---|---|---|---|")
+    breakdown: list[str] = []
     cloth = start_cloth(endpoint, args.level, catch_up=True, pin_cores=args.pin_cores)
     try:
-        latency_rows(endpoint, args.seconds, args.level, "--catch-up")
+        latency_rows(endpoint, args.seconds, args.level, "--catch-up", breakdown)
     finally:
         cloth.terminate()
         cloth.wait(10)
     cloth = start_cloth(endpoint, args.level, catch_up=False, pin_cores=args.pin_cores)
     try:
-        latency_rows(endpoint, args.seconds, args.level, "in order")
+        latency_rows(endpoint, args.seconds, args.level, "in order", breakdown)
+        print("\nwhere the time goes, p50 ms after a body frame's publication (its arrival in another process; "
+              "the cloth service's stamps of its first and last garment; the last one's arrival), then a garment "
+              "message's own trip, stamp to arrival, p50 / p99:\n")
+        print("| cloth service | input | body here | first garment stamped | last stamped | last here | "
+              "garment trip p50 | p99 |")
+        print("|---|---|---|---|---|---|---|---|")
+        print("\n".join(breakdown), flush=True)
         n = int(args.seconds * 60)
         t0 = time.perf_counter()
         a = run(endpoint, ["fast"], 2, "fast", n, args.level)
