@@ -409,6 +409,9 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
     carried from the frame before stand the particles off the PN patch along n_i, which can take
     them into another body part over the cloth (the walk's blouse: particles raised 10-20 mm
     earlier, 1-6 mm inside the arm, their face's corners farther than the margin, never tested).
+    The Lipschitz reach counts a particle's |Δh| too (eighty-fifth session): one left untested gets
+    S106's floor of 0, and can end |Δh| from where its parents' readings bound it (a particle S103
+    had lowered 22 mm under the arm came back up to the PN patch, 3 mm inside the arm).
     p, dh: positions and heights, updated in place; dh_pen: Δh_penetration (out, negative where
     a body part on the cloth's outer side lowered the particle, see `_lift_out`); sd: signed
     distance of each tested particle after lifting (UNTESTED otherwise); facing: n_i . n_body
@@ -476,6 +479,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                 hit = False
                 bound = 0  # tested parents, and of those, the ones that leave room for it inside
                 room = 0
+                # (the heights' reach: untested, S106 may take it back to the PN patch, |Δh| away)
+                shift = abs(dh[vid]) if heights else 0.0
                 for m in range(3):
                     par = parents[loc, m]
                     if par < 0:
@@ -490,7 +495,7 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                         gx, gy, gz = p[vid, 0] - p[pid, 0], p[vid, 1] - p[pid, 1], p[vid, 2] - p[pid, 2]
                         g = math.sqrt(gx * gx + gy * gy + gz * gz)
                         bound += 1
-                        if sd[pid] < clearance + g:
+                        if sd[pid] < clearance + g + shift:
                             room += 1
                         # (the Lipschitz check below: the first parent of least reach)
                         reach_p = abs(sd[pid]) + g + RECHECK_SLACK

@@ -829,6 +829,47 @@ def test_particles_raised_into_a_body_part_over_the_cloth_are_tested(height_reac
         assert p[raised, 1].max() < 0.0101
 
 
+def test_particles_lowered_under_a_body_part_are_tested_where_they_would_come_back_to():
+    """Decision (S103's heights' reach inside a face, eighty-fifth session): a small arm box (x 9-11
+    cm, z 1-3 cm, y -4..6 mm) through the sheet's reference surface between coarse vertices, a torso
+    box 26 mm under the sheet. The particles over the arm carry Δh = -13 mm from the frame before
+    (S103 lowered them under the arm then), 9 mm under it. Their parents, lowered too, read 9-10 mm
+    from the arm: by the Lipschitz reach alone (each parent within the clearance plus its distance)
+    the finest one under the arm's middle was not tested, and S106's floor for an untested particle,
+    the reference surface, took it back up into the arm (the walk's silk blouse at frame 68: 3 mm
+    into the arm, lowered by 22 mm the frame before). The reach counts a particle's |Δh| too now:
+    every particle under the arm is tested, stays 1 mm under it, and none ends inside."""
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings())
+    tv, tt = box(half=0.05, n=8)
+    tv = tv + [0.08, -0.026 - 0.05, 0.04]  # torso: top face at y = -26 mm
+    av, at = box(half=0.01, n=4)
+    av = av * [1.0, 0.5, 1.0] + [0.10, 0.001, 0.02]  # arm: x 9-11 cm, y -4..6 mm, z 1-3 cm
+    bv = np.ascontiguousarray(np.vstack([tv, av]))
+    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
+    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
+    body = BodyMesh.build(bt, len(bv), regions)
+    grid = VertexGrid(len(bv))
+    grid.update(bv, regions)
+    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
+    winding.update(bv)
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    assert not np.any(np.all(np.abs(x - [0.10, 0.001, 0.02]) < [0.01, 0.005, 0.01], axis=1))  # no coarse vertex in it
+    nearest = np.array([int(np.argmin(np.linalg.norm(tv - q, axis=1))) for q in x], dtype=np.int32)
+    surf.step(x, nearest, bv, body, face_normals(bv, bt), DT, grid, winding=winding.arrays())
+    s = surf.state
+    fine = np.arange(len(s.p)) >= m.tess.n_coarse
+    over_arm = fine & np.all(np.abs(s.p_smoothed - [0.10, 0.0, 0.02])[:, [0, 2]] < 0.014, axis=1)
+    s.dh[:] = 0.0
+    s.dh[over_arm] = -0.013  # (Δh_last_frame: lowered under the arm, now 9 mm under it, 13 mm over the torso)
+    p = surf.step(x, nearest, bv, body, face_normals(bv, bt), DT, grid, winding=winding.arrays())[0]
+    inside_arm = np.all(np.abs(p - [0.10, 0.001, 0.02]) < [0.01 - 1e-6, 0.005 - 1e-6, 0.01 - 1e-6], axis=1)
+    under_arm = np.all(np.abs(s.p_smoothed - [0.10, 0.0, 0.02])[:, [0, 2]] < 0.01, axis=1)
+    assert over_arm.sum() > under_arm.sum() >= 9
+    assert np.isfinite(s.sd[under_arm]).all()
+    assert not inside_arm.any()
+
+
 def test_a_small_body_part_anywhere_under_the_sheet_is_left_by_every_detailed_particle():
     """A small arm box (12 mm, its bottom 1 mm under the sheet) at 60 places over a torso box 4 mm
     under the sheet: no detailed particle that is not a coarse vertex stays inside it. S103 used
