@@ -52,7 +52,7 @@ class Arrivals:
     def __init__(self, bus, sessions: list[str]):
         self.lock = threading.Lock()
         self.frames: dict[tuple[str, int], dict] = {}  # (session, frame) -> {garment: (arrival, origin)}
-        self.stamps: dict[tuple[str, int], list[int]] = {}  # (session, frame) -> its garments' own stamps
+        self.stamps: dict[tuple[str, int], dict] = {}  # (session, frame) -> {garment: its message's own stamp}
         self.body: dict[str, list[int]] = {s: [] for s in sessions}
         self.body_delay: dict[str, list[int]] = {s: [] for s in sessions}  # body frame arrival here - its stamp
         self.garment_bytes: dict[str, int] = {}  # garment -> size of its last message
@@ -71,7 +71,7 @@ class Arrivals:
         with self.lock:
             self.garment_bytes[parse_key(k)[1][1]] = len(data)
             self.frames.setdefault((m.session, m.frame), {})[parse_key(k)[1][1]] = (now, m.origin_ns, m.meta)
-            self.stamps.setdefault((m.session, m.frame), []).append(m.stamp_ns)
+            self.stamps.setdefault((m.session, m.frame), {})[parse_key(k)[1][1]] = m.stamp_ns
 
     def on_body(self, sample) -> None:
         now = time.time_ns()
@@ -106,10 +106,10 @@ class Arrivals:
             stamps = {f: self.stamps[(session, f)] for f in full}
             body = np.array(self.body_delay[session][1:]) / 1e6
         origin = {f: max(o for _, o, _ in g.values()) for f, g in full.items()}
-        first = np.array([min(stamps[f]) - origin[f] for f in full]) / 1e6
-        last = np.array([max(stamps[f]) - origin[f] for f in full]) / 1e6
+        first = np.array([min(stamps[f].values()) - origin[f] for f in full]) / 1e6
+        last = np.array([max(stamps[f].values()) - origin[f] for f in full]) / 1e6
         end = np.array([max(a for a, _, _ in g.values()) - origin[f] for f, g in full.items()]) / 1e6
-        trip = np.array([a - st for f, g in full.items() for (a, _, _), st in zip(g.values(), stamps[f])]) / 1e6
+        trip = np.array([a - stamps[f][name] for f, g in full.items() for name, (a, _, _) in g.items()]) / 1e6
         med = [float(np.median(x)) if len(x) else float("nan") for x in (body, first, last, end, trip)]
         return med + [float(np.percentile(trip, 99)) if len(trip) else float("nan")]
 
