@@ -750,6 +750,12 @@ def torso_under_arm(torso_top, arm_bottom, arm_top, arm_quads=8):
     av, at = box(half=0.03, n=arm_quads)
     half = 0.5 * (arm_top - arm_bottom)
     av = av * [1.0, half / 0.03, 1.0] + [0.08, arm_bottom + half, 0.04]
+    return (tv, *torso_and_arm(tv, tt, av, at))
+
+
+def torso_and_arm(tv, tt, av, at):
+    """Two boxes (vertices, triangles) as two body parts, torso then arm: (body vertices,
+    triangles, BodyMesh, VertexGrid, WindingGrid), the grids updated."""
     bv = np.ascontiguousarray(np.vstack([tv, av]))
     bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
     regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
@@ -758,7 +764,7 @@ def torso_under_arm(torso_top, arm_bottom, arm_top, arm_quads=8):
     grid.update(bv, regions)
     winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
     winding.update(bv)
-    return tv, bv, bt, body, grid, winding
+    return bv, bt, body, grid, winding
 
 
 @pytest.mark.parametrize("arm_quads", [8, 2])
@@ -844,14 +850,7 @@ def test_particles_lowered_under_a_body_part_are_tested_where_they_would_come_ba
     tv = tv + [0.08, -0.026 - 0.05, 0.04]  # torso: top face at y = -26 mm
     av, at = box(half=0.01, n=4)
     av = av * [1.0, 0.5, 1.0] + [0.10, 0.001, 0.02]  # arm: x 9-11 cm, y -4..6 mm, z 1-3 cm
-    bv = np.ascontiguousarray(np.vstack([tv, av]))
-    bt = np.vstack([tt, at + len(tv)]).astype(np.int32)
-    regions = np.r_[np.full(len(tv), 1), np.full(len(av), 2)].astype(np.uint16)
-    body = BodyMesh.build(bt, len(bv), regions)
-    grid = VertexGrid(len(bv))
-    grid.update(bv, regions)
-    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
-    winding.update(bv)
+    bv, bt, body, grid, winding = torso_and_arm(tv, tt, av, at)
     surf = DetailedSurface(m)
     x = m.cloth.rest_positions.copy()
     assert not np.any(np.all(np.abs(x - [0.10, 0.001, 0.02]) < [0.01, 0.005, 0.01], axis=1))  # no coarse vertex in it
