@@ -379,6 +379,24 @@ def _lift_out(p, vid, seed, x, corners, parts, groups, group_reach, n_groups, d,
     return d, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
 
 
+@helper
+def nearest_corner_seed(p, vid, f, face_ids, order, coarse_nearest, body_x):
+    """S103's seed for detailed particle vid of coarse face f: of its corners' nearest body
+    vertices, the nearest to it (a point of the body: a walk reading p farther than it starts
+    again from it, `_detail_signed_distance`). Decision (the nearest corner's seed, eighty-sixth
+    session): the first corner's alone let a walk stuck on a local minimum stand: the walk's sports
+    top under the right arm read 16-21 mm outside at the armpit over ten frames, its face walk and
+    vertex walk both stopped on the torso's side of the armpit, where it was up to 2.7 mm inside the
+    arm, and another corner's nearest vertex, on the arm, was 10-14 mm from it."""
+    best, best_d2 = -1, np.inf
+    for c in range(3):
+        v = coarse_nearest[face_ids[f, order[c]]]
+        d2 = (body_x[v, 0] - p[vid, 0]) ** 2 + (body_x[v, 1] - p[vid, 1]) ** 2 + (body_x[v, 2] - p[vid, 2]) ** 2
+        if d2 < best_d2:
+            best, best_d2 = v, d2
+    return best
+
+
 @kernel
 def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_ids, order, parents, ctrl, x,
                       coarse_nearest, find_parts, part_seeds, seed_reach, seed_count, corners, parts, reach, groups,
@@ -507,7 +525,8 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                     continue
             if sd[vid] == UNTESTED:
                 tested += 1
-                seed = coarse_nearest[vid] if vid < n_coarse else coarse_nearest[face_ids[f, 0]]
+                seed = coarse_nearest[vid] if vid < n_coarse else nearest_corner_seed(p, vid, f, face_ids, order,
+                                                                                      coarse_nearest, body_x)
                 d = np.inf
                 kept = -1
                 for attempt in range(2 if recheck else 1):

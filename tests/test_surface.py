@@ -668,6 +668,40 @@ def test_a_reading_farther_than_its_parents_allow_is_walked_again_from_theirs(re
         assert s.sd[vid] > 0.045 and s.body_face[vid] >= len(at)
 
 
+def test_a_walk_reading_farther_than_a_corners_nearest_vertex_walks_again_from_it():
+    """Decision (S103, the nearest corner's seed): the two boxes of the Lipschitz check's test, its
+    check and the particle's own vertex off. After a first frame one finer particle's walk is
+    remembered on the upper box (5 cm over the sheet: a walk stopped on a local minimum), and the
+    first corner of its coarse face gets a nearest vertex on the upper box's top. The nearest of
+    its corners' nearest vertices, on the lower box, is nearer to it than 5 cm, so the reading is
+    a local minimum's: it walks again from that vertex and reads the lower box, 3 mm. With the
+    first corner's vertex as its seed (the rule before), the upper box's reading stood."""
+    av, at = box(half=0.1, n=8)
+    av = av + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
+    uv, ut = box(half=0.01, n=2)
+    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    bv = np.ascontiguousarray(np.concatenate([av, uv]))
+    bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
+    body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=False))
+    t = m.tess
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(av - q, axis=1))) for q in x], dtype=np.int32)
+    surf.step(x, nearest, bv, body, face_n, DT)
+    s = surf.state
+    f = 2  # a coarse triangle in the sheet's middle, over the lower box
+    vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
+    assert np.isclose(s.sd[vid], 0.003)
+    s.body_face[vid] = len(at) + int(np.argmin(bv[bt[len(at):]].mean(axis=1)[:, 1]))  # the upper box's bottom
+    nearest[t.face_ids[f, 0]] = len(av) + int(np.argmax(uv[:, 1]))  # a vertex on the upper box's top
+    corners = t.face_ids[f, t.order[:3]]
+    seeds = bv[nearest[corners]]
+    assert np.linalg.norm(seeds - s.p[vid], axis=1).min() < 0.045 < np.linalg.norm(seeds[0] - s.p[vid])
+    surf.step(x, nearest, bv, body, face_n, DT)
+    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(at)
+
+
 def far_body():
     """A box 1 m under the sheet (nothing near it): the flat reference surface."""
     bv, bt = box(half=0.05, n=2)
