@@ -702,6 +702,79 @@ def test_a_walk_reading_farther_than_a_corners_nearest_vertex_walks_again_from_i
     assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(at)
 
 
+def test_a_nearer_reading_from_the_last_frames_walk_in_another_part_decides_in_the_same_part():
+    """Decision (S103, a nearer reading in the same part): the two boxes of the Lipschitz check's
+    test, one body part, its check and the particle's own vertex off, every seed on the upper box.
+    One finer particle's walk is remembered on the upper box (5 cm away: a walk stopped on a local
+    minimum) and its walk in another part on the lower box's top (as where such a walk ended the
+    frame before). That walk ends in the first walk's part: it reads 3 mm, the nearer reading
+    decides, and the next frame's walk starts from where it ended. (Before, a walk that came back
+    to the first walk's part was dropped, and the 5 cm reading stood.)"""
+    av, at = box(half=0.1, n=8)
+    av = av + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
+    uv, ut = box(half=0.01, n=2)
+    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    bv = np.ascontiguousarray(np.concatenate([av, uv]))
+    bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
+    body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=False))
+    t = m.tess
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(av - q, axis=1))) for q in x], dtype=np.int32)
+    surf.step(x, nearest, bv, body, face_n, DT)
+    s = surf.state
+    f = 2  # a coarse triangle in the sheet's middle, over the lower box
+    vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
+    assert np.isclose(s.sd[vid], 0.003)
+    lower = int(s.body_face[vid])
+    s.body_face[vid] = len(at) + int(np.argmin(bv[bt[len(at):]].mean(axis=1)[:, 1]))  # the upper box's bottom
+    s.part_face[vid] = lower
+    nearest[:] = len(av) + int(np.argmax(uv[:, 1]))  # a vertex on the upper box's top
+    surf.step(x, nearest, bv, body, face_n, DT)
+    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(at) and s.part_face[vid] == -1
+
+
+def test_a_seed_of_the_walked_part_nearer_than_the_reading_walks_again_from_it():
+    """Decision (S103, a seed nearer than the reading): the two boxes of the Lipschitz check's test
+    as one body part (A), and a small box 7.5-8.5 cm over the sheet as another (B); its check and the
+    particle's own vertex off, a vertex grid of 10 cm cells. After a first frame one finer particle's
+    walk is remembered on the upper box of A (5 cm away: a walk stopped on a local minimum), and
+    every coarse particle's nearest vertex is put on B, farther than that, so the nearest corner's
+    seed does not fire. The seeds of A near the corners (the grid's, on the lower box's top) are
+    nearer to it than 5 cm: it walks again from the nearest and reads the lower box, 3 mm. Before,
+    the part the first walk ended in was never walked again, and the 5 cm reading stood."""
+    lv, lt = box(half=0.1, n=8)
+    lv = lv + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
+    uv, ut = box(half=0.01, n=2)
+    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    ov, ot = box(half=0.005, n=1)
+    ov = ov + [0.08, 0.08, 0.04]  # part B: y 75-85 mm
+    bv = np.ascontiguousarray(np.concatenate([lv, uv, ov]))
+    bt = np.concatenate([lt, ut + len(lv), ot + len(lv) + len(uv)]).astype(np.int32)
+    regions = np.r_[np.full(len(lv) + len(uv), 1), np.full(len(ov), 2)].astype(np.uint16)
+    body, face_n = BodyMesh.build(bt, len(bv), regions), face_normals(bv, bt)
+    grid = VertexGrid(len(bv), cell=0.1)
+    grid.update(bv, regions)
+    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=False))
+    t = m.tess
+    surf = DetailedSurface(m)
+    x = m.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(lv - q, axis=1))) for q in x], dtype=np.int32)
+    surf.step(x, nearest, bv, body, face_n, DT, grid)
+    s = surf.state
+    f = 2  # a coarse triangle in the sheet's middle, over the lower box
+    vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
+    assert np.isclose(s.sd[vid], 0.003) and s.part_face[vid] == -1
+    s.body_face[vid] = len(lt) + int(np.argmin(bv[bt[len(lt):len(lt) + len(ut)]].mean(axis=1)[:, 1]))  # its bottom
+    b0 = len(lv) + len(uv)
+    nearest = np.array([b0 + int(np.argmin(np.linalg.norm(ov - q, axis=1))) for q in x], dtype=np.int32)
+    corners = t.face_ids[f, t.order[:3]]
+    assert np.linalg.norm(bv[nearest[corners]] - s.p[vid], axis=1).min() > 0.05  # (the corners' seeds: no)
+    surf.step(x, nearest, bv, body, face_n, DT, grid)
+    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(lt)
+
+
 def far_body():
     """A box 1 m under the sheet (nothing near it): the flat reference surface."""
     bv, bt = box(half=0.05, n=2)
