@@ -178,47 +178,42 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
     behind = False
     for g in range(n_groups):
         r = groups[g, 0]
-        if r == walked:
-            # Decision (a seed nearer than the reading, eighty-sixth session): a seed is a point of the
-            # body, so one nearer to p than |d| says the first walk stopped on a local minimum (the
-            # blouse's particle at the bent elbow read 11 mm off the forearm, 1.8 mm inside it, with a
-            # forearm vertex 8 mm away); a walk from that seed, where nearer, decides
-            sk, dk2 = -1, d * d
-            for j in range(groups[g, 1], groups[g, 2]):
-                sj = parts[j, 0]
-                dj2 = (body_x[sj, 0] - px) ** 2 + (body_x[sj, 1] - py) ** 2 + (body_x[sj, 2] - pz) ** 2
-                if dj2 < dk2:
-                    dk2, sk = dj2, sj
-            if sk >= 0:
-                dk, mx, my, mz, ax, ay, az, last = other_part_distance(px, py, pz, sk, -1, abs(d), body_x, nbr_start,
-                                                                       nbr_ids, regions, tris, tri_start, tri_ids,
-                                                                       tri_nbrs, face_n, q)
-                if last >= 0 and abs(dk) < abs(d):
-                    d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
-                    body_face[i] = last
-            continue
-        if dc0 < 0.0:
-            c = corners[0]
-            dc0 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
-            c = corners[1]
-            dc1 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
-            c = corners[2]
-            dc2 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
-        bound = max(group_reach[g, 0] - PART_SLACK - dc0, group_reach[g, 1] - PART_SLACK - dc1,
-                    group_reach[g, 2] - PART_SLACK - dc2)
-        if bound >= abs(d):
-            other = min(other, bound)
-            continue
-        sk = parts[groups[g, 1], 0]  # from its seed nearest to p (the first of equals)
-        dk2 = np.inf
+        same = r == walked
+        if not same:
+            if dc0 < 0.0:
+                c = corners[0]
+                dc0 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
+                c = corners[1]
+                dc1 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
+                c = corners[2]
+                dc2 = math.sqrt((x[c, 0] - px) ** 2 + (x[c, 1] - py) ** 2 + (x[c, 2] - pz) ** 2)
+            bound = max(group_reach[g, 0] - PART_SLACK - dc0, group_reach[g, 1] - PART_SLACK - dc1,
+                        group_reach[g, 2] - PART_SLACK - dc2)
+            if bound >= abs(d):
+                other = min(other, bound)
+                continue
+        # from its seed nearest to p (the first of equals). Decision (a seed nearer than the reading,
+        # eighty-sixth session): in the part the first walk ended in, only from a seed nearer to p than
+        # |d|: a seed is a point of the body, so the walk stopped on a local minimum (the blouse's
+        # particle at the bent elbow read 11 mm off the forearm, 1.8 mm inside it, with a forearm
+        # vertex 8 mm away)
+        sk = -1 if same else parts[groups[g, 1], 0]
+        dk2 = d * d if same else np.inf
         for j in range(groups[g, 1], groups[g, 2]):
             sj = parts[j, 0]
             dj2 = (body_x[sj, 0] - px) ** 2 + (body_x[sj, 1] - py) ** 2 + (body_x[sj, 2] - pz) ** 2
             if dj2 < dk2:
                 dk2, sk = dj2, sj
+        if sk < 0:
+            continue
         dk, mx, my, mz, ax, ay, az, last = other_part_distance(px, py, pz, sk, -1, abs(d), body_x, nbr_start,
                                                                nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs,
                                                                face_n, q)
+        if same:
+            if last >= 0 and abs(dk) < abs(d):  # the nearer reading decides, and next frame's walk starts there
+                d, nx, ny, nz, qx, qy, qz = dk, mx, my, mz, ax, ay, az
+                body_face[i] = last
+            continue
         other = min(other, abs(dk) if abs(dk) < np.inf else abs(d))
         if last >= 0 and regions[tris[last, 0]] != walked:
             if abs(dk) < PART_NEAR:
