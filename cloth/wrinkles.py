@@ -115,7 +115,10 @@ def _detail_signed_distance(p, i, seed, x, corners, parts, groups, group_reach, 
     two, 8 % off S103, but more particles deeper than 1 mm, 647 / 1,561 → 664 / 1,642 on the
     walk's casual outfit; fifty-sixth session); start_face >= 0 (the face where p's walk
     in another part ended the frame before, part_face[i]) replaces them while that walk ends in
-    another part.
+    another part. A seed is a point of the body, so the part the first walk ended in is walked too
+    from its seed nearest to p where that seed is nearer than the first walk's reading, and a walk
+    from start_face that comes back to that part keeps its reading where nearer (eighty-sixth
+    session: walks stopped on a local minimum at the armpit and the bent elbow).
     (No bound from the particle's parents in the hierarchy: a parent on a coarse edge or corner
     was measured in a neighbouring coarse face, against that face's parts, and its distance
     ruled out a part of this face that it never looked at; fifty-fifth session.)
