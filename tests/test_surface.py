@@ -627,6 +627,27 @@ def test_a_finer_particle_is_tested_while_its_parents_distances_leave_it_room_in
     assert np.all(np.isfinite(surf.state.sd[par_ids]))
 
 
+def boxes_under_and_over():
+    """The body of the tests of walks stopped on a local minimum: a box whose top lies 3 mm under the
+    whole sheet, and a small box whose bottom lies 5 cm over the sheet's middle: (lower box vertices,
+    triangles, upper box vertices, triangles)."""
+    lv, lt = box(half=0.1, n=8)
+    uv, ut = box(half=0.01, n=2)
+    return lv + [0.08, -0.103, 0.04], lt, uv + [0.08, 0.06, 0.04], ut
+
+
+def first_frame_over_the_lower_box(bv, body, face_n, lower, recheck, grid=None):
+    """The sheet's first frame over a body of `boxes_under_and_over` (the particle's own vertex off,
+    the Lipschitz check as given), every coarse particle's nearest vertex on the lower box (vertices
+    `lower`, the first of bv's): (surface, coarse positions, their nearest vertices)."""
+    surf = DetailedSurface(build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False,
+                                                                                    recheck=recheck)))
+    x = surf.model.cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(lower - q, axis=1))) for q in x], dtype=np.int32)
+    surf.step(x, nearest, bv, body, face_n, DT, grid)
+    return surf, x, nearest
+
+
 @pytest.mark.parametrize("recheck", [True, False])
 def test_a_reading_farther_than_its_parents_allow_is_walked_again_from_theirs(recheck):
     """Decision (S103, the Lipschitz check): a sheet 3 mm over a box, a small box 5 cm over the
@@ -636,20 +657,12 @@ def test_a_reading_farther_than_its_parents_allow_is_walked_again_from_theirs(re
     vertex: off). Its tested parents read 3 mm, 2 cm from it, so its reading of 5 cm cannot
     be right: with the check it walks again from a parent's face and reads the lower box, 3 mm
     (the exact distance); without it reads the upper box."""
-    av, at = box(half=0.1, n=8)
-    av = av + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
-    uv, ut = box(half=0.01, n=2)
-    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    av, at, uv, ut = boxes_under_and_over()
     bv = np.ascontiguousarray(np.concatenate([av, uv]))
     bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
     body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
-    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=recheck))
-    t = m.tess
-    surf = DetailedSurface(m)
-    x = m.cloth.rest_positions.copy()
-    nearest = np.array([int(np.argmin(np.linalg.norm(av - q, axis=1))) for q in x], dtype=np.int32)
-    surf.step(x, nearest, bv, body, face_n, DT)
-    s = surf.state
+    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, av, recheck)
+    t, s = surf.model.tess, surf.state
     f = 2  # a coarse triangle in the sheet's middle, over the lower box
     loc = int(t.order[3])  # the first particle after the corners, tested from them
     vid = t.face_ids[f, loc]
@@ -676,20 +689,12 @@ def test_a_walk_reading_farther_than_a_corners_nearest_vertex_walks_again_from_i
     its corners' nearest vertices, on the lower box, is nearer to it than 5 cm, so the reading is
     a local minimum's: it walks again from that vertex and reads the lower box, 3 mm. With the
     first corner's vertex as its seed (the rule before), the upper box's reading stood."""
-    av, at = box(half=0.1, n=8)
-    av = av + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
-    uv, ut = box(half=0.01, n=2)
-    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    av, at, uv, ut = boxes_under_and_over()
     bv = np.ascontiguousarray(np.concatenate([av, uv]))
     bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
     body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
-    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=False))
-    t = m.tess
-    surf = DetailedSurface(m)
-    x = m.cloth.rest_positions.copy()
-    nearest = np.array([int(np.argmin(np.linalg.norm(av - q, axis=1))) for q in x], dtype=np.int32)
-    surf.step(x, nearest, bv, body, face_n, DT)
-    s = surf.state
+    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, av, False)
+    t, s = surf.model.tess, surf.state
     f = 2  # a coarse triangle in the sheet's middle, over the lower box
     vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
     assert np.isclose(s.sd[vid], 0.003)
@@ -710,20 +715,12 @@ def test_a_nearer_reading_from_the_last_frames_walk_in_another_part_decides_in_t
     frame before). That walk ends in the first walk's part: it reads 3 mm, the nearer reading
     decides, and the next frame's walk starts from where it ended. (Before, a walk that came back
     to the first walk's part was dropped, and the 5 cm reading stood.)"""
-    av, at = box(half=0.1, n=8)
-    av = av + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
-    uv, ut = box(half=0.01, n=2)
-    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    av, at, uv, ut = boxes_under_and_over()
     bv = np.ascontiguousarray(np.concatenate([av, uv]))
     bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
     body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
-    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=False))
-    t = m.tess
-    surf = DetailedSurface(m)
-    x = m.cloth.rest_positions.copy()
-    nearest = np.array([int(np.argmin(np.linalg.norm(av - q, axis=1))) for q in x], dtype=np.int32)
-    surf.step(x, nearest, bv, body, face_n, DT)
-    s = surf.state
+    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, av, False)
+    t, s = surf.model.tess, surf.state
     f = 2  # a coarse triangle in the sheet's middle, over the lower box
     vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
     assert np.isclose(s.sd[vid], 0.003)
@@ -744,10 +741,7 @@ def test_a_seed_of_the_walked_part_nearer_than_the_reading_walks_again_from_it()
     seed does not fire. The seeds of A near the corners (the grid's, on the lower box's top) are
     nearer to it than 5 cm: it walks again from the nearest and reads the lower box, 3 mm. Before,
     the part the first walk ended in was never walked again, and the 5 cm reading stood."""
-    lv, lt = box(half=0.1, n=8)
-    lv = lv + [0.08, -0.103, 0.04]  # top at y = -3 mm, under the whole sheet
-    uv, ut = box(half=0.01, n=2)
-    uv = uv + [0.08, 0.06, 0.04]  # bottom at y = +50 mm
+    lv, lt, uv, ut = boxes_under_and_over()
     ov, ot = box(half=0.005, n=1)
     ov = ov + [0.08, 0.08, 0.04]  # part B: y 75-85 mm
     bv = np.ascontiguousarray(np.concatenate([lv, uv, ov]))
@@ -756,13 +750,8 @@ def test_a_seed_of_the_walked_part_nearer_than_the_reading_walks_again_from_it()
     body, face_n = BodyMesh.build(bt, len(bv), regions), face_normals(bv, bt)
     grid = VertexGrid(len(bv), cell=0.1)
     grid.update(bv, regions)
-    m = build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False, recheck=False))
-    t = m.tess
-    surf = DetailedSurface(m)
-    x = m.cloth.rest_positions.copy()
-    nearest = np.array([int(np.argmin(np.linalg.norm(lv - q, axis=1))) for q in x], dtype=np.int32)
-    surf.step(x, nearest, bv, body, face_n, DT, grid)
-    s = surf.state
+    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, lv, False, grid)
+    t, s = surf.model.tess, surf.state
     f = 2  # a coarse triangle in the sheet's middle, over the lower box
     vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
     assert np.isclose(s.sd[vid], 0.003) and s.part_face[vid] == -1
