@@ -2,6 +2,7 @@
 stretched faces, penetration avoidance against a box and a sphere."""
 
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -627,25 +628,44 @@ def test_a_finer_particle_is_tested_while_its_parents_distances_leave_it_room_in
     assert np.all(np.isfinite(surf.state.sd[par_ids]))
 
 
-def boxes_under_and_over():
-    """The body of the tests of walks stopped on a local minimum: a box whose top lies 3 mm under the
-    whole sheet, and a small box whose bottom lies 5 cm over the sheet's middle: (lower box vertices,
-    triangles, upper box vertices, triangles)."""
+def stuck_over_the_lower_box(recheck=False, part_b=False):
+    """The body of the tests of walks stopped on a local minimum, after the sheet's first frame: a
+    box whose top lies 3 mm under the whole sheet, a small box whose bottom lies 5 cm over its
+    middle and, with part_b, a smaller box 7.5-8.5 cm over it as a second body part (with a vertex
+    grid of 10 cm cells); the particle's own vertex off, the Lipschitz check as given, every coarse
+    particle's nearest vertex on the lower box. Returns a namespace: surf, s (its state), t (its
+    tessellation), x, nearest, bv, body, face_n, grid (None without part_b), f (a coarse triangle in
+    the sheet's middle), vid (its first particle after the corners, read 3 mm), lower_faces (the
+    lower box's face count: faces below it are its), upper_bottom (a face on the upper box's bottom),
+    upper_top (a vertex on its top), ov and b0 (part B's vertices and the first one's index)."""
     lv, lt = box(half=0.1, n=8)
+    lv = lv + [0.08, -0.103, 0.04]
     uv, ut = box(half=0.01, n=2)
-    return lv + [0.08, -0.103, 0.04], lt, uv + [0.08, 0.06, 0.04], ut
-
-
-def first_frame_over_the_lower_box(bv, body, face_n, lower, recheck, grid=None):
-    """The sheet's first frame over a body of `boxes_under_and_over` (the particle's own vertex off,
-    the Lipschitz check as given), every coarse particle's nearest vertex on the lower box (vertices
-    `lower`, the first of bv's): (surface, coarse positions, their nearest vertices)."""
+    uv = uv + [0.08, 0.06, 0.04]
+    ov, ot = box(half=0.005, n=1)
+    ov = ov + [0.08, 0.08, 0.04]
+    meshes = [(lv, lt), (uv, ut)] + ([(ov, ot)] if part_b else [])
+    starts = np.cumsum([0] + [len(v) for v, _ in meshes])
+    bv = np.ascontiguousarray(np.concatenate([v for v, _ in meshes]))
+    bt = np.concatenate([tr + k for (_, tr), k in zip(meshes, starts)]).astype(np.int32)
+    regions = np.r_[np.full(len(lv) + len(uv), 1), np.full(len(bv) - len(lv) - len(uv), 2)].astype(np.uint16)
+    body, face_n = BodyMesh.build(bt, len(bv), regions), face_normals(bv, bt)
+    grid = None
+    if part_b:
+        grid = VertexGrid(len(bv), cell=0.1)
+        grid.update(bv, regions)
     surf = DetailedSurface(build_surface_model(sheet_model().cloth, SurfaceSettings(own_vertex=False,
                                                                                     recheck=recheck)))
     x = surf.model.cloth.rest_positions.copy()
-    nearest = np.array([int(np.argmin(np.linalg.norm(lower - q, axis=1))) for q in x], dtype=np.int32)
+    nearest = np.array([int(np.argmin(np.linalg.norm(lv - q, axis=1))) for q in x], dtype=np.int32)
     surf.step(x, nearest, bv, body, face_n, DT, grid)
-    return surf, x, nearest
+    t, f = surf.model.tess, 2
+    vid = t.face_ids[f, int(t.order[3])]
+    assert np.isclose(surf.state.sd[vid], 0.003)
+    upper_bottom = len(lt) + int(np.argmin(bv[bt[len(lt):len(lt) + len(ut)]].mean(axis=1)[:, 1]))
+    return SimpleNamespace(surf=surf, s=surf.state, t=t, x=x, nearest=nearest, bv=bv, body=body, face_n=face_n,
+                           grid=grid, f=f, vid=vid, lower_faces=len(lt), upper_bottom=upper_bottom,
+                           upper_top=len(lv) + int(np.argmax(uv[:, 1])), ov=ov, b0=len(lv) + len(uv))
 
 
 @pytest.mark.parametrize("recheck", [True, False])
@@ -657,28 +677,22 @@ def test_a_reading_farther_than_its_parents_allow_is_walked_again_from_theirs(re
     vertex: off). Its tested parents read 3 mm, 2 cm from it, so its reading of 5 cm cannot
     be right: with the check it walks again from a parent's face and reads the lower box, 3 mm
     (the exact distance); without it reads the upper box."""
-    av, at, uv, ut = boxes_under_and_over()
-    bv = np.ascontiguousarray(np.concatenate([av, uv]))
-    bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
-    body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
-    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, av, recheck)
-    t, s = surf.model.tess, surf.state
-    f = 2  # a coarse triangle in the sheet's middle, over the lower box
+    b = stuck_over_the_lower_box(recheck)
+    s, t, f, vid = b.s, b.t, b.f, b.vid
     loc = int(t.order[3])  # the first particle after the corners, tested from them
-    vid = t.face_ids[f, loc]
     par_ids = t.face_ids[f, t.parents[loc][t.parents[loc] >= 0]]
-    assert np.allclose(s.sd[par_ids], 0.003) and np.isclose(s.sd[vid], 0.003)
-    assert (s.body_face[np.isfinite(s.sd)] < len(at)).all()
-    s.body_face[vid] = len(at) + int(np.argmin(bv[bt[len(at):]].mean(axis=1)[:, 1]))  # the upper box's bottom
-    nearest[:] = len(av) + int(np.argmax(uv[:, 1]))  # a vertex on the upper box's top
-    surf.step(x, nearest, bv, body, face_n, DT)
+    assert np.allclose(s.sd[par_ids], 0.003)
+    assert (s.body_face[np.isfinite(s.sd)] < b.lower_faces).all()
+    s.body_face[vid] = b.upper_bottom
+    b.nearest[:] = b.upper_top
+    b.surf.step(b.x, b.nearest, b.bv, b.body, b.face_n, DT)
     assert np.allclose(s.sd[par_ids], 0.003)  # (their walks start on the lower box, as before)
     gap = np.linalg.norm(s.p[par_ids] - s.p[vid], axis=1).min()
     assert 0.001 < gap < 0.021  # (an edge's midpoint, 2 cm from its corners)
     if recheck:
-        assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(at)
+        assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < b.lower_faces
     else:
-        assert s.sd[vid] > 0.045 and s.body_face[vid] >= len(at)
+        assert s.sd[vid] > 0.045 and s.body_face[vid] >= b.lower_faces
 
 
 def test_a_walk_reading_farther_than_a_corners_nearest_vertex_walks_again_from_it():
@@ -689,22 +703,14 @@ def test_a_walk_reading_farther_than_a_corners_nearest_vertex_walks_again_from_i
     its corners' nearest vertices, on the lower box, is nearer to it than 5 cm, so the reading is
     a local minimum's: it walks again from that vertex and reads the lower box, 3 mm. With the
     first corner's vertex as its seed (the rule before), the upper box's reading stood."""
-    av, at, uv, ut = boxes_under_and_over()
-    bv = np.ascontiguousarray(np.concatenate([av, uv]))
-    bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
-    body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
-    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, av, False)
-    t, s = surf.model.tess, surf.state
-    f = 2  # a coarse triangle in the sheet's middle, over the lower box
-    vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
-    assert np.isclose(s.sd[vid], 0.003)
-    s.body_face[vid] = len(at) + int(np.argmin(bv[bt[len(at):]].mean(axis=1)[:, 1]))  # the upper box's bottom
-    nearest[t.face_ids[f, 0]] = len(av) + int(np.argmax(uv[:, 1]))  # a vertex on the upper box's top
-    corners = t.face_ids[f, t.order[:3]]
-    seeds = bv[nearest[corners]]
+    b = stuck_over_the_lower_box()
+    s, t, f, vid, nearest = b.s, b.t, b.f, b.vid, b.nearest
+    s.body_face[vid] = b.upper_bottom
+    nearest[t.face_ids[f, 0]] = b.upper_top
+    seeds = b.bv[nearest[t.face_ids[f, t.order[:3]]]]
     assert np.linalg.norm(seeds - s.p[vid], axis=1).min() < 0.045 < np.linalg.norm(seeds[0] - s.p[vid])
-    surf.step(x, nearest, bv, body, face_n, DT)
-    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(at)
+    b.surf.step(b.x, nearest, b.bv, b.body, b.face_n, DT)
+    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < b.lower_faces
 
 
 def test_a_nearer_reading_from_the_last_frames_walk_in_another_part_decides_in_the_same_part():
@@ -715,21 +721,13 @@ def test_a_nearer_reading_from_the_last_frames_walk_in_another_part_decides_in_t
     frame before). That walk ends in the first walk's part: it reads 3 mm, the nearer reading
     decides, and the next frame's walk starts from where it ended. (Before, a walk that came back
     to the first walk's part was dropped, and the 5 cm reading stood.)"""
-    av, at, uv, ut = boxes_under_and_over()
-    bv = np.ascontiguousarray(np.concatenate([av, uv]))
-    bt = np.concatenate([at, ut + len(av)]).astype(np.int32)
-    body, face_n = body_mesh_of(bv, bt), face_normals(bv, bt)
-    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, av, False)
-    t, s = surf.model.tess, surf.state
-    f = 2  # a coarse triangle in the sheet's middle, over the lower box
-    vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
-    assert np.isclose(s.sd[vid], 0.003)
-    lower = int(s.body_face[vid])
-    s.body_face[vid] = len(at) + int(np.argmin(bv[bt[len(at):]].mean(axis=1)[:, 1]))  # the upper box's bottom
-    s.part_face[vid] = lower
-    nearest[:] = len(av) + int(np.argmax(uv[:, 1]))  # a vertex on the upper box's top
-    surf.step(x, nearest, bv, body, face_n, DT)
-    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(at) and s.part_face[vid] == -1
+    b = stuck_over_the_lower_box()
+    s, vid = b.s, b.vid
+    s.part_face[vid] = s.body_face[vid]  # (on the lower box's top)
+    s.body_face[vid] = b.upper_bottom
+    b.nearest[:] = b.upper_top
+    b.surf.step(b.x, b.nearest, b.bv, b.body, b.face_n, DT)
+    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < b.lower_faces and s.part_face[vid] == -1
 
 
 def test_a_seed_of_the_walked_part_nearer_than_the_reading_walks_again_from_it():
@@ -741,27 +739,14 @@ def test_a_seed_of_the_walked_part_nearer_than_the_reading_walks_again_from_it()
     seed does not fire. The seeds of A near the corners (the grid's, on the lower box's top) are
     nearer to it than 5 cm: it walks again from the nearest and reads the lower box, 3 mm. Before,
     the part the first walk ended in was never walked again, and the 5 cm reading stood."""
-    lv, lt, uv, ut = boxes_under_and_over()
-    ov, ot = box(half=0.005, n=1)
-    ov = ov + [0.08, 0.08, 0.04]  # part B: y 75-85 mm
-    bv = np.ascontiguousarray(np.concatenate([lv, uv, ov]))
-    bt = np.concatenate([lt, ut + len(lv), ot + len(lv) + len(uv)]).astype(np.int32)
-    regions = np.r_[np.full(len(lv) + len(uv), 1), np.full(len(ov), 2)].astype(np.uint16)
-    body, face_n = BodyMesh.build(bt, len(bv), regions), face_normals(bv, bt)
-    grid = VertexGrid(len(bv), cell=0.1)
-    grid.update(bv, regions)
-    surf, x, nearest = first_frame_over_the_lower_box(bv, body, face_n, lv, False, grid)
-    t, s = surf.model.tess, surf.state
-    f = 2  # a coarse triangle in the sheet's middle, over the lower box
-    vid = t.face_ids[f, int(t.order[3])]  # the first particle after the corners
-    assert np.isclose(s.sd[vid], 0.003) and s.part_face[vid] == -1
-    s.body_face[vid] = len(lt) + int(np.argmin(bv[bt[len(lt):len(lt) + len(ut)]].mean(axis=1)[:, 1]))  # its bottom
-    b0 = len(lv) + len(uv)
-    nearest = np.array([b0 + int(np.argmin(np.linalg.norm(ov - q, axis=1))) for q in x], dtype=np.int32)
-    corners = t.face_ids[f, t.order[:3]]
-    assert np.linalg.norm(bv[nearest[corners]] - s.p[vid], axis=1).min() > 0.05  # (the corners' seeds: no)
-    surf.step(x, nearest, bv, body, face_n, DT, grid)
-    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < len(lt)
+    b = stuck_over_the_lower_box(part_b=True)
+    s, t, f, vid = b.s, b.t, b.f, b.vid
+    assert s.part_face[vid] == -1
+    s.body_face[vid] = b.upper_bottom
+    nearest = np.array([b.b0 + int(np.argmin(np.linalg.norm(b.ov - q, axis=1))) for q in b.x], dtype=np.int32)
+    assert np.linalg.norm(b.bv[nearest[t.face_ids[f, t.order[:3]]]] - s.p[vid], axis=1).min() > 0.05  # (no seed)
+    b.surf.step(b.x, nearest, b.bv, b.body, b.face_n, DT, b.grid)
+    assert np.isclose(s.sd[vid], 0.003) and s.body_face[vid] < b.lower_faces
 
 
 def far_body():
