@@ -14,10 +14,13 @@ inner vertices farther than 1 cm from the outer at rest): the share of the inner
 surface within 3 cm along their normal that have it only under them (the normals turned away from the body where
 they point into it, eighty-fourth session: `away_from_body`).
 Run directly for a table: python -m tests.surface_acceptance [clip ...] [--outfit NAME ...]
+[--deep FILE]: FILE also gets one tab-separated row per detailed vertex-frame deeper than 1 mm, with what
+S103 knew of it (`DEEP_COLUMNS`), the place to start a diagnosis of the depth bound.
 """
 
 from __future__ import annotations
 
+import argparse
 import sys
 from dataclasses import dataclass, field
 
@@ -38,6 +41,7 @@ class SurfaceRecord:
     depth: list[float] = field(default_factory=list)  # per frame: most negative signed distance, m
     deep_vertices: int = 0  # vertex-frames deeper than 1 mm
     nan_frames: int = 0
+    deep_rows: list[tuple] = field(default_factory=list)  # with `deep`: DEEP_COLUMNS per deep vertex-frame
     long_edges: int = 0  # edge-frames over the limit
     long_floored: int = 0  # of those, with both ends at their S103 floor
     beyond_d_max: int = 0  # edge-frames longer than d_max itself (the coarse cloth's stretch included)
@@ -94,9 +98,39 @@ def crossings(rays: RayCaster, outer_x: np.ndarray, inner_x: np.ndarray, inner_n
     return int(np.sum(under | over)), int(crossed.sum()), int(np.sum(crossed & (inward > CROSS_DEEP)))
 
 
+# per vertex-frame deeper than 1 mm (mm; S103's reading and state as `cloth.surface.SurfaceState` holds them
+# after the frame: its reading (inf: untested), its distance to the other body parts, whether a walk there
+# found the particle behind that part, n_i . n_body, the height and S106's floor and ceiling), whether the
+# vertex is a coarse particle's, and the nearest skin vertex with its body region
+DEEP_COLUMNS = ("frame", "garment", "vertex", "coarse", "depth", "s103", "other", "behind", "facing", "dh", "floor",
+                "ceiling", "skin_vertex", "region")
+
+
+def deep_rows(frame: int, name: str, p: np.ndarray, d: np.ndarray, state, n_coarse: int, skin: np.ndarray,
+              region_names: list[str]) -> list[tuple]:
+    """DEEP_COLUMNS for each of a garment's detailed vertices p deeper than 1 mm by the independent
+    signed distances d (m), with S103's state (`SurfaceState`: sd, other, behind, facing, dh, floor,
+    ceiling) and the nearest of the skin's vertices (its region from region_names)."""
+    rows = []
+    for i in np.flatnonzero(d < -0.001):
+        v = int(np.argmin(np.sum((skin - p[i]) ** 2, axis=1)))
+        mm = [round(float(a) * 1000, 2) for a in (d[i], state.sd[i], state.other[i], state.dh[i], state.floor[i],
+                                                   state.ceiling[i])]
+        rows.append((frame, name, int(i), int(i < n_coarse), *mm[:3], int(state.behind[i]),
+                     round(float(state.facing[i]), 2), *mm[3:], v, region_names[v]))
+    return rows
+
+
 def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int | None = None,
-            settings: SurfaceSettings | None = None):
+            settings: SurfaceSettings | None = None, deep: bool = False):
+    """Records per garment of `outfit` over `clip` (and the session's report); deep: each
+    record's deep_rows filled too."""
     sd = SignedDistance(body.triangles, body.n_visible)
+    region_names: list[str] = []
+    if deep:
+        from skinning.body import BODY_REGIONS, body_regions
+        names = {bit: name for name, bit in BODY_REGIONS.items()}
+        region_names = [names.get(int(r), str(int(r))) for r in body_regions(body)]
     rays = {}  # outer garment: its RayCaster, and its faces within LAYER_BAND of its edges at rest
     records: list[SurfaceRecord] = []
 
@@ -132,6 +166,8 @@ def measure(body, data, outfit: str, clip: str, every: int = 2, max_frames: int 
             d = skin_distance[-1] = sd(skin, p)
             rec.depth.append(float(d.min()))
             rec.deep_vertices += int(np.sum(d < -0.001))
+            if deep:
+                rec.deep_rows += deep_rows(index, rec.name, p, d, s, m.tess.n_coarse, skin, region_names)
             length = np.linalg.norm(p[m.d_edges[:, 0]] - p[m.d_edges[:, 1]], axis=1)
             ref = np.linalg.norm(s.p_smoothed[m.d_edges[:, 0]] - s.p_smoothed[m.d_edges[:, 1]], axis=1)
             # S106's limit: d_max, or where the reference surface alone is longer, the height
@@ -183,25 +219,42 @@ def main() -> None:
 
     data = data_dir()
     body = load_body(data)
-    clips, outfits = clips_and_outfits(sys.argv[1:])
-    for clip in clips:
-        for outfit in outfits:
-            records, _ = measure(body, data, outfit, clip)
-            for r in records:
-                d = np.array(r.depth)
-                print(f"{clip:26s} {r.name:28s} frames {len(d):5d} deepest {d.min() * 1000:7.1f} mm "
-                      f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}, vertex-frames {r.deep_vertices:6d}) "
-                      f"long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
-                      f"(both ends at S103 floors {r.long_floored / max(r.edges, 1) * 100:6.3f} %, "
-                      f"beyond d_max {r.beyond_d_max / max(r.edges, 1) * 100:5.2f} %) "
-                      f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
-                      f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}"
-                      + (f" showing through the garment over it {r.showing / r.overlap * 100:4.1f} %"
-                         if r.overlap else "")
-                      + (f", by rays {r.crossed / r.covered * 100:4.1f} % (more than {CROSS_DEEP * 1000:.0f} mm "
-                         f"{r.crossed_deep / r.covered * 100:4.1f} %; normals into the body "
-                         f"{r.turned_in / r.normals_tested * 100:4.1f} %)" if r.covered else ""),
-                      flush=True)
+    parser = argparse.ArgumentParser(add_help=False)
+    parser.add_argument("--deep", help="write each vertex-frame deeper than 1 mm to this file (tab-separated)")
+    known, rest = parser.parse_known_args(sys.argv[1:])
+    clips, outfits = clips_and_outfits(rest)
+    deep = open(known.deep, "w") if known.deep else None
+    try:
+        if deep:
+            print("clip", *DEEP_COLUMNS, sep="\t", file=deep, flush=True)
+        for clip in clips:
+            for outfit in outfits:
+                report(clip, measure(body, data, outfit, clip, deep=deep is not None)[0], deep)
+    finally:
+        if deep:
+            deep.close()
+
+
+def report(clip: str, records: list[SurfaceRecord], deep) -> None:
+    """Print a clip's records, one line per garment; their deep rows to the open file `deep`."""
+    for r in records if deep else ():
+        for row in r.deep_rows:
+            print(clip, *row, sep="\t", file=deep, flush=True)
+    for r in records:
+        d = np.array(r.depth)
+        print(f"{clip:26s} {r.name:28s} frames {len(d):5d} deepest {d.min() * 1000:7.1f} mm "
+              f"(frames < -1 mm: {int(np.sum(d < -0.001)):4d}, vertex-frames {r.deep_vertices:6d}) "
+              f"long edges {r.long_edges / max(r.edges, 1) * 100:6.3f} % "
+              f"(both ends at S103 floors {r.long_floored / max(r.edges, 1) * 100:6.3f} %, "
+              f"beyond d_max {r.beyond_d_max / max(r.edges, 1) * 100:5.2f} %) "
+              f"recovered {np.median(r.recovered) if r.recovered else float('nan'):5.2f} "
+              f"max dh {r.max_height * 1000:5.1f} mm NaN {r.nan_frames}"
+              + (f" showing through the garment over it {r.showing / r.overlap * 100:4.1f} %"
+                 if r.overlap else "")
+              + (f", by rays {r.crossed / r.covered * 100:4.1f} % (more than {CROSS_DEEP * 1000:.0f} mm "
+                 f"{r.crossed_deep / r.covered * 100:4.1f} %; normals into the body "
+                 f"{r.turned_in / r.normals_tested * 100:4.1f} %)" if r.covered else ""),
+              flush=True)
 
 
 if __name__ == "__main__":

@@ -81,3 +81,24 @@ def test_the_acceptance_turns_normals_pointing_into_the_body_before_casting():
     normals, turned = away_from_body(sd, body_x, pi, up(n))
     assert not turned.any()
     np.testing.assert_array_equal(normals, up(n))
+
+
+def test_the_acceptance_lists_each_vertex_deeper_than_a_millimetre_with_what_s103_knew():
+    """`deep_rows` (`python -m tests.surface_acceptance --deep FILE`): of three detailed vertices
+    1.5 mm, 0.5 mm and 3 mm inside by the independent distances, the first (a coarse particle's,
+    index under n_coarse = 1) and the third are listed, in mm, with S103's state and the skin vertex
+    nearest to each (and its region); none when nothing is deeper than 1 mm."""
+    from types import SimpleNamespace
+
+    from tests.surface_acceptance import DEEP_COLUMNS, deep_rows
+    p = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    skin = np.array([[2.1, 0.0, 0.0], [0.1, 0.0, 0.0]])
+    state = SimpleNamespace(sd=np.array([0.004, 0.001, np.inf]), other=np.array([0.006, np.inf, np.inf]),
+                            behind=np.array([1, 0, 0], np.uint8), facing=np.array([0.5, 1.0, -0.25]),
+                            dh=np.array([0.002, 0.0, -0.01]), floor=np.array([0.001, 0.0, -0.01]),
+                            ceiling=np.array([0.03, 0.03, -0.01]))
+    rows = deep_rows(7, "g", p, np.array([-0.0015, -0.0005, -0.003]), state, 1, skin, ["hand", "torso"])
+    assert [len(r) for r in rows] == [len(DEEP_COLUMNS)] * 2
+    assert rows[0] == (7, "g", 0, 1, -1.5, 4.0, 6.0, 1, 0.5, 2.0, 1.0, 30.0, 1, "torso")
+    assert rows[1] == (7, "g", 2, 0, -3.0, np.inf, np.inf, 0, -0.25, -10.0, -10.0, -10.0, 0, "hand")
+    assert deep_rows(7, "g", p, np.full(3, -0.001), state, 1, skin, ["hand", "torso"]) == []
