@@ -666,6 +666,9 @@ def in_vertex_region(px, py, pz, body_x, nbr_start, nbr_ids, vtx):
 
 
 FACE_WALK_STEPS = 48  # a face walk longer than this falls back to the vertex walk
+# m: a face walk that ends on an edge or a vertex farther than this from p looks across the nearest
+# faces' other edges too (Decision in `face_walk_distance`; nearer, the look cost S103 a sixth more)
+LOOK_ACROSS_BEYOND = 0.004
 INSIDE_FACE = -1  # closest_feature: the point lies inside the triangle
 
 
@@ -704,6 +707,9 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
     point of its whole ring (`in_vertex_region`) the distance is to the vertex; on any other
     vertex (or after a walk longer than FACE_WALK_STEPS) the ring of that vertex decides. Sign
     from the pseudo-normal of the closest feature (`feature_normal`), as in the ring.
+    Decision (across the other edges, eighty-seventh session): farther than LOOK_ACROSS_BEYOND,
+    a walk that ends on an edge descends from both faces of that edge, and one that ends in a
+    ring from the ring's nearest face, to a nearer neighbour while there is one (`descend_faces`).
     Returns (distance, nx, ny, nz, qx, qy, qz, face): `face` is where the next walk should start.
     q: (3,) scratch."""
     # the usual case, written out first (it compiles to far less work than the general walk's
@@ -739,19 +745,24 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
         # behind a face, a closest point inside it need not be the nearest: where the body is
         # convex a neighbouring face's plane can be nearer. Descend to the nearest neighbour
         # while one is nearer.
-        for _ in range(FACE_WALK_STEPS):
-            cur = best_t
-            for e in range(3):
-                o = tri_nbrs[cur, e]
-                if o < 0:
-                    continue
-                v, w = closest_point_triangle(px, py, pz, body_x, tris[o, 0], tris[o, 1], tris[o, 2], q)
-                d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
-                if d2 < best:
-                    best, best_t, feature = d2, o, closest_feature(v, w)
-                    qx, qy, qz = q[0], q[1], q[2]
-            if best_t == cur:
-                break
+        best, best_t, feature, qx, qy, qz = descend_faces(px, py, pz, body_x, tris, tri_nbrs, best, best_t, feature,
+                                                          qx, qy, qz, q)
+    elif settled and 0 <= feature < 3 and best > LOOK_ACROSS_BEYOND ** 2:
+        # Decision (across the other edges, eighty-seventh session): on an edge whose face beyond is
+        # no nearer, a face across another edge of either face can be (the run's skirt over the thigh
+        # read 23.1 mm from one edge of a long face, 12.8 mm from the face across the next): descend
+        # from each of the two, where p is farther than LOOK_ACROSS_BEYOND (a reading that far lets
+        # S106 bring the particle down by as much)
+        b2, t2, f2, rx, ry, rz = descend_faces(px, py, pz, body_x, tris, tri_nbrs, best, best_t, feature, qx, qy, qz,
+                                               q)
+        beyond = tri_nbrs[best_t, feature]
+        if t2 == best_t and beyond >= 0:
+            b2, t2, f2, rx, ry, rz = descend_faces(px, py, pz, body_x, tris, tri_nbrs, best, beyond, feature, qx, qy,
+                                                   qz, q)
+            if t2 == beyond:
+                t2 = best_t
+        if t2 != best_t:
+            best, best_t, feature, qx, qy, qz = b2, t2, f2, rx, ry, rz
     vertex = -1
     if settled and feature >= 3:
         vertex = tris[best_t, feature - 3]
@@ -766,9 +777,40 @@ def face_walk_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids, n
     if not settled or feature >= 3:
         d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start, tri_ids,
                                                              vertex, face_n, q)
-        return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
+        if t < 0 or abs(d) <= LOOK_ACROSS_BEYOND:
+            return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
+        # (the same Decision: the faces across the ring's nearest face's edges)
+        best, best_t, feature, rx, ry, rz = descend_faces(px, py, pz, body_x, tris, tri_nbrs, d * d, t, INSIDE_FACE,
+                                                          qx, qy, qz, q)
+        if best_t == t:
+            return d, nx, ny, nz, qx, qy, qz, t
+        qx, qy, qz = rx, ry, rz
+        if feature >= 3:
+            d, nx, ny, nz, qx, qy, qz, t = ring_signed_distance(px, py, pz, body_x, tris, tri_nbrs, tri_start,
+                                                                 tri_ids, tris[best_t, feature - 3], face_n, q)
+            return d, nx, ny, nz, qx, qy, qz, (t if t >= 0 else best_t)
     nx, ny, nz = feature_normal(body_x, tris, tri_nbrs, tri_start, tri_ids, face_n, best_t, feature)
     return signed(px, py, pz, qx, qy, qz, nx, ny, nz, best), nx, ny, nz, qx, qy, qz, best_t
+
+
+@helper
+def descend_faces(px, py, pz, body_x, tris, tri_nbrs, best, best_t, feature, qx, qy, qz, q):
+    """From face best_t (p's squared distance best, at closest point q on `feature`), to the
+    nearest of its neighbours while one is nearer. Returns (best, best_t, feature, q)."""
+    for _ in range(FACE_WALK_STEPS):
+        cur = best_t
+        for e in range(3):
+            o = tri_nbrs[cur, e]
+            if o < 0:
+                continue
+            v, w = closest_point_triangle(px, py, pz, body_x, tris[o, 0], tris[o, 1], tris[o, 2], q)
+            d2 = (px - q[0]) ** 2 + (py - q[1]) ** 2 + (pz - q[2]) ** 2
+            if d2 < best:
+                best, best_t, feature = d2, o, closest_feature(v, w)
+                qx, qy, qz = q[0], q[1], q[2]
+        if best_t == cur:
+            break
+    return best, best_t, feature, qx, qy, qz
 
 
 # nearest-surface pushes per particle and frame (alternate pushes in a narrow crease between

@@ -178,3 +178,31 @@ def test_ring_distance_takes_its_side_from_the_closest_feature_at_a_sharp_edge()
               face_n, out, faces)
     np.testing.assert_allclose(SignedDistance(tris, 6)(verts, point), [0.01], atol=1e-12)
     np.testing.assert_allclose(out, [0.01], atol=1e-12)
+
+
+@njit  # (not cached, as above)
+def _walk_from(point, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, start, face_n):
+    q = np.zeros(3)
+    return face_walk_distance(point[0], point[1], point[2], body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start,
+                              nbr_ids, regions, start, face_n, q)
+
+
+def test_a_face_walk_settled_on_an_edge_looks_across_the_faces_other_edges():
+    """Decision (S103's walk, across the other edges): face A flat under p = (0, 1, 0), its nearest
+    point on its edge to face B (1.118 away), B folded down from that edge so that its own nearest
+    point is the same one, and face C across A's next edge rising to 0.54 from p. A walk from A
+    once stopped on the shared edge (the face beyond no nearer); now it looks at A's other
+    neighbours too, goes over to C, and reads the exact distance over all three faces. Started on
+    C it reads the same, and on B it comes back to C as well."""
+    from trimesh.triangles import closest_point
+    verts = np.array([[-1.0, 0.0, 0.5], [1.0, 0.0, 0.5], [0.0, 0.0, 3.0], [0.0, -2.0, 0.4], [0.5, 0.8, 0.0]])
+    tris = np.array([[0, 1, 2], [1, 0, 3], [2, 1, 4]], dtype=np.int32)  # A, B, C
+    body = BodyMesh.build(tris, len(verts))
+    p = np.array([0.0, 1.0, 0.0])
+    exact = np.linalg.norm(closest_point(verts[tris], np.repeat(p[None], 3, axis=0)) - p, axis=1)
+    assert np.isclose(exact[0], np.sqrt(1.25)) and np.isclose(exact[1], exact[0]) and exact[2] < 0.55
+    for start in range(3):
+        d = _walk_from(p, np.ascontiguousarray(verts), body.triangles, body.tri_nbrs, body.tri_start, body.tri_ids,
+                       body.nbr_start, body.nbr_ids, body.regions, start, face_normals(verts, tris))
+        assert np.isclose(abs(d[0]), exact.min(), atol=1e-12), start
+        assert d[-1] == 2, start
