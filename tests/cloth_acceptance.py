@@ -23,9 +23,10 @@ OFF_BODY = 0.10  # m: a particle farther than this from the skin is off the body
 CLIPS = ["cmu_npybvh_example_75f", "cmu_131_01_walk_3dsmax", "cmu_13_29_jumping_jacks"]
 
 
-def clips_and_outfits(argv: list[str]) -> tuple[list[str], list[str]]:
-    """The clips and outfits a table runs over: positional clip names, --outfit (repeatable)."""
-    parser = argparse.ArgumentParser()
+def clips_and_outfits(argv: list[str], parents: tuple = ()) -> tuple[list[str], list[str]]:
+    """The clips and outfits a table runs over: positional clip names, --outfit (repeatable).
+    parents: parsers (add_help=False) of a table's own options, listed in --help too."""
+    parser = argparse.ArgumentParser(parents=list(parents))
     parser.add_argument("clips", nargs="*", default=CLIPS)
     parser.add_argument("--outfit", action="append",
                         help="a shipped outfit, or garments of them mixed (female_sportsuit01.bottom+"

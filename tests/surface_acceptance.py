@@ -222,7 +222,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--deep", help="write each vertex-frame deeper than 1 mm to this file (tab-separated)")
     known, rest = parser.parse_known_args(sys.argv[1:])
-    clips, outfits = clips_and_outfits(rest)
+    clips, outfits = clips_and_outfits(rest, (parser,))
     deep = open(known.deep, "w") if known.deep else None
     try:
         if deep:
