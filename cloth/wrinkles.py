@@ -579,9 +579,42 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
                                         normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris, tri_start,
                                         tri_ids, tri_nbrs, body_face, part_face, near_vertex, face_n, q, face_tip,
                                         tip_share, clearance, max_iterations, up, down, search)
+                    if vid < n_coarse and d < clearance - LIFT_TOLERANCE and dh[vid] != 0.0:
+                        d, rate = _back_to_coarse(p, vid, seed, x, corners, parts, groups, group_reach, n_groups, d,
+                                                  rate, normals, dh, dh_pen, body_x, nbr_start, nbr_ids, regions, tris,
+                                                  tri_start, tri_ids, tri_nbrs, body_face, part_face, near_vertex,
+                                                  face_n, q, face_tip, tip_share)
                 sd[vid] = d
                 facing[vid] = rate
     return tested
+
+
+@kernel
+def _back_to_coarse(p, vid, seed, x, corners, parts, groups, group_reach, n_groups, d, rate, normals, dh, dh_pen,
+                    body_x, nbr_start, nbr_ids, regions, tris, tri_start, tri_ids, tri_nbrs, body_face, part_face,
+                    near_vertex, face_n, q, face_tip, tip_share):
+    """Decision (back to where S101 put it, eighty-eighth session): a coarse vertex's particle that no
+    move along n_i gets out of the body goes back to its coarse particle (Δh = 0: the PN patch passes
+    through its corners), which S101's collision left outside the body, where it reads farther out
+    there. Its heights carried from earlier frames had stood it off the coarse particle along a
+    normal that now runs along the body (the jumping jacks' blouse at the right elbow: coarse vertex
+    21, 20 mm up its normal, 2-6 mm inside the forearm folding onto the upper arm, n_i . n_body
+    0.0-0.2, over 30 frames). Returns (signed distance, n_i . n_body) where it ends."""
+    h = dh[vid]
+    p0, p1, p2 = p[vid, 0], p[vid, 1], p[vid, 2]
+    p[vid, 0] -= h * normals[vid, 0]
+    p[vid, 1] -= h * normals[vid, 1]
+    p[vid, 2] -= h * normals[vid, 2]
+    d0, bx, by, bz, _, _, _, _ = detail_signed_distance(p, vid, seed, x, corners, parts, groups, group_reach, n_groups,
+                                                        part_face[vid], body_x, nbr_start, nbr_ids, regions, tris,
+                                                        tri_start, tri_ids, tri_nbrs, body_face, part_face,
+                                                        near_vertex, face_n, q, normals, face_tip, tip_share)
+    if d0 <= d:  # no farther out there: it stays where the lifts left it
+        p[vid, 0], p[vid, 1], p[vid, 2] = p0, p1, p2
+        return d, rate
+    dh_pen[vid] -= h
+    dh[vid] = 0.0
+    return d0, normals[vid, 0] * bx + normals[vid, 1] * by + normals[vid, 2] * bz
 
 
 @helper

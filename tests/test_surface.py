@@ -822,6 +822,27 @@ def test_a_particle_inside_another_body_part_is_found_by_a_walk_in_that_part(fin
         np.testing.assert_allclose(p[over, 1], 0.0, atol=1e-12)
 
 
+def test_a_coarse_vertex_no_lift_gets_out_goes_back_to_its_coarse_particle():
+    """Decision (S103, back to where S101 put it): a box beside a coarse vertex's normal (x 5-8.2 cm,
+    y 5-45 mm over the sheet), and the vertex's height carried at 20 mm, 2 mm inside the box's side
+    wall. Its nearest surface is that wall, whose normal is across n_i (n_i . n_body = 0), so no move
+    along n_i gets it out. It goes back to the coarse particle (Δh = 0), 5 mm under the box: outside,
+    read there. (Before, it kept its height inside the box.)"""
+    m = sheet_model()
+    x = m.cloth.rest_positions.copy()
+    c0 = int(np.argmin(np.linalg.norm(x - [0.08, 0.0, 0.04], axis=1)))
+    bv, bt = box(half=0.5, n=4)
+    bv = np.ascontiguousarray(bv * [0.032, 0.04, 0.04] + [0.066, 0.025, 0.04])
+    surf = DetailedSurface(m)
+    nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
+    surf.state.dh[c0] = 0.02
+    p = surf.step(x, nearest, bv, body_mesh_of(bv, bt), face_normals(bv, bt), DT)[0]
+    s = surf.state
+    np.testing.assert_allclose(p[c0], x[c0], atol=1e-12)
+    assert s.dh[c0] == 0.0 and np.isclose(s.sd[c0], 0.005)
+    assert not np.all((p > bv.min(axis=0)) & (p < bv.max(axis=0)), axis=1).any()
+
+
 def torso_under_arm(torso_top, arm_bottom, arm_top, arm_quads=8):
     """A torso box (10 cm, its top face at y = torso_top) under the sheet's middle and an arm box
     (x 5-11 cm, z 1-7 cm, y arm_bottom..arm_top) across it, two body parts: (torso vertices, body
