@@ -483,7 +483,9 @@ def avoid_penetration(p, normals, dh, dh_pen, sd, facing, other, behind, face_id
     Along n_i the signed distance grows at the rate n_i . n_body, so one move of
     (clearance - d) / (n_i . n_body) reaches the surface of a locally flat body (see
     `_lift_out` for the other cases; search: its doubling and bisection where the linear steps
-    fail). Returns the number of particles tested."""
+    fail). A coarse vertex's particle the lifts leave within the clearance goes back to its coarse
+    particle where it reads farther out there (`_back_to_coarse`). Returns the number of particles
+    tested."""
     n = p.shape[0]
     n_coarse = coarse_nearest.shape[0]
     face_margin = max(face_margin, margin)  # (never narrower than the test inside a face)
