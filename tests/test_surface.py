@@ -618,7 +618,8 @@ def test_a_finer_particle_is_tested_while_its_parents_distances_leave_it_room_in
     par_ids = t.face_ids[f, t.parents[best][t.parents[best] >= 0]]
     gap_out = np.linalg.norm(flat[par_ids] - c, axis=1) - r
     reach = 0.001 + np.linalg.norm(flat[par_ids] - c, axis=1)  # the clearance plus each one's distance
-    assert np.all(gap_out > SurfaceSettings().contact_margin) and np.all(gap_out < reach)  # beyond the margin, room inside
+    # beyond the margin, room inside
+    assert np.all(gap_out > SurfaceSettings().contact_margin) and np.all(gap_out < reach)
     nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
     surf = DetailedSurface(m)
     p, _ = surf.step(x, nearest, bv, body_mesh_of(bv, bt), face_normals(bv, bt), DT)
