@@ -70,8 +70,9 @@ which leads into the belly), and half had a way out within 1 cm along one of 26 
 the sixty-seventh session "near another body part" is within 3 cm (EXIT_NEAR), and a particle S103
 lifted that S106 lowered again by more than the clearance is asked too (Decision: lowered after a
 lift): S103's walks misread both kinds as well outside. Since the seventy-second session the coarse
-vertices are asked too, moved along ±n_i only, and so is a particle S106 lowered to within
-EXIT_LOWERED_NEAR of the body by S103's reading (Decisions, `out_along_normals`, `lowered_after_lift`).
+vertices are asked too, moved along ±n_i or (eighty-ninth session) the way around within
+EXIT_REACH, and so is a particle S106 lowered to within EXIT_LOWERED_NEAR of the body by S103's
+reading (Decisions, `out_along_normals`, `lowered_after_lift`).
 """
 
 from __future__ import annotations
@@ -101,8 +102,11 @@ EXIT_FACING = 0.9
 # m: another body part this near (S103's `other`) and `out_along_normals` asks the particle whatever its normal's
 # facing (sixty-ninth session: most of the walk's vertex-frames left deeper than 1 mm had been read 6-10 mm
 # outside by S103 from a face of a sheet buried in the same part, normal along the body's, another part within
-# 1 cm; asking them took the casual outfit's 175 to 81 and the elegant's 183 to 143, for 0.5 ms a garment-frame)
-EXIT_NEAR_ALONG = 0.01
+# 1 cm; asking them took the casual outfit's 175 to 81 and the elegant's 183 to 143, for 0.5 ms a garment-frame).
+# 2 cm since the eighty-ninth session: 39 of the jumping jacks' and walk's vertex-frames left deeper than 1 mm had
+# been read outside with another part 10-25 mm away and the normal along the body's, never asked (the knees and
+# hips in the crouches); at 2 cm the casual and sport outfits' 107 became 77, for 0.03 ms a garment-frame
+EXIT_NEAR_ALONG = 0.02
 # n_i . n_body below this and `out_along_normals` asks the particle wherever the other parts are (seventy-first
 # session: the walk's blouse left 58 vertex-frames deeper than 1 mm that S103 had read 3-40 mm outside, no other
 # part found, many with the normal facing into the body)
@@ -410,7 +414,10 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     another part nearer than `near_along` is asked whatever its normal's facing: at the walk's
     hip S103's walk stops on a face of a sheet folded into the same part (the thigh's skin
     buried under the belly's) and reads the particle 6-10 mm outside, its normal along that face's,
-    where it is 1-6 mm inside; the other part's nearness is the sign of such a fold.
+    where it is 1-6 mm inside; the other part's nearness is the sign of such a fold. Within 2 cm
+    since the eighty-ninth session (EXIT_NEAR_ALONG; 1 cm before): in the jumping jacks' crouches
+    most of the vertex-frames left deeper than 1 mm that no rule asked had another part 10-25 mm
+    away (knees, hips).
     Decision (turned in, seventy-first session): a particle S103 tested whose normal faces into the
     body (`facing` below `turned`) is asked wherever the other parts are: the walk's blouse left 58
     vertex-frames deeper than 1 mm that S103 had read 3-40 mm outside with no other part found, many
@@ -418,12 +425,15 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     p: final positions, moved in place; n (N, 3): the normals n_i; sd, other, facing, behind: S103's
     (sd UNTESTED = inf where it did not test); lowered (N,) uint8: 1 where a particle is to be asked
     whatever S103 read; particles before `first` (the coarse vertices) are left alone, or with
-    `coarse` asked as the others are but moved only along ±n_i (Decision, the coarse vertices,
-    seventy-second session: S101 keeps the coarse particle itself out of the body, but the lift
-    S103 gave it along n_i, carried from frame to frame, can take it into another part: on the
-    walk's leggings 18 of 26 vertex-frames deeper than 1 mm were coarse vertices 4-12 mm above
-    their particle, between the thighs, S103 reading 2-5 mm outside them by the other thigh's
-    buried skin. Along ±n_i it stays on its normal, where S102 and S103 put it).
+    `coarse` asked as the others are but moved only along ±n_i or the way around within `reach`
+    (Decision, the coarse vertices, seventy-second session: S101 keeps the coarse particle itself
+    out of the body, but the lift S103 gave it along n_i, carried from frame to frame, can take it
+    into another part: on the walk's leggings 18 of 26 vertex-frames deeper than 1 mm were coarse
+    vertices 4-12 mm above their particle, between the thighs, S103 reading 2-5 mm outside them by
+    the other thigh's buried skin. Along ±n_i it stays on its normal, where S102 and S103 put it.
+    Eighty-ninth session: where no way along ±n_i leads out, the way around within `reach` too, never
+    through the nearest face: in the jumping jacks' armpits, hips and knees most coarse vertices
+    left deeper than 1 mm had the way around 1-7 mm away, their normals along the skin).
     wfaces, wlo ... wextent: the pose's winding grid; tris, face_n: the body's faces and this
     pose's face normals; box ... leaf: the pose's `FaceTree.arrays()` (tfirst its `first`),
     stack (FACE_TREE_STACK,) int32 and q (3,): scratch; body_face: the face each particle's S103
@@ -444,11 +454,11 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
                                          or facing[i] < turned or sd[i] < 0.0 or behind[i]))):
             continue
         seen[i] = 1
-        off = i >= first  # (a coarse vertex: along ±n_i only)
+        off = i >= first  # (a coarse vertex: along ±n_i, or the way around within reach)
         found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
                                   face_reach if off else 0.0, tris, face_n, box, child, tfirst, count, order, parent,
                                   leaf, stack, q, body_face[i], ids, moves, moved, around,
-                                  around_reach if off else 0.0)
+                                  around_reach if off else min(around_reach, reach))
         if found:
             inside[n_inside] = i
             n_inside += 1
@@ -465,7 +475,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
             found, moved = _exit_body(p, n, j, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
                                       face_reach if off else 0.0, tris, face_n, box, child, tfirst, count, order,
                                       parent, leaf, stack, q, body_face[j] if body_face[j] >= 0 else body_face[i],
-                                      ids, moves, moved, around, around_reach if off else 0.0)
+                                      ids, moves, moved, around, around_reach if off else min(around_reach, reach))
             if found:
                 inside[n_inside] = j
                 n_inside += 1

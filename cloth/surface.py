@@ -110,13 +110,14 @@ class SurfaceSettings:
     # and a particle S103 lifted that S106 lowered again by more than the clearance (Decision,
     # `creases.out_along_normals`' lowered after a lift)
     exit_lowered: bool = True
-    # and a particle with another body part within a centimetre, whatever its normal's facing (Decision,
-    # `creases.out_along_normals`' another part within a centimetre)
+    # and a particle with another body part within 2 cm, whatever its normal's facing (Decision,
+    # `creases.out_along_normals`' another part within a centimetre, `creases.EXIT_NEAR_ALONG`)
     exit_near_along: bool = True
     # and a particle whose normal faces into the body (n_i . n_body below 0), wherever the other parts are
     # (Decision, `creases.out_along_normals`' turned in)
     exit_turned: bool = True
-    # and the coarse vertices too, moved along ±n_i only (Decision, `creases.out_along_normals`' coarse vertices)
+    # and the coarse vertices too, moved along ±n_i or the way around within 1 cm (Decision,
+    # `creases.out_along_normals`' coarse vertices)
     exit_coarse: bool = True
     # and a particle S106 lowered to within EXIT_LOWERED_NEAR of the body by S103's reading (Decision,
     # `creases.lowered_after_lift`'s lowered near the body)

@@ -523,32 +523,33 @@ def test_a_particle_lowered_after_a_lift_is_asked_whatever_s103_read():
     assert inside_boxes(p0).all() and not inside_boxes(p[:1]).any()
 
 
-@pytest.mark.parametrize("near_along", [0.0, EXIT_NEAR_ALONG])
-def test_a_particle_read_outside_with_another_part_within_a_centimetre_is_asked_whatever_its_normal(near_along):
-    """`out_along_normals`' another part within a centimetre (Decision): on the two boxes, a
-    particle in the thigh 2 mm from its inner wall, read 2 mm outside by S103 with its normal
-    facing the body's (0.95, above EXIT_FACING) and another part 4 mm away goes out across the
-    wall, the clearance beyond, when another part that near asks it (EXIT_NEAR_ALONG), and stays
-    under the rule before (0); the same particle with the other part 2 cm away stays either way."""
+@pytest.mark.parametrize("near_along", [0.0, 0.01, EXIT_NEAR_ALONG])
+def test_a_particle_read_outside_with_another_part_within_2_cm_is_asked_whatever_its_normal(near_along):
+    """`out_along_normals`' another part within a centimetre (Decision; 2 cm since the eighty-ninth
+    session): on the two boxes, a particle in the thigh 2 mm from its inner wall, read 2 mm outside by
+    S103 with its normal facing the body's (0.95, above EXIT_FACING), goes out across the wall, the
+    clearance beyond, when another part that near asks it: at 4 mm under the rule of the sixty-ninth
+    session (1 cm) and EXIT_NEAR_ALONG, at 15 mm under EXIT_NEAR_ALONG only; neither is asked under
+    the rule before (0). The same particle with the other part 2.5 cm away stays whatever the rule."""
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
     g.update(x)
-    p = np.array([(-0.012, 0.005, 0.01), (-0.012, 0.005, -0.01)])
-    n = np.tile((1.0, 0.0, 0.0), (2, 1))
-    sd, other, facing = np.full(2, 0.002), np.array([0.004, 0.02]), np.full(2, 0.95)
-    behind = np.zeros(2, dtype=np.uint8)
-    assert EXIT_FACING < 0.95 and 0.004 < EXIT_NEAR_ALONG < 0.02 and inside_boxes(p).all()
+    p = np.array([(-0.012, 0.005, 0.01), (-0.012, 0.005, 0.0), (-0.012, 0.005, -0.01)])
+    n = np.tile((1.0, 0.0, 0.0), (3, 1))
+    sd, other, facing = np.full(3, 0.002), np.array([0.004, 0.015, 0.025]), np.full(3, 0.95)
+    behind = np.zeros(3, dtype=np.uint8)
+    assert EXIT_FACING < 0.95 and 0.015 < EXIT_NEAR_ALONG < 0.025 and inside_boxes(p).all()
     p0 = p.copy()
     moved, ids, moves = out_along(p, n, sd, other, facing, behind, 0, x, tris, g.arrays(), near_along=near_along)
-    if near_along:
-        assert moved == 1 and ids[0] == 0
-        np.testing.assert_allclose(p[0], (-0.01 + C, 0.005, 0.01), atol=1e-5)
-        np.testing.assert_allclose(moves[0], p[0] - p0[0], atol=1e-15)
-        assert not inside_boxes(p[:1]).any()
-    else:
-        assert moved == 0
-        np.testing.assert_array_equal(p[0], p0[0])
-    np.testing.assert_array_equal(p[1], p0[1])
+    asked = [k for k in range(3) if other[k] < near_along]
+    assert moved == len(asked) and list(ids[:moved]) == asked
+    for m, k in enumerate(asked):
+        np.testing.assert_allclose(p[k], (-0.01 + C, 0.005, p0[k, 2]), atol=1e-5)
+        np.testing.assert_allclose(moves[m], p[k] - p0[k], atol=1e-15)
+        assert not inside_boxes(p[k:k + 1]).any()
+    for k in set(range(3)) - set(asked):
+        np.testing.assert_array_equal(p[k], p0[k])
+    assert asked == {0.0: [], 0.01: [0], EXIT_NEAR_ALONG: [0, 1]}[near_along]
 
 
 @pytest.mark.parametrize("turned", [-np.inf, EXIT_TURNED])
@@ -581,48 +582,52 @@ def test_a_particle_whose_normal_faces_into_the_body_is_asked_wherever_the_other
 
 
 @pytest.mark.parametrize("coarse", [False, True])
-def test_a_coarse_vertex_inside_goes_out_along_its_normal_only(coarse):
+def test_a_coarse_vertex_inside_goes_out_along_its_normal_or_the_way_around_within_exit_reach(coarse):
     """`out_along_normals`' coarse vertices (Decision): on the two boxes, with the coarse ones
     asked, a coarse vertex in the thigh 2 mm from its inner wall, its normal across the wall and
     leaning off the body's, goes out along it, the clearance beyond, and so does one the spread
-    reaches from a detailed neighbour inside; a coarse vertex whose normal runs along the thigh
-    (no way out along ±n_i within EXIT_REACH) stays, where a detailed particle beside it goes out
-    the way around (-x, 1.4 cm). Under the rule before, only the detailed particles move."""
+    reaches from a detailed neighbour inside. A coarse vertex whose normal runs along the thigh (no
+    way out along ±n_i within EXIT_REACH) goes out the way around where that is within EXIT_REACH
+    (eighty-ninth session: +x, 2 mm), and stays where it is farther (-x, 1.4 cm), where a detailed
+    particle beside it goes out the way around. Under the rule before, only the detailed particles
+    move."""
     x, tris, regions, body = two_boxes()
     g = WindingGrid(tris, len(x), cell=0.01)
     g.update(x)
     side, along = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
-    cases = [  # (position, normal, S103's sd, facing): the first three coarse vertices, other part 4 mm away
+    cases = [  # (position, normal, S103's sd, facing): the first four coarse vertices, other part 4 mm away
         ((-0.012, 0.005, 0.01), side, 0.002, 0.0),     # 0: leaning off the body: asked, out across the wall
-        ((-0.056, 0.020, 0.0), along, -0.005, 1.0),    # 1: found inside by S103, no way along ±n_i: stays
-        ((-0.013, 0.010, -0.01), side, 0.002, 0.95),   # 2: facing the body's normal: reached by the spread from 3
-        ((-0.012, 0.005, -0.01), side, 0.002, 0.0),    # 3: a detailed particle leaning off the body: out
-        ((-0.056, 0.020, 0.01), along, -0.005, 1.0),   # 4: as 1, a detailed particle: out the way around
+        ((-0.056, 0.020, 0.0), along, -0.005, 1.0),    # 1: found inside by S103, the way around 1.4 cm: stays
+        ((-0.013, 0.010, -0.01), side, 0.002, 0.95),   # 2: facing the body's normal: reached by the spread from 4
+        ((-0.012, 0.005, 0.0), along, 0.002, 0.0),     # 3: no way along ±n_i, the way around 2 mm: out across it
+        ((-0.012, 0.005, -0.01), side, 0.002, 0.0),    # 4: a detailed particle leaning off the body: out
+        ((-0.056, 0.020, 0.01), along, -0.005, 1.0),   # 5: as 1, a detailed particle: out the way around
     ]
     p = np.array([c[0] for c in cases])
     n = np.array([c[1] for c in cases])
     sd, facing = np.array([c[2] for c in cases]), np.array([c[3] for c in cases])
     other, behind = np.full(len(p), 0.004), np.zeros(len(p), dtype=np.uint8)
-    assert inside_boxes(p).all() and EXIT_REACH < 0.014 < EXIT_AROUND_REACH and 0.95 > EXIT_FACING
+    assert inside_boxes(p).all() and 0.002 < EXIT_REACH < 0.014 < EXIT_AROUND_REACH and 0.95 > EXIT_FACING
     p0 = p.copy()
-    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 3, x, tris, g.arrays(), d_edges=[(2, 3)],
+    moved, ids, moves = out_along(p, n, sd, other, facing, behind, 4, x, tris, g.arrays(), d_edges=[(2, 4)],
                                   around=EXIT_DIRECTIONS, around_reach=EXIT_AROUND_REACH, coarse=coarse)
-    out = [0, 3, 4, 2] if coarse else [3, 4]
+    out = [0, 3, 4, 5, 2] if coarse else [4, 5]
     assert list(ids[:moved]) == out
     np.testing.assert_allclose(moves[:moved], p[out] - p0[out], atol=1e-15)
-    np.testing.assert_allclose(p[3], (-0.01 + C, 0.005, -0.01), atol=1e-5)
-    np.testing.assert_allclose(p[4], (-0.07 - C, 0.020, 0.01), atol=1e-5)
+    np.testing.assert_allclose(p[4], (-0.01 + C, 0.005, -0.01), atol=1e-5)
+    np.testing.assert_allclose(p[5], (-0.07 - C, 0.020, 0.01), atol=1e-5)
     np.testing.assert_array_equal(p[1], p0[1])
     if coarse:
         np.testing.assert_allclose(p[0], (-0.01 + C, 0.005, 0.01), atol=1e-5)
         np.testing.assert_allclose(p[2], (-0.01 + C, 0.010, -0.01), atol=1e-5)
-        # along ±n_i only: each coarse move is parallel to its normal
+        np.testing.assert_allclose(p[3], (-0.01 + C, 0.005, 0.0), atol=1e-5)
+        # along ±n_i where that leads out: those coarse moves are parallel to their normals
         for k, i in enumerate(ids[:moved]):
-            if i < 3:
+            if i in (0, 2):
                 np.testing.assert_allclose(np.cross(moves[k], n[i]), 0.0, atol=1e-15)
-        assert not inside_boxes(p[[0, 2, 3, 4]]).any()
+        assert not inside_boxes(p[[0, 2, 3, 4, 5]]).any()
     else:
-        np.testing.assert_array_equal(p[[0, 2]], p0[[0, 2]])
+        np.testing.assert_array_equal(p[[0, 2, 3]], p0[[0, 2, 3]])
 
 
 @pytest.mark.parametrize("around_reach", [EXIT_REACH, EXIT_AROUND_REACH])

@@ -8,7 +8,7 @@ body (along the normal, and out of creases) bounded and each from inside the bod
 import numpy as np
 import pytest
 
-from cloth.creases import CREASE_MOVE, EXIT_FACE_REACH, EXIT_REACH
+from cloth.creases import CREASE_MOVE, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_REACH
 from cloth.surface import SurfaceSettings
 from cloth.winding import winding_numbers
 from services.cloth_job import OUTFITS, run_cloth_clip
@@ -38,14 +38,18 @@ def test_surface_through_the_run_clip(body, data, outfit):
             s, st, m = surf.state, surf.model.settings, surf.model
             # and the moves out of creases (cloth.creases: off the normal, never a coarse vertex, bounded)
             # first the moves out along ±n_i (cloth.creases.out_along_normals: along the normal, a coarse
-            # vertex only so, bounded, each from inside the body as a whole)
+            # vertex so or the way around within EXIT_REACH, bounded, each from inside the body as a whole)
             k = surf.exited
             ids, moves = s.exit_ids[:k], s.exit_moves[:k]
             assert len(np.unique(ids)) == k
             # (or, with no way out along ±n_i within EXIT_REACH, through the nearest face, within EXIT_FACE_REACH)
             along, length = np.sum(moves * s.n_pn[ids], axis=1), np.linalg.norm(moves, axis=1)
             normal = np.isclose(np.abs(along), length, rtol=1e-9, atol=0.0)
-            assert normal[ids < len(x)].all()
+            coarse = ids < len(x)
+            assert np.all(length[coarse] <= EXIT_REACH + st.clearance + 1e-12)
+            # (off the normal: along one of the ways around)
+            turned = moves[coarse & ~normal] / length[coarse & ~normal, None]
+            assert np.all(np.max(turned @ EXIT_DIRECTIONS.T, axis=1) > 1.0 - 1e-9)
             assert np.all(length[normal] <= EXIT_REACH + st.clearance + 1e-12)
             assert np.all(length <= EXIT_FACE_REACH + 1e-12)
             p[ids] -= moves
