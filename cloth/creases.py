@@ -105,7 +105,8 @@ EXIT_FACING = 0.9
 # 1 cm; asking them took the casual outfit's 175 to 81 and the elegant's 183 to 143, for 0.5 ms a garment-frame).
 # 2 cm since the eighty-ninth session: 39 of the jumping jacks' and walk's vertex-frames left deeper than 1 mm had
 # been read outside with another part 10-25 mm away and the normal along the body's, never asked (the knees and
-# hips in the crouches); at 2 cm the casual and sport outfits' 107 became 77, for 0.03 ms a garment-frame
+# hips in the crouches); at 2 cm the jumping jacks' 123 became 88 (three outfits), for about 0.03 ms a
+# garment-frame (the walk's casual outfit)
 EXIT_NEAR_ALONG = 0.02
 # n_i . n_body below this and `out_along_normals` asks the particle wherever the other parts are (seventy-first
 # session: the walk's blouse left 58 vertex-frames deeper than 1 mm that S103 had read 3-40 mm outside, no other
