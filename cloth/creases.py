@@ -443,6 +443,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
     of particles moved, k; ids[:k] (int32) are they, moves[:k] (k, 3) how far each went."""
     moved = 0
     n_inside = 0
+    coarse_around = min(around_reach, reach)  # (a coarse vertex's way around looks no farther than ±n_i)
     if spread:
         for i in range(p.shape[0]):
             seen[i] = 0
@@ -459,7 +460,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
         found, moved = _exit_body(p, n, i, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
                                   face_reach if off else 0.0, tris, face_n, box, child, tfirst, count, order, parent,
                                   leaf, stack, q, body_face[i], ids, moves, moved, around,
-                                  around_reach if off else min(around_reach, reach))
+                                  around_reach if off else coarse_around)
         if found:
             inside[n_inside] = i
             n_inside += 1
@@ -476,7 +477,7 @@ def out_along_normals(p, n, sd, other, facing, behind, lowered, first, near, lea
             found, moved = _exit_body(p, n, j, reach, clearance, body_x, wfaces, wlo, wstart, wids, wspan, wextent,
                                       face_reach if off else 0.0, tris, face_n, box, child, tfirst, count, order,
                                       parent, leaf, stack, q, body_face[j] if body_face[j] >= 0 else body_face[i],
-                                      ids, moves, moved, around, around_reach if off else min(around_reach, reach))
+                                      ids, moves, moved, around, around_reach if off else coarse_around)
             if found:
                 inside[n_inside] = j
                 n_inside += 1
