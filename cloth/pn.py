@@ -333,6 +333,40 @@ def pn_evaluate_faces(ctrl, nctrl, face_ids, owned, cubic, quadratic, buf, p_out
                 n_out[i, 2] = buf[5, k] * buf[6, k]
 
 
+@helper
+def _lattice_index(b, c, level):
+    """Local index of lattice point (b, c) in `lattice_points(level)`'s order (row c after rows 0..c-1)."""
+    return c * (level + 1) - (c * (c - 1)) // 2 + b
+
+
+@kernel
+def resample_heights(face_ids, level, owner_face, owner_weights, values, out):
+    """Per-particle values of one tessellation (face_ids, level: the source's) at the particles of
+    another tessellation of the same coarse triangles (owner_face, owner_weights: the target's), by
+    linear interpolation over the source's lattice triangle that holds each target particle: a
+    particle's barycentric weights in its owner face place it on the source's lattice there. Exact
+    at the points both lattices share and for values linear over each lattice triangle; a convex
+    blend elsewhere (never beyond the source's values). Used when a session changes its level of
+    detail: Δh carried over, the wrinkles kept where they were (`DetailedSurface.carry_heights_from`)."""
+    L = level
+    for v in range(out.shape[0]):
+        f = owner_face[v]
+        b = owner_weights[v, 1] * L
+        c = owner_weights[v, 2] * L
+        i = min(max(int(math.floor(b)), 0), L - 1)
+        j = min(max(int(math.floor(c)), 0), L - 1 - i)
+        fb, fc = b - i, c - j
+        if fb + fc <= 1.0 or i + j == L - 1:  # the "up" triangle (i, j), (i + 1, j), (i, j + 1)
+            k0, w0 = _lattice_index(i, j, L), 1.0 - fb - fc
+            k1, w1 = _lattice_index(i + 1, j, L), fb
+            k2, w2 = _lattice_index(i, j + 1, L), fc
+        else:  # the "down" triangle (i + 1, j + 1), (i, j + 1), (i + 1, j)
+            k0, w0 = _lattice_index(i + 1, j + 1, L), fb + fc - 1.0
+            k1, w1 = _lattice_index(i, j + 1, L), 1.0 - fb
+            k2, w2 = _lattice_index(i + 1, j, L), 1.0 - fc
+        out[v] = w0 * values[face_ids[f, k0]] + w1 * values[face_ids[f, k1]] + w2 * values[face_ids[f, k2]]
+
+
 def pn_surface(tess: Tessellation, x: np.ndarray, coarse_normals: np.ndarray, ctrl: np.ndarray, nctrl: np.ndarray,
                p_smoothed: np.ndarray, n_pn: np.ndarray, scratch: np.ndarray | None = None) -> None:
     """S102: coarse positions -> detailed reference positions p_smoothed and PN normals n_pn

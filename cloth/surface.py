@@ -23,7 +23,8 @@ from .creases import (EXIT_AROUND_REACH, EXIT_DIRECTIONS, EXIT_FACE_REACH, EXIT_
                       out_along_normals)
 from .dynamics import spring_forces, spring_scratch
 from .model import ClothModel, check_fields
-from .pn import Tessellation, build_tessellation, pn_surface
+from .pn import Tessellation, build_tessellation, pn_surface, resample_heights
+from .snapshot import StateSnapshot
 from .topology import vertex_cells, vertex_neighbours
 from .winding import NO_WINDING
 from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, cover_body_tips,
@@ -301,6 +302,19 @@ class DetailedSurface:
         self.creased = 0  # particles moved out of a crease in the last frame (`creases.leave_creases`)
         self.exited = 0  # particles moved out along ±n_i in the last frame (`creases.out_along_normals`)
         self.covered = 0  # body vertices whose detailed triangle S103 raised over them in the last frame
+
+    def carry_heights_from(self, other: "DetailedSurface") -> None:
+        """Take over another level's surface of the same garment (a session changing its level of
+        detail): its Δh, resampled onto this level's particles (`pn.resample_heights`), so the
+        wrinkles stay where they were; the rest of the state (S103's walks, the moves out of the
+        body) starts afresh, as on a session's first frame. In place: the state's arrays stay the
+        ones a snapshot of it holds (`cloth.snapshot`), so a surface used before can be taken up again."""
+        o, t = other.model.tess, self.model.tess
+        if (o.n_coarse != t.n_coarse or o.coarse_triangles.shape != t.coarse_triangles.shape
+                or not np.array_equal(o.coarse_triangles, t.coarse_triangles)):
+            raise ValueError("carry_heights_from: the two surfaces are not over the same coarse triangles")
+        StateSnapshot(SurfaceState(self.model)).onto(self.state).restore()  # afresh, into the same arrays
+        resample_heights(o.face_ids, o.level, t.owner_face, t.owner_weights, other.state.dh, self.state.dh)
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,
              body: BodyMesh | None, face_n: np.ndarray | None, dt: float,

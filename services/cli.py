@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import functools
+import math
 import signal
 import sys
 import threading
@@ -145,6 +146,24 @@ def _count(text: str) -> int:
     if n < 1:
         raise argparse.ArgumentTypeError(f"must be a whole number >= 1, got {n}")
     return n
+
+
+def _budget_ms(text: str) -> float:
+    """A frame budget in milliseconds: a number > 0."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number of milliseconds > 0, got {text!r}") from None
+    if not 0.0 < x < math.inf:
+        raise argparse.ArgumentTypeError(f"must be a number of milliseconds > 0, got {text}")
+    return x
+
+
+FRAME_BUDGET_HELP = ("hold each session's cloth step within this many milliseconds (its 90th percentile over "
+                     "half a second): over it the detailed surface goes on at a lower tessellation level (down "
+                     "to 3), back up to --level when that fits again; the garments' wrinkles are carried over "
+                     "and displays read the new topology (output no longer bit-reproducible). Default: none, "
+                     "the level stays")
 
 
 def _seconds(text: str) -> float:
@@ -347,7 +366,8 @@ def cmd_session(args) -> int:
                              web_port=args.web_port if args.serve else None, record=not args.no_record,
                              snapshot_frames=frames, png=not args.no_png, progress=True if args.progress else None,
                              ik=ik, contact=_contact(args), stop=stop, rrd=not args.no_rrd,
-                             min_free=_keep_free(args))
+                             min_free=_keep_free(args),
+                             frame_budget=None if args.frame_budget_ms is None else args.frame_budget_ms / 1000.0)
     print(result.summary())
     return 0
 
@@ -478,7 +498,9 @@ def cmd_cloth_service(args) -> int:
     body = load_body(data)
     with bus_config_from_args(args).open() as bus, _compiling_ahead(data, args.outfit, spec.level is not None):
         svc = ClothService(bus, body, data, spec, idle_seconds=args.idle, catch_up=args.catch_up,
-                           spin=args.spin_ms / 1000.0, cpus=cpus, float32_meshes=args.float32_meshes).start()
+                           spin=args.spin_ms / 1000.0, cpus=cpus, float32_meshes=args.float32_meshes,
+                           frame_budget=None if args.frame_budget_ms is None else args.frame_budget_ms / 1000.0
+                           ).start()
         print(f"cloth service ready (default outfit {args.outfit}); Ctrl-C to stop", flush=True)
         _wait()
         svc.stop()
@@ -672,6 +694,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--web-port", type=int, default=None, help="also serve rerun's web viewer on this port")
     p.add_argument("--no-record", action="store_true", help="do not write the bus recording")
     p.add_argument("--no-rrd", action="store_true", help="do not write the rerun recording (.rrd)")
+    p.add_argument("--frame-budget-ms", type=_budget_ms, default=None, metavar="MS", help=FRAME_BUDGET_HELP)
     _keep_free_argument(p)
     p.add_argument("--no-png", action="store_true", help="skip the PNG snapshots")
     p.add_argument("--progress", action="store_true", help="progress bar even when stderr is not a terminal")
@@ -736,6 +759,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--float32-meshes", action="store_true",
                    help="publish garment positions and normals as float32 (24 bytes a vertex) rather than on a "
                         "16-bit grid with octahedral normals (10 bytes, at most 8 um and 0.004 deg off)")
+    p.add_argument("--frame-budget-ms", type=_budget_ms, default=None, metavar="MS", help=FRAME_BUDGET_HELP)
     add_bus_arguments(p)
     p.set_defaults(func=cmd_cloth_service)
 

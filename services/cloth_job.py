@@ -274,6 +274,7 @@ class OutfitSession:
         if layers is None:
             layers = outfit_layers(outfit, surface_models, body.n_visible) if surface_models else []
         self.layers = [(lm, LayerState(lm)) for lm in layers]
+        self._by_level: dict = {}  # the surfaces of the other levels this session used (`change_level`)
         self._split_layers = any(max(len(lm.over.candidates), len(lm.under.candidates)) >= SPLIT_CANDIDATES
                                  for lm in layers)
         # handed to on_garment only once layered (the outer lifted, the inner pressed)
@@ -368,6 +369,50 @@ class OutfitSession:
                 for k in sorted(self.layered_garments):
                     on_garment(k, out[k])
         return out
+
+    @property
+    def level(self) -> int | None:
+        """The detailed surfaces' tessellation level (None: coarse cloth only)."""
+        return self.surfaces[0].model.tess.level if self.surfaces else None
+
+    def models_at(self, level: int) -> tuple[list, list[LayerModel]] | None:
+        """The surface models and layer pairs of a level this session used before (None: not used)."""
+        if level == self.level:
+            return [sf.model for sf in self.surfaces], [lm for lm, _ in self.layers]
+        if level not in self._by_level:
+            return None
+        surfaces, pairs, _ = self._by_level[level]
+        return [sf.model for sf in surfaces], [lm for lm, _ in pairs]
+
+    def change_level(self, surface_models: list, layers: list[LayerModel]) -> None:
+        """Go on with the detailed surfaces of another tessellation level (a live session holding
+        its frame time, `services.frame_budget`): the coarse cloth steps on as it was, each
+        garment's Δh is carried over onto the new particles (`DetailedSurface.carry_heights_from`)
+        and the layering starts afresh. surface_models, layers: that level's, of the same outfit
+        (`build_outfit`). A level used before takes up the surfaces it had, in place (a snapshot
+        taken there restores onto them again)."""
+        if not self.surfaces:
+            raise ValueError("change_level: this session has no detailed surface")
+        if len(surface_models) != len(self.surfaces):
+            raise ValueError(f"change_level: {len(surface_models)} surface models for {len(self.surfaces)} garments")
+        level = surface_models[0].tess.level
+        if level == self.level:
+            return
+        self._by_level[self.level] = (self.surfaces, self.layers, self._split_layers)
+        if level in self._by_level:
+            surfaces, pairs, split = self._by_level.pop(level)
+            for lm, ls in pairs:  # (afresh, in place)
+                StateSnapshot(LayerState(lm)).onto(ls).restore()
+        else:
+            surfaces = [DetailedSurface(sm) for sm in surface_models]
+            pairs = [(lm, LayerState(lm)) for lm in layers]
+            split = any(max(len(lm.over.candidates), len(lm.under.candidates)) >= SPLIT_CANDIDATES for lm in layers)
+        for new, old in zip(surfaces, self.surfaces):
+            new.carry_heights_from(old)
+        self.surfaces, self.layers, self._split_layers = surfaces, pairs, split
+        self._detailed = [None] * len(self.sims)
+        self.detailed = []
+        self.surface_seconds[:] = 0.0
 
     def _stack_layers(self, helper) -> None:
         """The layering of every pair (`cloth.layers.stack_layer`), after every garment has stepped;

@@ -34,7 +34,7 @@ import queue
 import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numba
@@ -49,6 +49,7 @@ from skinning.body import Body
 
 from .bus import Latched, Stats, fetch_latched, key, parse_key, put_reliably
 from .cloth_job import GARMENT_COLORS, Outfit, OutfitSession, build_outfit, collision_body, find_outfit
+from .frame_budget import LevelGovernor
 from .frame_order import FrameOrder
 from .heap import freeze_heap, reclaim_heap
 from .model_cache import ModelCache, object_digest
@@ -133,14 +134,12 @@ class GarmentSession:
                                                  congestion_control=zenoh.CongestionControl.DROP)
                            for n in self.names]
         self._coarse_normals = [np.empty((m.n_particles, 3)) for m in outfit.models]
-        if self.sim.surfaces:
-            n_out = [sf.model.n_vertices for sf in self.sim.surfaces]
-        else:
-            n_out = [m.n_particles for m in outfit.models]
-        # wire buffers, reused every frame
-        self._p32 = [np.empty((n, 3), np.float32) for n in n_out] if service.float32_meshes else None
-        self._n32 = [np.empty((n, 3), np.float32) for n in n_out] if service.float32_meshes else None
-        self._compact = None if service.float32_meshes else [CompactMesh(n) for n in n_out]
+        self.level = spec.level  # the detailed surfaces' level now (a frame budget may lower it)
+        # the level that holds the frame budget (`services.frame_budget`; None: the announced level, always)
+        self.governor = (LevelGovernor(service.frame_budget, spec.level)
+                         if service.frame_budget is not None and spec.level is not None else None)
+        self._level_job: tuple[int, Future] | None = None  # another level's models being built
+        self.stats.values["level"] = spec.level
         self.body_x = np.empty((service.body.n_visible, 3))
         self.order = FrameOrder()  # of the body frames stepped
         self.seen_frame = -1  # the newest body frame that reached it, stepped or rejected
@@ -157,15 +156,67 @@ class GarmentSession:
         self._msg: Message | None = None  # the body frame being stepped (read by _publish_garment)
         self._first = False  # ... and whether it is the session's first
         self.last_seen = time.monotonic()
+        self._prepare_output()
+        self.latch(ready=False)
+
+    def _prepare_output(self) -> None:
+        """The wire buffers (reused every frame) and the latched topology of the garments at this level."""
+        models = self.sim.outfit.models
+        if self.sim.surfaces:
+            n_out = [sf.model.n_vertices for sf in self.sim.surfaces]
+        else:
+            n_out = [m.n_particles for m in models]
+        float32 = self.service.float32_meshes
+        self._p32 = [np.empty((n, 3), np.float32) for n in n_out] if float32 else None
+        self._n32 = [np.empty((n, 3), np.float32) for n in n_out] if float32 else None
+        self._compact = None if float32 else [CompactMesh(n) for n in n_out]
         self._topology = []
-        for k, (n, m) in enumerate(zip(self.names, outfit.models)):
+        for k, (n, m) in enumerate(zip(self.names, models)):
             tris = self.sim.surfaces[k].model.tess.triangles if self.sim.surfaces else m.triangles
-            topo = Message("topology", session, arrays={"triangles": np.ascontiguousarray(tris, dtype=np.int32)},
+            topo = Message("topology", self.session,
+                           arrays={"triangles": np.ascontiguousarray(tris, dtype=np.int32)},
                            meta={"what": "garment", "garment": n, "fabric": m.fabric.name,
                                  "color": list(GARMENT_COLORS[k % len(GARMENT_COLORS)]),
-                                 "level": spec.level, "n_vertices": int(tris.max()) + 1})
-            self._topology.append((key(session, "topology", "garment", n), encode(topo)))
+                                 "level": self.level, "n_vertices": int(tris.max()) + 1})
+            self._topology.append((key(self.session, "topology", "garment", n), encode(topo)))
+
+    def _set_level(self, surface_models: list, layers: list) -> None:
+        """Go on at another level (its surface models and layer pairs): each garment's wrinkles
+        carried over (`OutfitSession.change_level`), its new topology latched before the first
+        frame that has it (a display that sees a frame of another size reads the topology again)."""
+        before = self.level
+        self.sim.change_level(surface_models, layers)
+        self.level = self.sim.level
+        self._prepare_output()
         self.latch(ready=False)
+        if self.governor is not None:
+            self.governor.changed(self.level)
+        self.stats.values["level"] = self.level
+        self.stats.add("level_changes")
+        log.info("cloth: session %s: level %s -> %s (frame budget %s ms)", self.session, before, self.level,
+                 None if self.governor is None else round(self.governor.budget * 1000, 2))
+
+    def _take_level(self) -> None:
+        """Another level, once its models are built (on the service's background thread)."""
+        want, job = self._level_job
+        if not job.done():
+            return
+        self._level_job = None
+        try:
+            _, surface_models, layers = job.result()
+        except Exception:  # noqa: BLE001 - the session keeps its level
+            log.exception("cloth: session %s: building level %d failed; it stays at level %s", self.session, want,
+                          self.level)
+            self.governor = None
+            return
+        self._set_level(surface_models, layers)
+
+    def _back_to_announced_level(self) -> None:
+        """The announced level's surfaces again (the ones it was settled with: a snapshot of its
+        start restores onto them)."""
+        self._level_job = None
+        if self.level != self.spec.level:  # (its models are the session's own: no wait on the background's build)
+            self._set_level(*self.sim.models_at(self.spec.level))
 
     def latch(self, ready: bool = True) -> None:
         """Latch each garment's topology, and (ready) the session's status: ready, as set up."""
@@ -201,6 +252,7 @@ class GarmentSession:
     def _start_state(self):
         """The garments as settled into start_q (None: not available), once the background
         settling of a loop pose is done (waited for here if it is not)."""
+        self._back_to_announced_level()  # (the snapshot is of its states)
         job, self._loop_job = self._loop_job, None
         if job is not None:
             try:
@@ -288,6 +340,8 @@ class GarmentSession:
         first = not self.started
         if first:  # joined without the announcement: settle the garments into this first pose
             self.preroll(q)
+        if self._level_job is not None and publish:
+            self._take_level()
         self._msg, self._first = msg, first
         t0 = time.perf_counter()
         try:
@@ -303,6 +357,10 @@ class GarmentSession:
             self.stats.add("skipped")
             return
         self.skipped_since = 0
+        if self.governor is not None and self._level_job is None:
+            want = self.governor.observe(step_ms / 1000)
+            if want is not None:
+                self._level_job = (want, svc.models_later(replace(self.spec, level=want)))
         self.stats.values.update(step_ms=round(step_ms, 3), backlog=svc.backlog(),
                                  latency_ms=round((time.time_ns() - msg.stamp_ns) / 1e6, 3))
         self.stats.publish(svc.bus)
@@ -364,7 +422,8 @@ class ClothService:
     def __init__(self, bus: zenoh.Session, body: Body, data: Path, default: OutfitSpec,
                  queue_frames: int = 1024, idle_seconds: float = 60.0, sessions: str = "*",
                  catch_up: bool = False, spin: float = 0.0, cpus: list[int] | None = None,
-                 float32_meshes: bool = False, model_cache: ModelCache | None = None):
+                 float32_meshes: bool = False, model_cache: ModelCache | None = None,
+                 frame_budget: float | None = None):
         """catch_up: when a session's body frames queue up, step the coarse cloth through every one
         of them but build and publish the detailed surface only for the newest (live displays stay
         current; the output then depends on timing). Off: every frame is published, in order, and
@@ -378,11 +437,16 @@ class ClothService:
         float32_meshes: publish garment positions and normals as float32 (24 bytes a vertex)
         rather than compact (`services.wire`: a 16-bit grid and octahedral normals, 10 bytes).
         model_cache: where outfit models built before are read back (`services.model_cache`;
-        default: $TRYON_CACHE's folder, ~/.cache/tryon)."""
+        default: $TRYON_CACHE's folder, ~/.cache/tryon).
+        frame_budget: seconds a session's cloth step may take (its 90th percentile over half a
+        second): a session over it goes on at a lower tessellation level, and back up when the
+        higher one fits (`services.frame_budget`; the output then depends on timing). None: each
+        session keeps its announced level."""
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
         self.model_cache = model_cache if model_cache is not None else ModelCache.from_env()
         self._body_digest: str | None = None
         self.float32_meshes = float32_meshes
+        self.frame_budget = frame_budget
         self.catch_up = catch_up
         self.spin = spin
         # helper threads for the garments, shared by the sessions: one per core beyond this
@@ -428,6 +492,11 @@ class ClothService:
         `OutfitSession.preroll` settles gs's own; the future's result is the settled state
         (`OutfitSession.snapshot`; None if gs closed first), for `StateSnapshot.onto` gs's."""
         return self._background.submit(self._settle, gs, np.array(q, dtype=np.float64))
+
+    def models_later(self, spec: OutfitSpec) -> Future:
+        """`outfit_models(spec)` built on the background thread (another level for a session
+        holding its frame budget, while its frames stream)."""
+        return self._background.submit(self.outfit_models, spec)
 
     def _settle(self, gs: GarmentSession, q: np.ndarray):
         outfit, surface_models, layers = self.outfit_models(gs.spec)

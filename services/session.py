@@ -60,9 +60,30 @@ class SessionTap:
         self.garment_frames = 0
         self.last_garment_frame = -1
         self.rejected = 0
+        # every garment topology published while it runs, by (entity, vertex count): a snapshot frame's
+        # garment is drawn with the topology of its own level, outfit or fabric, whatever came after it
+        self.topologies: dict[tuple[str, int], dict] = {}
         self._lock = threading.Lock()
         self._subs = [bus.declare_subscriber(key(session, "body"), self),
-                      bus.declare_subscriber(key(session, "garment", "*"), self)]
+                      bus.declare_subscriber(key(session, "garment", "*"), self),
+                      bus.declare_subscriber(key(session, "topology", "garment", "*"), self._on_topology)]
+
+    def _on_topology(self, sample) -> None:
+        k = str(sample.key_expr)
+        try:
+            _, parts = parse_key(k)
+            msg = decode(sample.payload.to_bytes(), k, self.session, parts[0])
+            tris = np.array(msg.arrays["triangles"])
+            n = msg.meta.get("n_vertices")
+            if not isinstance(n, int) or isinstance(n, bool) or (tris.size and not 0 <= tris.min() <= tris.max() < n):
+                raise MessageError(k, f"unusable topology for {n!r} vertices")
+        except (MessageError, KeyError):
+            self.rejected += 1
+            return
+        color = msg.meta.get("color", [0.7, 0.7, 0.7])
+        with self._lock:
+            self.topologies["world/" + "/".join(parts[1:]), n] = {
+                "triangles": tris, "n_vertices": n, "color": tuple(float(c) for c in color[:3]), "shading": None}
 
     def __call__(self, sample) -> None:
         now = time.time_ns()
@@ -124,7 +145,8 @@ class SessionResult:
                      f"p99 {self.latency_ms[1]:.1f} ms")
         for what, s in self.stats.items():
             c = s["counts"]
-            lines.append(f"  {what}: " + ", ".join(f"{k} {v}" for k, v in c.items()))
+            lines.append(f"  {what}: " + ", ".join(f"{k} {v}" for k, v in c.items())
+                         + (f", level at the end {s['values']['level']}" if c.get("level_changes") else ""))
         stopped = {"rerun": self.stats.get("viewer", {}).get("values", {}).get("rrd_stopped"),
                    "recording": self.stats.get("recorder", {}).get("values", {}).get("stopped")}
         for label, p in (("rerun", self.rrd), ("recording", self.recording), ("snapshots", self.snapshots)):
@@ -186,13 +208,17 @@ def render_session_snapshots(body: Body, tap: SessionTap, topology: dict, out: P
             meshes = []
             for name, (pos, normals) in sorted(tap.frames[f].items()):
                 ent = "world/" + name
-                if ent not in topology or len(pos) != topology[ent]["n_vertices"]:
-                    continue  # (a garment whose outfit changed since, to one of another level)
-                color = topology[ent].get("color", (0.7, 0.7, 0.7))
+                topo = topology.get(ent)
+                if topo is None or len(pos) != topo["n_vertices"]:
+                    # a garment of another level than the last (a frame budget, an outfit change): its own
+                    topo = tap.topologies.get((ent, len(pos)))
+                    if topo is None:
+                        continue
+                color = topo.get("color", (0.7, 0.7, 0.7))
                 if normals is None:  # the body's: the viewer bridge's normals for it, when it built them
-                    shading = topology[ent].get("shading") or VertexNormals(topology[ent]["triangles"], len(pos))
+                    shading = topo.get("shading") or VertexNormals(topo["triangles"], len(pos))
                     normals = shading(pos)
-                meshes.append(MeshDraw(pos.astype(np.float64), topology[ent]["triangles"], normals.astype(np.float64),
+                meshes.append(MeshDraw(pos.astype(np.float64), topo["triangles"], normals.astype(np.float64),
                                        tuple(color)))
             verts = tap.frames[f]["body"][0]
             centre = np.array([verts[:, 0].mean(), verts[:, 1].min() + 0.5 * np.ptp(verts[:, 1]), verts[:, 2].mean()])
@@ -210,10 +236,11 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
                 snapshot_frames: list[int] | None = None, png: bool = True, progress: bool | None = None,
                 window: int = 1, stop: threading.Event | None = None, ik: IKSettings | None = None,
                 contact: ContactSettings | None = ContactSettings(), rrd: bool = True,
-                min_free: int = DEFAULT_MIN_FREE) -> SessionResult:
+                min_free: int = DEFAULT_MIN_FREE, frame_budget: float | None = None) -> SessionResult:
     """Run one session end to end in this process (see the module docstring). rrd, record: write
     the rerun and bus recordings; min_free: bytes they leave free on their disk (each is finished,
-    complete, when fewer are: services.diskspace)."""
+    complete, when fewer are: services.diskspace); frame_budget: the cloth service's
+    (`ClothService`: seconds a frame's cloth step may take, held by the level; None: the level stays)."""
     output_folder(out_dir)
     serve = serve_port is not None
     bus = (bus_config or BusConfig()).open()
@@ -223,7 +250,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         # live (--serve): frames come at the clip's pace, and the service polls between them as
         # `tryon cloth-service` does; offline they come back to back and it never waits
         cloth = ClothService(bus, body, data, spec, sessions=session, catch_up=serve,
-                             spin=LIVE_SPIN if serve else 0.0).start()
+                             spin=LIVE_SPIN if serve else 0.0, frame_budget=frame_budget).start()
         sink = RecordingSink(session, rrd=out_dir / f"{session}.rrd" if rrd else None, serve_port=serve_port,
                              web_port=web_port, min_free=min_free)
         viewer = ViewerBridge(bus, session, sink, lossless=not serve).start()
