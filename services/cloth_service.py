@@ -136,7 +136,7 @@ class GarmentSession:
         self._coarse_normals = [np.empty((m.n_particles, 3)) for m in outfit.models]
         self.level = spec.level  # the detailed surfaces' level now (a frame budget may lower it)
         # the level that holds the frame budget (`services.frame_budget`; None: the announced level, always)
-        self.governor = (LevelGovernor(service.frame_budget, spec.level)
+        self.governor = (LevelGovernor(service.frame_budget, spec.level, **service.governor_settings)
                          if service.frame_budget is not None and spec.level is not None else None)
         self._level_job: tuple[int, Future] | None = None  # another level's models being built
         self.stats.values["level"] = spec.level
@@ -447,6 +447,7 @@ class ClothService:
         self._body_digest: str | None = None
         self.float32_meshes = float32_meshes
         self.frame_budget = frame_budget
+        self.governor_settings: dict = {}  # the sessions' LevelGovernor keywords beyond the budget (window, ...)
         self.catch_up = catch_up
         self.spin = spin
         # helper threads for the garments, shared by the sessions: one per core beyond this

@@ -1130,6 +1130,71 @@ def test_a_cloth_service_behind_its_stream_catches_up_on_the_newest_frame(body, 
             (k, np.median(gap), np.percentile(gap, 99), gap.max())
 
 
+def test_a_session_over_its_frame_budget_goes_on_at_a_lower_level(body, data, tmp_path):
+    """A cloth service with a frame budget no step can keep: the session, announced at level 4,
+    goes on at level 3 after a few frames (the lowest), with its new topology latched and put on
+    the bus before its first frame, so a display (the viewer bridge) shows every frame. Where the
+    looped clip starts again, the garments come back at the announced level as they were settled
+    at the start (bit for bit), and go down again."""
+    host = BusConfig(listen=[f"tcp/127.0.0.1:{(port := free_port())}"]).open()
+    cloth = ClothService(host, body, data, OutfitSpec(OUTFIT, None, 4), frame_budget=1e-6)
+    cloth.governor_settings = {"window": 3}
+    n_at = {level: [sm.n_vertices for sm in cloth.outfit_models(OutfitSpec(OUTFIT, None, level))[1]]
+            for level in (3, 4)}  # (built ahead: the change comes within frames)
+    cloth.start()
+    bus, display = peer(port), peer(port)
+    garments = Collector(display, key("budget", "garment", "*"))
+    topologies = Collector(display, key("budget", "topology", "garment", "*"))
+    sink = RecordingSink("budget", rrd=tmp_path / "budget.rrd")
+    bridge = ViewerBridge(display, "budget", sink, lossless=True).start()
+    try:
+        source = BVHSource(mocap_clip(data), every=2, loop=True, loop_from=START_FRAME, max_frames=38 + 8)
+        svc = IngestService(bus, "budget", body, source, {"outfit": OUTFIT, "level": 4},
+                            check_outfit=outfit_checker(data))
+        svc.run(start_frame=START_FRAME, wait_subscribers=10, wait_ready=30)
+        svc.close()
+        frames = list(range(START_FRAME, 38 + 8))
+        wait_until(lambda: len(garments.messages) == 2 * len(frames), 60, "every frame's garments")
+        wait_until(lambda: "budget" in cloth.closed_stats, 30, "the session's end at the cloth service")
+        names = [m.name for m in cloth.outfit_models(OutfitSpec(OUTFIT, None, 4))[0].models]
+        size = {(m.frame, parse_key(k)[1][1]): vertex_count_of(m) for k, m in garments.messages}
+        level = {}
+        for f in frames:
+            levels = {lv for lv in (3, 4) for k, g in enumerate(names) if size[f, g] == n_at[lv][k]}
+            assert len(levels) == 1, (f, [size[f, g] for g in names])  # both garments at one level
+            level[f] = levels.pop()
+        first_pass, second_pass = [level[f] for f in frames if f < 38], [level[f] for f in frames if f >= 38]
+        assert first_pass[0] == 4 and first_pass[-1] == 3 and second_pass[0] == 4 and second_pass[-1] == 3
+        assert first_pass == sorted(first_pass, reverse=True) and second_pass == sorted(second_pass, reverse=True)
+        stats = cloth.closed_stats["budget"]
+        assert stats["counts"]["restarts"] == 1 and stats["counts"]["level_changes"] == 3
+        assert stats["values"]["level"] == 3
+        worn = {(m.frame, parse_key(k)[1][1]): m.arrays for k, m in garments.messages}
+        for g in names:  # back at the start's level, as settled then
+            for name, a in worn[(38, g)].items():
+                np.testing.assert_array_equal(a, worn[(START_FRAME, g)][name], err_msg=f"{g} {name}")
+        latched = {(parse_key(k)[1][2], m.meta["level"], m.meta["n_vertices"]) for k, m in topologies.messages}
+        assert {(g, 3, n_at[3][k]) for k, g in enumerate(names)} <= latched
+        assert {(g, 4, n_at[4][k]) for k, g in enumerate(names)} <= latched  # (at the start, and again at the restart)
+        wait_until(lambda: all(bridge.frames_shown.get(f"world/garment/{g}") == frames[-1] for g in names), 30,
+                   "the viewer bridge to show the last frame")
+        assert bridge.stats.counts["rejected"] == 0
+        assert {bridge.topology[f"world/garment/{g}"]["n_vertices"] for g in names} == set(n_at[3])
+    finally:
+        bridge.stop()
+        sink.close()
+        garments.close()
+        topologies.close()
+        bus.close()
+        display.close()
+        cloth.stop()
+        host.close()
+
+
+def vertex_count_of(msg: Message) -> int:
+    return len(garment_mesh(msg.arrays)[0])
+
+
 def test_a_loop_pose_is_settled_in_the_background_as_the_session_would_settle_it(hub, body, data):
     """An outfit change's loop pose is settled on the service's background thread, after the
     session is ready, in a fresh session of the same models: handed over, every state array is
