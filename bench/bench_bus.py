@@ -11,7 +11,7 @@ mesh here - publication of its body frame (same clock). Runs:
   * concurrent 60 Hz sessions on one cloth service, 1..N: how many it holds (no dropped frame,
     latency not growing).
 Run: .venv/bin/python bench/bench_bus.py [--level 6] [--seconds 8] [--max-sessions 3]
-(--level 0: coarse cloth only).
+(--level 0: coarse cloth only; --frame-budget-ms MS: the cloth service holds its step to MS by the level).
 """
 
 from __future__ import annotations
@@ -96,6 +96,19 @@ class Arrivals:
                             for f in body if f in full])
         return lat, dropped, len(body), compute
 
+    def levels(self, session: str) -> str:
+        """The tessellation levels the session's garments came at, in order, with their frames
+        (a cloth service holding a frame budget changes it: "6 x31, 5 x448")."""
+        with self.lock:
+            seq = [next(iter(g.values()))[2].get("level") for (s, f), g in sorted(self.frames.items()) if s == session]
+        runs: list[list] = []
+        for lv in seq:
+            if runs and runs[-1][0] == lv:
+                runs[-1][1] += 1
+            else:
+                runs.append([lv, 1])
+        return ", ".join(f"{lv} x{n}" for lv, n in runs) or "-"
+
     def breakdown(self, session: str, garments: int = 2) -> list[float]:
         """Where a frame's latency goes, p50 ms over its complete frames: the body frame's arrival
         in this (another) process, the cloth service's stamps of its first and last garment message
@@ -179,7 +192,7 @@ def latency_rows(endpoint: str, seconds: float, level: int, label: str, breakdow
         a = run(endpoint, [name], every, "realtime", n, level)
         lat, dropped, total, compute = a.result(name)
         print(f"| {label} | {rate} | {total} | {pct(lat, 50)} | {pct(lat, 99)} | {pct(lat, 100)} | {dropped} | "
-              f"{np.median(compute) if len(compute) else float('nan'):.1f} |", flush=True)
+              f"{np.median(compute) if len(compute) else float('nan'):.1f} | {a.levels(name)} |", flush=True)
         breakdown.append(f"| {label} | {rate} | " + " | ".join(f"{x:.2f}" for x in a.breakdown(name)) + " |")
 
 
@@ -192,7 +205,10 @@ def main() -> None:
                     help="passed to the cloth service: auto (its default), none, or cores (e.g. 0,1)")
     ap.add_argument("--no-skin-contact", action="store_true", help="passed to the mocap-ingest processes")
     ap.add_argument("--float32-meshes", action="store_true", help="passed to the cloth service")
+    ap.add_argument("--frame-budget-ms", metavar="MS", help="passed to the cloth service: the level held to it")
     args = ap.parse_args()
+    if args.frame_budget_ms:
+        CLOTH_OPTIONS.extend(["--frame-budget-ms", args.frame_budget_ms])
     if args.no_skin_contact:
         INGEST_OPTIONS.append("--no-skin-contact")
     if args.float32_meshes:
@@ -205,8 +221,8 @@ def main() -> None:
           f"; cloth service --pin-cores {args.pin_cores} {' '.join(CLOTH_OPTIONS)}"
           f"; ingest {' '.join(INGEST_OPTIONS) or 'with the skin contact'}\n")
     print("| cloth service | input | frames | latency p50 ms | p99 ms | max ms | frames without garments | "
-          "compute ms/frame |")
-    print("|---|---|---|---|---|---|---|---|")
+          "compute ms/frame | levels, frames at each |")
+    print("|---|---|---|---|---|---|---|---|---|")
     breakdown: list[str] = []
     cloth = start_cloth(endpoint, args.level, catch_up=True, pin_cores=args.pin_cores)
     try:

@@ -376,7 +376,7 @@ class GarmentSession:
             n = self._coarse_normals[k]
             vertex_normals(p, sim.outfit.models[k].triangles, n)
         meta = {"garment": self.names[k], "s101_ms": round(float(sim.cloth_seconds[k]) * 1000, 4),
-                "resets": int(sim.sims[k].stats.reset_particles)}
+                "resets": int(sim.sims[k].stats.reset_particles), "level": self.level}
         if self._first:
             meta["preroll_s"] = self.stats.values["preroll_s"]
         if sim.surfaces:
