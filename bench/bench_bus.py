@@ -107,7 +107,20 @@ class Arrivals:
                 runs[-1][1] += 1
             else:
                 runs.append([lv, 1])
-        return ", ".join(f"{lv} x{n}" for lv, n in runs) or "-"
+        out = ", ".join(f"{lv} x{n}" for lv, n in runs) or "-"
+        if len(runs) > 1:  # a frame budget changed it: the latency once at the last level
+            lat = self.latency_at(session, runs[-1][0])
+            out += f" (at {runs[-1][0]}: p50 {pct(lat, 50)} / p99 {pct(lat, 99)} ms)"
+        return out
+
+    def latency_at(self, session: str, level, garments: int = 2) -> np.ndarray:
+        """Latency (ms) of the session's frames whose garments came at `level`, from the first of them on."""
+        with self.lock:
+            full = sorted((f, g) for (s, f), g in self.frames.items() if s == session and len(g) == garments)
+        since = next((i for i, (_, g) in enumerate(full) if all(m.get("level") == level for _, _, m in g.values())),
+                     len(full))
+        return np.array([max(a for a, _, _ in g.values()) - max(o for _, o, _ in g.values())
+                         for _, g in full[since:]]) / 1e6
 
     def breakdown(self, session: str, garments: int = 2) -> list[float]:
         """Where a frame's latency goes, p50 ms over its complete frames: the body frame's arrival
