@@ -28,7 +28,8 @@ class LevelGovernor:
     observe(seconds) after each stepped frame returns the level to change to, or None. The
     decision looks at the `quantile` (default the 90th percentile: the 27th of 30) of the step times over the
     last `window` frames since the level last changed:
-    * over the budget, and a level below left: one level down;
+    * over the budget, and a level below left: down to the level whose vertices would fit, by the
+      ratio of detailed vertices, about (L' / L)² (one level at least);
     * under the asked level, the level's expected cost there (this level's quantile times the
       ratio of detailed vertices, about ((L + 1) / L)²) within `headroom` of the budget, and
       `rise_frames` frames at this level: one level up. A rise that had to be taken back within
@@ -72,7 +73,9 @@ class LevelGovernor:
         if slow > self.budget and self.level > self.bottom:
             if self._rose and self._frames <= 2 * self.window:  # a rise taken back: wait longer next time
                 self._rise_wait = min(2 * self._rise_wait, self.max_rise_frames)
-            return self.level - 1
+            # as far down as the vertex ratio says at once (the part that does not shrink with the
+            # level makes that an underestimate of the level needed: the next window goes on from there)
+            return max(self.bottom, min(self.level - 1, math.floor(self.level * math.sqrt(self.budget / slow))))
         if (self.level < self.top and self._frames >= self._rise_wait
                 and slow * ((self.level + 1) / self.level) ** 2 <= self.headroom * self.budget):
             return self.level + 1

@@ -25,20 +25,25 @@ def feed(g: LevelGovernor, seconds: float, frames: int) -> list[int]:
     return asked
 
 
-def test_a_session_over_its_budget_goes_down_a_level_per_window_to_the_lowest():
+def test_a_session_over_its_budget_goes_down_a_window_at_a_time_to_the_lowest():
     g = LevelGovernor(0.008, 6, window=30)
     assert [g.observe(0.010) for _ in range(29)] == [None] * 29  # not before a whole window
     assert g.observe(0.010) == 5
     g.changed(5)
     assert feed(g, 0.010, 200) == [4, 3]  # one level per window, never below the lowest
     assert g.level == LOWEST_LEVEL and g.changes == 3
+    # far over: down as far as the vertex ratio says at once, 6 (8 / 32)^0.5 = 3
+    g = LevelGovernor(0.008, 6, window=30)
+    assert feed(g, 0.032, 30) == [3]
+    g = LevelGovernor(0.008, 8, window=30)
+    assert feed(g, 0.018, 30) == [5]  # 8 (8 / 18)^0.5 = 5.3
 
 
 def test_the_slow_tail_decides_not_the_median():
     """The 90th percentile: 2 slow frames in 30 keep the level, 4 lower it."""
     for slow, asked in ((2, None), (4, 5)):
         g = LevelGovernor(0.008, 6, window=30)
-        times = [0.005] * (30 - slow) + [0.012] * slow
+        times = [0.005] * (30 - slow) + [0.009] * slow
         answers = [g.observe(t) for t in times]
         assert answers[:-1] == [None] * 29 and answers[-1] == asked
 
