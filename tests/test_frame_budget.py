@@ -199,3 +199,14 @@ def test_an_outfit_session_goes_on_at_another_level_and_back(body, data):
             np.testing.assert_array_equal(sim.detailed[k][0], after4[k])
     finally:
         sim.close()
+
+
+@pytest.mark.parametrize("command", [["cloth-service"], ["session"]])
+@pytest.mark.parametrize("value", ["0", "-2", "nan", "fast"])
+def test_a_frame_budget_that_is_not_a_positive_number_is_refused_naming_it(command, value, capsys):
+    from services.cli import main
+
+    with pytest.raises(SystemExit):
+        main([*command, "--frame-budget-ms", value])
+    shown = repr(value) if value == "fast" else value  # (what float() could not read, quoted)
+    assert f"argument --frame-budget-ms: must be a number of milliseconds > 0, got {shown}" in capsys.readouterr().err
