@@ -30,8 +30,8 @@ log = logging.getLogger("tryon.viewer")
 
 
 def session_layout() -> rrb.Blueprint:
-    """The viewer's default layout: the body and garments large, the per-stage timings and the
-    latency of each garment in a column beside them (rerun's automatic layout gives every
+    """The viewer's default layout: the body and garments large, the per-stage timings, the
+    latency and the tessellation level of each garment in a column beside them (rerun's automatic layout gives every
     plot as much room as the 3D view)."""
     return rrb.Blueprint(
         rrb.Horizontal(
@@ -41,6 +41,9 @@ def session_layout() -> rrb.Blueprint:
             rrb.Vertical(
                 rrb.TimeSeriesView(origin="/stats/stages", name="stage ms per garment"),
                 rrb.TimeSeriesView(origin="/stats/latency", name="latency ms, body published → garment shown"),
+                # (a frame budget changes it: `services.frame_budget`)
+                rrb.TimeSeriesView(origin="/stats/level", name="tessellation level per garment"),
+                row_shares=[2, 2, 1],
             ),
             column_shares=[3, 1],
         ),
@@ -346,6 +349,9 @@ class ViewerBridge:
                     if field in msg.meta:
                         self.rec.log(f"stats/stages/{name}/{field}", rr.Scalars(float(msg.meta[field])))
                 self.rec.log(f"stats/latency/{name}", rr.Scalars(latency))
+                level = msg.meta.get("level")
+                if isinstance(level, int) and not isinstance(level, bool):  # (a frame budget may change it)
+                    self.rec.log(f"stats/level/{name}", rr.Scalars(float(level)))
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()

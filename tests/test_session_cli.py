@@ -45,9 +45,10 @@ def test_session_writes_rrd_recording_and_snapshots(tmp_path, capsys):
     printed = subprocess.run([str(rerun), "rrd", "print", "-vvv", str(tmp_path / "t1.rrd")], capture_output=True,
                              text=True, check=True).stdout
     views = set(re.findall(r"\[(3D|TimeSeries)\]\s+┆ \[[^\]]+\]\s+┆ \[(/[^\]]*)\]", printed))
-    assert views == {("3D", "/world"), ("TimeSeries", "/stats/stages"), ("TimeSeries", "/stats/latency")}
+    assert views == {("3D", "/world"), ("TimeSeries", "/stats/stages"), ("TimeSeries", "/stats/latency"),
+                     ("TimeSeries", "/stats/level")}
     entities = set(re.findall(r"entity_path: (/\S+)", printed))
-    for origin in ("/world/garment/", "/stats/stages/", "/stats/latency/"):
+    for origin in ("/world/garment/", "/stats/stages/", "/stats/latency/", "/stats/level/"):
         assert sum(e.startswith(origin) for e in entities) >= 2, origin  # both garments
     img = np.asarray(Image.open(tmp_path / "t1.png"))
     assert img.shape[1] == 4 * 360 and img.std() > 10  # two frames, two views each
