@@ -367,6 +367,13 @@ def resample_heights(face_ids, level, owner_face, owner_weights, values, out):
         out[v] = w0 * values[face_ids[f, k0]] + w1 * values[face_ids[f, k1]] + w2 * values[face_ids[f, k2]]
 
 
+def load_resample_heights() -> None:
+    """Compile `resample_heights`, or load it from numba's cache, ahead of its first real call (a
+    live session's first change of level, which would otherwise wait for it)."""
+    resample_heights(np.zeros((1, 3), np.int32), 1, np.zeros(1, np.int32), np.zeros((1, 3)), np.zeros(1),
+                     np.zeros(1))
+
+
 def pn_surface(tess: Tessellation, x: np.ndarray, coarse_normals: np.ndarray, ctrl: np.ndarray, nctrl: np.ndarray,
                p_smoothed: np.ndarray, n_pn: np.ndarray, scratch: np.ndarray | None = None) -> None:
     """S102: coarse positions -> detailed reference positions p_smoothed and PN normals n_pn

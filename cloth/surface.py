@@ -303,17 +303,20 @@ class DetailedSurface:
         self.exited = 0  # particles moved out along ±n_i in the last frame (`creases.out_along_normals`)
         self.covered = 0  # body vertices whose detailed triangle S103 raised over them in the last frame
 
-    def carry_heights_from(self, other: "DetailedSurface") -> None:
+    def carry_heights_from(self, other: "DetailedSurface", afresh: bool = True) -> None:
         """Take over another level's surface of the same garment (a session changing its level of
         detail): its Δh, resampled onto this level's particles (`pn.resample_heights`), so the
         wrinkles stay where they were; the rest of the state (S103's walks, the moves out of the
         body) starts afresh, as on a session's first frame. In place: the state's arrays stay the
-        ones a snapshot of it holds (`cloth.snapshot`), so a surface used before can be taken up again."""
+        ones a snapshot of it holds (`cloth.snapshot`), so a surface used before can be taken up again.
+        afresh False: the state is fresh already (a surface just built), only Δh is set (5 ms less
+        on the casual outfit at level 5)."""
         o, t = other.model.tess, self.model.tess
         if (o.n_coarse != t.n_coarse or o.coarse_triangles.shape != t.coarse_triangles.shape
                 or not np.array_equal(o.coarse_triangles, t.coarse_triangles)):
             raise ValueError("carry_heights_from: the two surfaces are not over the same coarse triangles")
-        StateSnapshot(SurfaceState(self.model)).onto(self.state).restore()  # afresh, into the same arrays
+        if afresh:
+            StateSnapshot(SurfaceState(self.model)).onto(self.state).restore()  # into the same arrays
         resample_heights(o.face_ids, o.level, t.owner_face, t.owner_weights, other.state.dh, self.state.dh)
 
     def step(self, x: np.ndarray, coarse_nearest: np.ndarray | None, body_x: np.ndarray | None,

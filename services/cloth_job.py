@@ -399,7 +399,8 @@ class OutfitSession:
         if level == self.level:
             return
         self._by_level[self.level] = (self.surfaces, self.layers, self._split_layers)
-        if level in self._by_level:
+        used = level in self._by_level
+        if used:
             surfaces, pairs, split = self._by_level.pop(level)
             for lm, ls in pairs:  # (afresh, in place)
                 StateSnapshot(LayerState(lm)).onto(ls).restore()
@@ -408,7 +409,7 @@ class OutfitSession:
             pairs = [(lm, LayerState(lm)) for lm in layers]
             split = any(max(len(lm.over.candidates), len(lm.under.candidates)) >= SPLIT_CANDIDATES for lm in layers)
         for new, old in zip(surfaces, self.surfaces):
-            new.carry_heights_from(old)
+            new.carry_heights_from(old, afresh=used)
         self.surfaces, self.layers, self._split_layers = surfaces, pairs, split
         self._detailed = [None] * len(self.sims)
         self.detailed = []

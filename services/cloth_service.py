@@ -43,6 +43,7 @@ import zenoh
 
 from cloth.fabric import fabric_choice
 from cloth.geometry import vertex_normals
+from cloth.pn import load_resample_heights
 from cloth.surface import SurfaceSettings
 from skinning.animate import BodyAnimator
 from skinning.body import Body
@@ -139,6 +140,8 @@ class GarmentSession:
         self.governor = (LevelGovernor(service.frame_budget, spec.level, **service.governor_settings)
                          if service.frame_budget is not None and spec.level is not None else None)
         self._level_job: tuple[int, Future] | None = None  # another level's models being built
+        if self.governor is not None:
+            load_resample_heights()  # (set up here, not at the first change of level, which a frame waits for)
         self.stats.values["level"] = spec.level
         self.body_x = np.empty((service.body.n_visible, 3))
         self.order = FrameOrder()  # of the body frames stepped
