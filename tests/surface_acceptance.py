@@ -221,6 +221,8 @@ def main() -> None:
     body = load_body(data)
     parser = argparse.ArgumentParser(add_help=False)
     parser.add_argument("--deep", help="write each vertex-frame deeper than 1 mm to this file (tab-separated)")
+    parser.add_argument("--level", type=int, default=None,
+                        help="tessellation level (default SurfaceSettings', 6; the acceptance is at 6)")
     known, rest = parser.parse_known_args(sys.argv[1:])
     clips, outfits = clips_and_outfits(rest, (parser,))
     deep = open(known.deep, "w") if known.deep else None
@@ -229,7 +231,8 @@ def main() -> None:
             print("clip", *DEEP_COLUMNS, sep="\t", file=deep, flush=True)
         for clip in clips:
             for outfit in outfits:
-                report(clip, measure(body, data, outfit, clip, deep=deep is not None)[0], deep)
+                settings = None if known.level is None else SurfaceSettings(level=known.level)
+                report(clip, measure(body, data, outfit, clip, settings=settings, deep=deep is not None)[0], deep)
     finally:
         if deep:
             deep.close()
