@@ -140,6 +140,7 @@ class GarmentSession:
         self.governor = (LevelGovernor(service.frame_budget, spec.level, **service.governor_settings)
                          if service.frame_budget is not None and spec.level is not None else None)
         self._level_job: tuple[int, Future] | None = None  # another level's models being built
+        self._least_wait = np.inf  # ns: the least a body frame waited from its stamp to its step (on_body)
         if self.governor is not None:
             load_resample_heights()  # (set up here, not at the first change of level, which a frame waits for)
         self.stats.values["level"] = spec.level
@@ -346,6 +347,11 @@ class GarmentSession:
         if self._level_job is not None and publish:
             self._take_level()
         self._msg, self._first = msg, first
+        # how long the frame waited before its step, as far as the clocks tell (the least wait seen is
+        # the trip, with any offset between the ingest's clock and this one's): a frame budget counts the
+        # wait beyond it, so frames queued behind slow steps (or another session's) lower the level too
+        waited = time.time_ns() - msg.stamp_ns
+        self._least_wait = min(self._least_wait, waited)
         t0 = time.perf_counter()
         try:
             # each garment is published from the thread that stepped it, as soon as it is done
@@ -360,8 +366,8 @@ class GarmentSession:
             self.stats.add("skipped")
             return
         self.skipped_since = 0
-        if self.governor is not None and self._level_job is None:
-            want = self.governor.observe(step_ms / 1000)
+        if self.governor is not None and self._level_job is None and not first:
+            want = self.governor.observe(step_ms / 1000 + (waited - self._least_wait) / 1e9)
             if want is not None:
                 self._level_job = (want, svc.models_later(replace(self.spec, level=want)))
         self.stats.values.update(step_ms=round(step_ms, 3), backlog=svc.backlog(),

@@ -1191,6 +1191,42 @@ def test_a_session_over_its_frame_budget_goes_on_at_a_lower_level(body, data, tm
         host.close()
 
 
+def test_frames_queued_behind_the_steps_count_against_the_frame_budget(body, data):
+    """The budget is the frame's time in the cloth service, its wait behind earlier frames included:
+    the same body frames, stamped 50 ms apart (as a source slower than the steps would send them)
+    and 0.1 ms apart (a burst: each waits for the steps of those before it), all put in the queue at
+    once. Each step is within the budget, so the first session keeps its level; the second's waits
+    grow a step a frame, and it goes down to level 3."""
+    frames = 12
+    source = BVHSource(mocap_clip(data), every=2, max_frames=START_FRAME + frames)
+    sent = ingest_messages(body, data, "burst", source, OUTFIT, 1 + frames + 1)
+    bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
+    cloth = ClothService(bus, body, data, OutfitSpec(OUTFIT, None, 4), frame_budget=0.025)
+    cloth.governor_settings = {"window": 3}
+    cloth.outfit_models(OutfitSpec(OUTFIT, None, 3))  # (built ahead: a change comes within frames)
+    cloth.start()
+    try:
+        for session, spacing in (("spaced", 50_000_000), ("burst", 100_000)):
+            start = time.time_ns()
+            ordered = sorted(sent, key=lambda kp: ("session", "body", "control").index(decode(kp[1], kp[0]).kind))
+            for k, p in ordered:
+                msg = decode(p, k)
+                msg.session = session
+                if msg.kind == "session":
+                    msg.meta["level"] = 4  # (ingest_messages announces LEVEL, 3)
+                k = key(session, *parse_key(k)[1])
+                stamp = start + (msg.frame - START_FRAME) * spacing if msg.kind == "body" else None
+                cloth._queue.put(_Sample(k, encode(msg, stamp)))
+            wait_until(lambda: session in cloth.closed_stats, 120, f"the end of session {session}")
+        spaced, burst = cloth.closed_stats["spaced"], cloth.closed_stats["burst"]
+        assert spaced["counts"]["received"] == burst["counts"]["received"] == frames
+        assert "level_changes" not in spaced["counts"] and spaced["values"]["level"] == 4
+        assert burst["counts"]["level_changes"] >= 1 and burst["values"]["level"] == 3
+    finally:
+        cloth.stop()
+        bus.close()
+
+
 def vertex_count_of(msg: Message) -> int:
     return len(garment_mesh(msg.arrays)[0])
 
