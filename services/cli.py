@@ -159,8 +159,9 @@ def _budget_ms(text: str) -> float:
     return x
 
 
-FRAME_BUDGET_HELP = ("hold each session's cloth step within this many milliseconds (its 90th percentile over "
-                     "half a second): over it the detailed surface goes on at a lower tessellation level (down "
+FRAME_BUDGET_HELP = ("hold each session's frames in the cloth service (their wait and their step) within this "
+                     "many milliseconds (the 90th percentile over half a second): over it the detailed surface "
+                     "goes on at a lower tessellation level (down "
                      "to 3), back up to --level when that fits again; the garments' wrinkles are carried over "
                      "and displays read the new topology (output no longer bit-reproducible). Default: none, "
                      "the level stays")

@@ -447,10 +447,10 @@ class ClothService:
         rather than compact (`services.wire`: a 16-bit grid and octahedral normals, 10 bytes).
         model_cache: where outfit models built before are read back (`services.model_cache`;
         default: $TRYON_CACHE's folder, ~/.cache/tryon).
-        frame_budget: seconds a session's cloth step may take (its 90th percentile over half a
-        second): a session over it goes on at a lower tessellation level, and back up when the
-        higher one fits (`services.frame_budget`; the output then depends on timing). None: each
-        session keeps its announced level."""
+        frame_budget: seconds a session's frame may spend here, its wait behind earlier frames and
+        its step (their 90th percentile over half a second): a session over it goes on at a lower
+        tessellation level, and back up when the higher one fits (`services.frame_budget`; the
+        output then depends on timing). None: each session keeps its announced level."""
         self.bus, self.body, self.data, self.default = bus, body, Path(data), default
         self.model_cache = model_cache if model_cache is not None else ModelCache.from_env()
         self._body_digest: str | None = None

@@ -4,8 +4,9 @@ The cloth step's cost grows with the detailed vertices, about as the tessellatio
 (docs/surface.md: linear in the vertices from level 4 to 12). On a machine too slow for the
 asked level (or one that other work slows down), a live session would fall behind its input and
 its latency would grow without bound; a display would rather show the garments with fewer
-detailed vertices, on time. `LevelGovernor` watches a session's step times and asks for one level
-less when the slow frames exceed the budget, and one more (up to the asked level) when the next
+detailed vertices, on time. `LevelGovernor` watches a session's frame times in the cloth service
+(each frame's wait before its step and the step: `services.cloth_service`) and asks for a lower
+level when the slow frames exceed the budget, and one more (up to the asked level) when the next
 level's expected cost fits with room to spare. The cloth service carries each garment's wrinkles
 over to the other level (`DetailedSurface.carry_heights_from`) and latches its new topology.
 
@@ -23,11 +24,12 @@ LOWEST_LEVEL = 3  # below it a coarse face's lattice has no interior particle to
 
 
 class LevelGovernor:
-    """Chooses the tessellation level that holds a session's cloth step within `budget` seconds.
+    """Chooses the tessellation level that holds a session's frames within `budget` seconds.
 
-    observe(seconds) after each stepped frame returns the level to change to, or None. The
-    decision looks at the `quantile` (default the 90th percentile: the 27th of 30) of the step times over the
-    last `window` frames since the level last changed:
+    observe(seconds) after each stepped frame (its time: the step, and the service's wait before
+    it) returns the level to change to, or None. The decision looks at the `quantile` (default the
+    90th percentile: the 27th of 30) of those times over the last `window` frames since the level
+    last changed:
     * over the budget, and a level below left: down to the level whose vertices would fit, by the
       ratio of detailed vertices, about (L' / L)² (one level at least);
     * under the asked level, the level's expected cost there (this level's quantile times the
@@ -51,7 +53,7 @@ class LevelGovernor:
         self.window, self.quantile, self.headroom = window, quantile, headroom
         self.rise_frames, self.max_rise_frames = rise_frames, max_rise_frames
         self.level = top
-        self._samples = np.zeros(window)  # the last `window` step times, a ring (preallocated: read every frame)
+        self._samples = np.zeros(window)  # the last `window` frame times, a ring (preallocated: read every frame)
         self._sorted = np.zeros(window)  # (scratch)
         self._k = min(window - 1, max(0, math.ceil(quantile * window) - 1))  # the quantile's rank among them
         self._frames = 0  # frames stepped at this level
@@ -60,7 +62,7 @@ class LevelGovernor:
         self.changes = 0
 
     def observe(self, seconds: float) -> int | None:
-        """One stepped frame's cloth step time; the level to change to (None: keep this one)."""
+        """One stepped frame's time (s); the level to change to (None: keep this one)."""
         if not math.isfinite(seconds) or seconds < 0:
             return None
         self._samples[self._frames % self.window] = seconds

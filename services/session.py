@@ -240,7 +240,7 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
     """Run one session end to end in this process (see the module docstring). rrd, record: write
     the rerun and bus recordings; min_free: bytes they leave free on their disk (each is finished,
     complete, when fewer are: services.diskspace); frame_budget: the cloth service's
-    (`ClothService`: seconds a frame's cloth step may take, held by the level; None: the level stays)."""
+    (`ClothService`: seconds a frame may spend there, held by the level; None: the level stays)."""
     output_folder(out_dir)
     serve = serve_port is not None
     bus = (bus_config or BusConfig()).open()

@@ -31,8 +31,8 @@ log = logging.getLogger("tryon.viewer")
 
 def session_layout() -> rrb.Blueprint:
     """The viewer's default layout: the body and garments large, the per-stage timings, the
-    latency and the tessellation level of each garment in a column beside them (rerun's automatic layout gives every
-    plot as much room as the 3D view)."""
+    latency and the tessellation level of each garment in a column beside them (rerun's
+    automatic layout gives every plot as much room as the 3D view)."""
     return rrb.Blueprint(
         rrb.Horizontal(
             # the camera follows the body: a walk leaves the place where it started
