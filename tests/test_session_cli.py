@@ -56,6 +56,45 @@ def test_session_writes_rrd_recording_and_snapshots(tmp_path, capsys):
     assert (np.abs(img[..., 2].astype(int) - img[..., 0].astype(int)) > 80).mean() > 0.005
 
 
+def test_a_session_with_a_frame_budget_draws_each_snapshot_at_its_own_level(tmp_path, capsys):
+    """A budget no step keeps: the session goes from level 4 to 3 on its way, and its snapshots
+    show the garments of a frame before the change and of one after it, each drawn with the
+    topology of its own level (before, a frame whose garments had another size than the last
+    topology was drawn without them)."""
+    from cloth.surface import SurfaceSettings
+    from services.cloth_job import build_outfit, collision_body
+    from services.model_cache import ModelCache
+    from skinning.animate import BodyAnimator
+    from skinning.body import load_body
+    from skinning.data import data_dir
+
+    # level 3's models in the run's model cache first: the session's service reads them back on its
+    # background thread, which an offline session (frames back to back on both cores) leaves little time
+    data = data_dir()
+    body = load_body(data)
+    animator = BodyAnimator(body)
+    build_outfit(body, animator, collision_body(body), data / "garments" / "female_casualsuit01",
+                 surface=SurfaceSettings(level=3), cache=ModelCache.from_env())
+    rc = main(["session", "--session", "fb", "--max-frames", "100", "--level", "4", "--frame-budget-ms", "0.001",
+               "--snapshot-frames", "4,96", "--no-rrd", "--out", str(tmp_path)])
+    assert rc == 0
+    out = capsys.readouterr().out
+    assert re.search(r"cloth: received 99, published 198, .*level_changes 1, level at the end 3", out), out
+    sizes = {}
+    for k, payload, _ in read_recording(tmp_path / "fb.mcap"):
+        if parse_key(k)[1][0] == "garment":
+            m = decode(payload, k)
+            sizes.setdefault(m.meta["level"], set()).add(m.frame)
+    assert 4 in sizes[4] and 96 in sizes[3]  # the two snapshot frames at the two levels
+    img = np.asarray(Image.open(tmp_path / "fb.png")).astype(int)
+    width = img.shape[1] // 4
+    for column in range(4):  # each frame from two sides, every one with the T-shirt's blue (the sky: b - r 8)
+        r, g, b = (img[:, column * width:(column + 1) * width, c] for c in range(3))
+        assert (b - r > 40).mean() > 0.01, column
+        if column % 2 == 0:  # and from the front the jeans' red (the skin: r - g 44; from behind they are dark)
+            assert (r - g > 70).mean() > 0.005, column
+
+
 def test_a_coarse_only_session_without_recordings_writes_its_snapshots_alone(tmp_path, capsys):
     """`--coarse-only --no-record --no-rrd`: S101 alone (no surface stages timed), the garments'
     coarse meshes published every frame, and no .mcap or .rrd written."""
