@@ -1227,6 +1227,48 @@ def test_frames_queued_behind_the_steps_count_against_the_frame_budget(body, dat
         bus.close()
 
 
+def test_a_level_whose_models_fail_to_build_leaves_the_session_at_its_level(body, data, caplog):
+    """The models of the lower level cannot be built (a failure on the background thread): the
+    session logs it and goes on at its level, every frame published, and asks no more."""
+    from concurrent.futures import Future
+
+    frames = 12
+    source = BVHSource(mocap_clip(data), every=2, max_frames=START_FRAME + frames)
+    sent = ingest_messages(body, data, "nolevel", source, OUTFIT, 1 + frames + 1)
+    bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
+    cloth = ClothService(bus, body, data, OutfitSpec(OUTFIT, None, 4), frame_budget=1e-6)
+    cloth.governor_settings = {"window": 3}
+    asked = []
+
+    def failing(spec):
+        asked.append(spec.level)
+        job = Future()
+        job.set_exception(MemoryError("no room for another level"))
+        return job
+
+    cloth.models_later = failing
+    cloth.start()
+    worn = Collector(bus, key("nolevel", "garment", "*"))
+    try:
+        for k, p in sent:
+            msg = decode(p, k)
+            if msg.kind == "session":
+                msg.meta["level"] = 4  # (ingest_messages announces LEVEL, 3)
+                p = encode(msg, msg.stamp_ns)
+            cloth._queue.put(_Sample(k, p))
+        with caplog.at_level(logging.ERROR, logger="tryon.cloth"):
+            wait_until(lambda: "nolevel" in cloth.closed_stats, 120, "the session's end")
+        stats = cloth.closed_stats["nolevel"]
+        assert asked == [3] and "level_changes" not in stats["counts"] and stats["values"]["level"] == 4
+        assert stats["counts"]["published"] == 2 * frames
+        assert {m.meta["level"] for _, m in worn.messages} == {4}
+        assert "building level 3 failed; it stays at level 4" in caplog.text and "no room" in caplog.text
+    finally:
+        worn.close()
+        cloth.stop()
+        bus.close()
+
+
 def vertex_count_of(msg: Message) -> int:
     return len(garment_mesh(msg.arrays)[0])
 
