@@ -127,6 +127,7 @@ class SessionResult:
     timings: dict[str, float] = field(default_factory=dict)  # median ms
     latency_ms: tuple[float, float] = (0.0, 0.0)  # p50, p99
     setup_seconds: float = 0.0  # of `seconds`: until the first body frame went out (models, kernels, pre-roll)
+    live: bool = False  # served (--serve): frames at the clip's pace, not back to back
 
     def summary(self) -> str:
         streamed = max(self.seconds - self.setup_seconds, 1e-9)
@@ -140,7 +141,8 @@ class SessionResult:
         for g in garments:
             lines.append(f"  {g}  median ms/frame: " + "  ".join(
                 f"{k.split(':')[1][:-3]} {v:.2f}" for k, v in self.timings.items() if k.startswith(g + ":")))
-        lines.append(f"  body frame published -> garment mesh received (offline, one frame queued): "
+        how = "live, at the clip's pace" if self.live else "offline, one frame queued"
+        lines.append(f"  body frame published -> garment mesh received ({how}): "
                      f"p50 {self.latency_ms[0]:.1f} ms, "
                      f"p99 {self.latency_ms[1]:.1f} ms")
         for what, s in self.stats.items():
@@ -321,7 +323,8 @@ def run_session(body: Body, data: Path, clip: Path, session: str, out_dir: Path,
         ingest.close()
         setup = (streaming_since[0] if streaming_since else time.perf_counter()) - t_start
         return SessionResult(session, ingest.frames, seconds, rrd, rec_path, snap, stats, timings,
-                             (float(np.percentile(lat, 50)), float(np.percentile(lat, 99))), min(setup, seconds))
+                             (float(np.percentile(lat, 50)), float(np.percentile(lat, 99))), min(setup, seconds),
+                             live=serve)
     finally:
         # (done already unless the session failed: both may be called again)
         if viewer is not None:
