@@ -143,6 +143,11 @@ class GarmentSession:
         self._least_wait = np.inf  # ns: the least a body frame waited from its stamp to its step (on_body)
         if self.governor is not None:
             load_resample_heights()  # (set up here, not at the first change of level, which a frame waits for)
+            # the levels below, built here too (0.8-1.2 s each for the casual outfit, read back from the model
+            # cache after): a machine slow enough to need them leaves the low-priority background thread
+            # little time, and the stream waits for this setup, not for a change of level
+            for level in range(spec.level - 1, self.governor.bottom - 1, -1):
+                service.outfit_models(replace(spec, level=level))
         self.stats.values["level"] = spec.level
         self.body_x = np.empty((service.body.n_visible, 3))
         self.order = FrameOrder()  # of the body frames stepped

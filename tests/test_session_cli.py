@@ -56,29 +56,11 @@ def test_session_writes_rrd_recording_and_snapshots(tmp_path, capsys):
     assert (np.abs(img[..., 2].astype(int) - img[..., 0].astype(int)) > 80).mean() > 0.005
 
 
-def _casual_models_cached(level: int) -> None:
-    """The casual outfit's models at `level` in the run's model cache (services.model_cache)."""
-    from cloth.surface import SurfaceSettings
-    from services.cloth_job import build_outfit, collision_body
-    from services.model_cache import ModelCache
-    from skinning.animate import BodyAnimator
-    from skinning.body import load_body
-    from skinning.data import data_dir
-
-    data = data_dir()
-    body = load_body(data)
-    build_outfit(body, BodyAnimator(body), collision_body(body), data / "garments" / "female_casualsuit01",
-                 surface=SurfaceSettings(level=level), cache=ModelCache.from_env())
-
-
 def test_a_session_with_a_frame_budget_draws_each_snapshot_at_its_own_level(tmp_path, capsys):
     """A budget no step keeps: the session goes from level 4 to 3 on its way, and its snapshots
     show the garments of a frame before the change and of one after it, each drawn with the
     topology of its own level (before, a frame whose garments had another size than the last
     topology was drawn without them)."""
-    # level 3's models in the run's model cache first: the session's service reads them back on its
-    # background thread, which an offline session (frames back to back on both cores) leaves little time
-    _casual_models_cached(3)
     rc = main(["session", "--session", "fb", "--max-frames", "100", "--level", "4", "--frame-budget-ms", "0.001",
                "--snapshot-frames", "4,96", "--no-rrd", "--out", str(tmp_path)])
     assert rc == 0
@@ -391,7 +373,6 @@ def test_a_live_session_streams_to_a_remote_display_at_the_clips_pace(tmp_path, 
     pace, a display on another bus endpoint gets the body and both garments of the frames, the
     rerun stream's address is told, and with a frame budget no step keeps the garments go on at
     level 3."""
-    _casual_models_cached(3)
     rerun_port = free_port()
     with _bus_collecting(["tryon/live/body", "tryon/live/garment/*"]) as (endpoint, got):
         rc = main(["session", "--session", "live", "--serve", "--max-frames", "90", "--level", "4",
