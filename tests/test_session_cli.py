@@ -385,7 +385,7 @@ def test_a_live_session_streams_to_a_remote_display_at_the_clips_pace(tmp_path, 
     out = capsys.readouterr().out
     assert f"rerun --connect rerun+http://<this-host>:{rerun_port}/proxy" in out
     assert "(live, at the clip's pace)" in out
-    assert re.search(r"cloth: received 89, .*level_changes 1, level at the end 3", out), out
+    assert re.search(r"cloth: received 89, .*level_changes 1,.* level at the end 3", out), out  # (catch-up: skipped)
     frames = re.search(r"session live: (\d+) frames in", out).group(1)
     bodies = sorted(m.frame for k, m in got if m.kind == "body")
     assert len(bodies) == int(frames) == 89
