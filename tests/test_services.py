@@ -1202,7 +1202,7 @@ def test_frames_queued_behind_the_steps_count_against_the_frame_budget(body, dat
     sent = ingest_messages(body, data, "burst", source, OUTFIT, 1 + frames + 1)
     bus = BusConfig(listen=[f"tcp/127.0.0.1:{free_port()}"]).open()
     cloth = ClothService(bus, body, data, OutfitSpec(OUTFIT, None, 4), frame_budget=0.025)
-    cloth.governor_settings = {"window": 3}
+    cloth.governor_settings = {"window": 3, "quantile": 0.5}  # (the median of 3: one slow step does not count)
     cloth.outfit_models(OutfitSpec(OUTFIT, None, 3))  # (built ahead: a change comes within frames)
     cloth.start()
     try:
