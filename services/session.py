@@ -30,7 +30,7 @@ from .diskspace import DEFAULT_MIN_FREE
 from .outputs import output_folder
 from .recorder import Recorder
 from .spin import LIVE_SPIN
-from .viewer import RecordingSink, VertexNormals, ViewerBridge
+from .viewer import RecordingSink, VertexNormals, ViewerBridge, triangles_problem
 from .wire import body_vertices, garment_mesh
 
 # how long the ingest waits for its in-process cloth service to report the session ready (or failed)
@@ -75,8 +75,9 @@ class SessionTap:
             msg = decode(sample.payload.to_bytes(), k, self.session, parts[0])
             tris = np.array(msg.arrays["triangles"])
             n = msg.meta.get("n_vertices")
-            if not isinstance(n, int) or isinstance(n, bool) or (tris.size and not 0 <= tris.min() <= tris.max() < n):
-                raise MessageError(k, f"unusable topology for {n!r} vertices")
+            problem = triangles_problem(tris, n)  # (the viewer bridge's check of a latched topology)
+            if problem:
+                raise MessageError(k, problem)
         except (MessageError, KeyError):
             self.rejected += 1
             return
