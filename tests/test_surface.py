@@ -519,6 +519,41 @@ def test_detailed_particle_inside_a_body_ends_outside(shape):
         assert r.min() >= 0.05 - sag - 1e-6
 
 
+def test_the_clearance_grows_below_level_6_with_the_triangles_sag():
+    """Decision (the triangles' sag, `SurfaceSettings.lift_clearance`): 1 mm at level 6 and above, 1 mm x 6 / L
+    below it, unless set."""
+    assert SurfaceSettings().lift_clearance == 0.001
+    assert SurfaceSettings(level=8).lift_clearance == 0.001
+    assert SurfaceSettings(level=3).lift_clearance == pytest.approx(0.002)
+    assert SurfaceSettings(level=4).lift_clearance == pytest.approx(0.0015)
+    assert SurfaceSettings(level=3, clearance=0.0005).lift_clearance == 0.0005
+
+
+@pytest.mark.parametrize("level, clearance, centroids_out", [(6, None, True), (3, None, True), (3, 0.001, False)])
+def test_a_sheet_over_a_small_sphere_keeps_its_triangles_out_at_a_low_level(level, clearance, centroids_out):
+    """A sheet over a sphere of radius 3 cm whose top pokes 4 mm through it: S103 lifts every detailed particle
+    the level's clearance out of the sphere. At level 3 a detailed triangle is about 13 mm across, and over the
+    sphere its middle sags about 1.2 mm towards it: with 1 mm of clearance (as at level 6) some triangles' centroids
+    end inside the sphere, with the level's 2 mm none does; at level 6 (triangles half as wide, a quarter of the
+    sag) 1 mm keeps them out."""
+    bv, bt = uv_sphere(radius=0.03, n_lat=32, n_lon=64)
+    centre = np.array([0.08, -0.026, 0.04])
+    bv = bv + centre
+    body = body_mesh_of(bv, bt)
+    cloth = sheet_model().cloth
+    surf = DetailedSurface(build_surface_model(cloth, SurfaceSettings(level=level, clearance=clearance)))
+    x = cloth.rest_positions.copy()
+    nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
+    p, _ = surf.step(x, nearest, np.ascontiguousarray(bv), body, face_normals(bv, bt), DT)
+    radius = 0.03 * np.cos(np.pi / 32)  # (the mesh's faces lie inside the analytic sphere by their chord sag)
+    vertex = np.linalg.norm(p - centre, axis=1) - radius
+    centroid = np.linalg.norm(p[surf.model.tess.triangles].mean(axis=1) - centre, axis=1) - radius
+    clearance = surf.model.settings.lift_clearance
+    assert surf.state.dh_pen.max() > 0.004
+    assert vertex.min() >= clearance - 1e-4  # every particle the clearance out
+    assert (centroid.min() > 0.0) == centroids_out
+
+
 def test_a_body_part_pressing_from_the_outer_side_lowers_the_sheet_and_lets_it_go():
     """Decision (S103): a box above the sheet (on its outer side, along n_i) whose bottom
     reaches 5 mm below it, like a hand pressed on a skirt. Lifting would carry the particles
@@ -897,13 +932,13 @@ def test_a_particle_behind_another_body_parts_surface_goes_out_along_its_normal(
     assert middle.sum() > 20
     assert np.all(s.behind[middle] == 1)
     np.testing.assert_allclose(s.sd[middle], 0.004, atol=1e-9)  # S103: outside, over the torso's buried top
-    np.testing.assert_allclose(p[middle, 1], 0.008 + SurfaceSettings().clearance, atol=1e-5)
+    np.testing.assert_allclose(p[middle, 1], 0.008 + SurfaceSettings().lift_clearance, atol=1e-5)
     assert surf.exited >= middle.sum() and surf.creased == 0
     inside_arm = np.all(np.abs(p - [0.08, -0.002, 0.04]) < [0.03 - 1e-6, 0.01 - 1e-6, 0.03 - 1e-6], axis=1)
     assert not inside_arm.any()
     centre = np.flatnonzero(np.all(np.abs(x - [0.08, 0.0, 0.04])[:, [0, 2]] < 0.022, axis=1))  # coarse vertices
     assert len(centre) == 1
-    np.testing.assert_allclose(p[centre, 1], 0.008 + SurfaceSettings().clearance, atol=1e-5)
+    np.testing.assert_allclose(p[centre, 1], 0.008 + SurfaceSettings().lift_clearance, atol=1e-5)
     np.testing.assert_allclose(p[centre][:, [0, 2]], x[centre][:, [0, 2]], atol=1e-12)  # straight up its normal
 
 
@@ -1061,7 +1096,7 @@ def test_the_triangle_over_a_body_tip_keeps_it_the_clearance_under_the_surface(a
     # through the vertex grid's seeds)
     nearest = np.array([int(np.argmin(np.linalg.norm(bv[:n_box] - q, axis=1))) for q in x], dtype=np.int32)
     tri = surf.model.tess.triangles
-    clearance = surf.model.settings.clearance
+    clearance = surf.model.settings.lift_clearance
     for frame in range(11):
         p, _ = surf.step(x, nearest, pose.x, body, pose.face_n, DT, grid, face_tip=pose.face_tips(),
                          winding=winding.arrays(), vertex_tip=pose.vertex_tip)
