@@ -145,17 +145,20 @@ class SurfaceSettings:
     @property
     def lift_clearance(self) -> float:
         """m, how far out of the body S103 lifts a detailed particle: `clearance`, or where that is None,
-        CLEARANCE at level 6 and above and CLEARANCE (6 / level)² below it.
+        CLEARANCE at level 6 and above and CLEARANCE x 6 / level below it (2 mm at level 3).
 
         Decision (the triangles' sag): S103 keeps the particles out of the body, not the triangles
         between them, and over a curved body a triangle's middle lies nearer to it than its corners
-        by about its circumradius² / 2R (R: the body's radius of curvature there), which grows
-        with the square of its size, four times from level 6 to level 3. At 1 mm, level 3's
-        triangles let the skin through in specks over the knees, shins and chest (the walk's
-        casual outfit: 1.1 / 5.1 triangles a frame with their centroid more than 0.5 mm inside
-        the body); the clearance scaled with their area keeps the same share of their sag.
-        CLEARANCE (1 mm) was chosen at level 6: 2 mm there left more vertices deeper than 1 mm
-        and more edges too long (docs/tried.md)."""
+        by about its circumradius² / 2R (R: the body's radius of curvature there), four times as
+        much at level 3 as at level 6. At 1 mm, level 3's triangles let the skin through in specks
+        over the knees, shins and chest. Walk, casual outfit (T-shirt / jeans), triangles a frame
+        with their centroid more than 0.5 mm inside the body: level 3 1.1 / 5.1 at 1 mm, 0.6 / 3.9
+        at 2 mm, 0.5 / 3.2 at 4 mm; level 4 1.1 / 5.5 at 1 mm, 0.7 / 5.0 at 1.5 mm. The clearance
+        grows with the size, not the sag: at 4 mm (the sag's share) level 3 had three times the
+        edges too long (0.25 / 0.47 % against 0.08 / 0.16 %) and the jeans gave back 0.87 of
+        their compressed length (0.98), as lifts along diverging normals part neighbours; at 2 mm
+        0.10 / 0.21 % and 0.96. CLEARANCE (1 mm) was chosen at level 6: 2 mm there left more
+        vertices deeper than 1 mm and more edges too long (docs/tried.md)."""
         if self.clearance is not None:
             return self.clearance
         return CLEARANCE * max(1.0, 6.0 / self.level)
@@ -365,6 +368,7 @@ class DetailedSurface:
         None: no triangle is raised over the body's tips, `wrinkles.cover_body_tips`)."""
         m, s, t, st = self.model, self.state, self.model.tess, self.model.settings
         c = m.cloth
+        clearance = st.lift_clearance
         t0 = time.perf_counter()
         # S102: reference surface, then the last frame's heights
         pn_surface(t, x, s.coarse_normals, s.ctrl, s.nctrl, s.p_smoothed, s.n_pn, s.pn_scratch)
@@ -393,11 +397,11 @@ class DetailedSurface:
                                             s.groups, s.group_reach, body_x, body.nbr_start, body.nbr_ids, body.parts,
                                             body.triangles, body.tri_start, body.tri_ids, body.tri_nbrs, s.body_face,
                                             s.part_face, s.near_vertex, face_n, s.q, face_tip, st.tip_share,
-                                            st.lift_clearance, st.contact_margin, st.face_margin, st.penetration_iterations,
+                                            clearance, st.contact_margin, st.face_margin, st.penetration_iterations,
                                             st.max_lift, st.max_height, st.lift_search, st.height_reach,
                                             st.recheck)
         s.lifted[:] = s.dh
-        penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, st.lift_clearance, st.contact_margin - st.lift_clearance,
+        penetration_floor(s.dh, s.sd, s.facing, s.other, s.dh_pen, clearance, st.contact_margin - clearance,
                           st.max_height, s.floor, s.ceiling, s.body_floor)
         self.covered = 0
         if body is not None and vertex_tip is not None and st.cover_tips and st.own_vertex:  # (S103's Decision)
@@ -409,7 +413,7 @@ class DetailedSurface:
                                            body.triangles, body.tri_nbrs, body.tri_start, body.tri_ids, body.nbr_start,
                                            body.nbr_ids, body.parts, face_n, s.q, vertex_tip, t.triangles,
                                            m.d_tri_start, m.d_tri_ids, m.d_nbr_start, m.d_nbr_ids,
-                                           s.tip_owner, s.tip_owned, st.lift_clearance, st.max_height,
+                                           s.tip_owner, s.tip_owned, clearance, st.max_height,
                                            body.winding_faces, *(NO_WINDING if winding is None else winding),
                                            winding is not None)
         t2 = time.perf_counter()
@@ -450,7 +454,7 @@ class DetailedSurface:
         if body is not None and st.creases:  # (S103's Decision, counted with its time)
             self.creased = leave_creases(s.p, s.sd, s.body_face, s.part_face, body_x, body.triangles, body.tri_nbrs,
                                          body.tri_start, body.tri_ids, body.nbr_start, body.nbr_ids, body.parts,
-                                         face_n, s.q, s.plane_a, s.plane_b, st.lift_clearance, st.crease_rounds,
+                                         face_n, s.q, s.plane_a, s.plane_b, clearance, st.crease_rounds,
                                          t.n_coarse, st.crease_spread, m.d_edges, m.d_edge_start, m.d_edge_ids,
                                          s.crease_seen, s.creased_ids, s.crease_moves, s.crease_faces,
                                          body.wound_faces, body.winding_faces,
@@ -458,13 +462,13 @@ class DetailedSurface:
                                          winding is not None)
         if body is not None and winding is not None and st.exit_normals:  # (the same Decision's time)
             # (off: lowered by more than infinity, none)
-            lowered_after_lift(s.dh_pen, s.lifted, s.height, st.lift_clearance if st.exit_lowered else np.inf, s.lowered,
+            lowered_after_lift(s.dh_pen, s.lifted, s.height, clearance if st.exit_lowered else np.inf, s.lowered,
                                s.sd, EXIT_LOWERED_NEAR if st.exit_lowered_near else -np.inf,
-                               st.lift_clearance if st.exit_raised else np.inf)
+                               clearance if st.exit_raised else np.inf)
             self.exited = out_along_normals(s.p, s.n_pn, s.sd, s.other, s.facing, s.behind, s.lowered, t.n_coarse,
                                             EXIT_NEAR, EXIT_FACING, EXIT_NEAR_ALONG if st.exit_near_along else 0.0,
                                             EXIT_TURNED if st.exit_turned else -np.inf,
-                                            EXIT_REACH, st.lift_clearance, body_x,
+                                            EXIT_REACH, clearance, body_x,
                                             body.winding_faces, *winding,
                                             s.exit_ids, s.exit_moves, 0.0 if tree is None else EXIT_FACE_REACH,
                                             body.triangles, face_n, *(NO_FACE_TREE if tree is None else tree),
