@@ -40,7 +40,7 @@ CLEARANCE = 0.001  # m: S103's clearance at level 6 (SurfaceSettings.lift_cleara
 class SurfaceSettings:
     level: int = 6  # PN tessellation level L: L² detailed triangles per coarse triangle
     # m: S103 lifts a detailed particle this far out of the body. None: CLEARANCE at level 6 and above, and
-    # below it scaled with the detailed triangles' area (`lift_clearance`, Decision: the triangles' sag)
+    # below it grown with the detailed triangles' size (`lift_clearance`, Decision: the triangles' sag)
     clearance: float | None = None
     # S103 counts this share of how far the nearest body face's corners stand out of their rings
     # off a particle's distance (`wrinkles.tip_allowance`): a coarse body's vertices stand 2-7 mm
