@@ -46,11 +46,11 @@ def test_surface_through_the_run_clip(body, data, outfit):
             along, length = np.sum(moves * s.n_pn[ids], axis=1), np.linalg.norm(moves, axis=1)
             normal = np.isclose(np.abs(along), length, rtol=1e-9, atol=0.0)
             coarse = ids < len(x)
-            assert np.all(length[coarse] <= EXIT_REACH + st.clearance + 1e-12)
+            assert np.all(length[coarse] <= EXIT_REACH + st.lift_clearance + 1e-12)
             # (off the normal: along one of the ways around)
             turned = moves[coarse & ~normal] / length[coarse & ~normal, None]
             assert np.all(np.max(turned @ EXIT_DIRECTIONS.T, axis=1) > 1.0 - 1e-9)
-            assert np.all(length[normal] <= EXIT_REACH + st.clearance + 1e-12)
+            assert np.all(length[normal] <= EXIT_REACH + st.lift_clearance + 1e-12)
             assert np.all(length <= EXIT_FACE_REACH + 1e-12)
             p[ids] -= moves
             wind = np.zeros(k, dtype=np.int64)
