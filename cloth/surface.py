@@ -27,10 +27,10 @@ from .pn import Tessellation, build_tessellation, pn_surface, resample_heights
 from .snapshot import StateSnapshot
 from .topology import vertex_cells, vertex_neighbours
 from .winding import NO_WINDING
-from .wrinkles import (COVER_REACH, MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces,
-                       cover_body_tips, deformation_heights, elastic_forces, fold_across, fold_lines, fold_quads,
-                       length_displacement, match_required_length, normal_force, offset_along_normals,
-                       other_part_seeds, penetration_floor, quad_lattice, shading_normals)
+from .wrinkles import (MAX_PART_SEEDS, apply_constraints, avoid_penetration, coarse_edge_forces, cover_body_tips,
+                       deformation_heights, elastic_forces, fold_across, fold_lines, fold_quads, length_displacement,
+                       match_required_length, normal_force, offset_along_normals, other_part_seeds, penetration_floor,
+                       quad_lattice, shading_normals)
 
 
 CLEARANCE = 0.001  # m: S103's clearance at level 6 (SurfaceSettings.lift_clearance)
@@ -50,10 +50,6 @@ class SurfaceSettings:
     # within the clearance, raises that triangle's corners until it is the clearance under it (Decision,
     # `wrinkles.cover_body_tips`; needs the pose's vertex tips)
     cover_tips: bool = True
-    # and the tips in the rings of the particles' nearest body vertices too, each under the triangle around its
-    # nearest such particle: where the particles lie farther apart than the body's vertices, a tip between them is
-    # nobody's nearest vertex (Decision, `covers_rings`; None: below level 6)
-    cover_rings: bool | None = None
     contact_margin: float = 0.0075  # m: S103 tests a finer particle only near a particle this close
     # m: S103 tests a coarse face, and its first subdivision, only if a corner is this close
     # (wider than contact_margin: a face whose corners stand off a convex part can cut into it)
@@ -145,12 +141,6 @@ class SurfaceSettings:
         if not 1 <= self.max_step_scale < math.inf:
             raise ValueError(f"SurfaceSettings.max_step_scale must be >= 1 (the patent's step) and finite, "
                              f"got {self.max_step_scale!r}")
-
-    @property
-    def covers_rings(self) -> bool:
-        """Whether `wrinkles.cover_body_tips` takes the tips in the rings of the particles' nearest body vertices
-        too: `cover_rings`, or where that is None, below level 6 (Decision, with `lift_clearance`)."""
-        return self.level < 6 if self.cover_rings is None else bool(self.cover_rings)
 
     @property
     def lift_clearance(self) -> float:
@@ -425,8 +415,7 @@ class DetailedSurface:
                                            m.d_tri_start, m.d_tri_ids, m.d_nbr_start, m.d_nbr_ids,
                                            s.tip_owner, s.tip_owned, clearance, st.max_height,
                                            body.winding_faces, *(NO_WINDING if winding is None else winding),
-                                           winding is not None, st.covers_rings,
-                                           COVER_REACH * (clearance / CLEARANCE))
+                                           winding is not None)
         t2 = time.perf_counter()
         # S104: elastic forces (coarse springs, reaction sign) spread over the surface, normal force
         s.coarse_force[:] = 0.0

@@ -705,16 +705,11 @@ def _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz):
     return best_t, best_out, bx, by, bz
 
 
-@helper
-def _squared_distance(p, i, x, v):
-    return (p[i, 0] - x[v, 0]) ** 2 + (p[i, 1] - x[v, 1]) ** 2 + (p[i, 2] - x[v, 2]) ** 2
-
-
 @kernel
 def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, sd, facing, other, body_face, part_face,
                     near_vertex, body_x, tris, tri_nbrs, tri_start, tri_ids, nbr_start, nbr_ids, regions, face_n, q,
                     vertex_tip, d_tris, d_tri_start, d_tri_ids, d_nbr_start, d_nbr_ids, owner, owned, clearance,
-                    max_height, wfaces, wlo, wstart, wids, wspan, wextent, use_winding, rings, reach):
+                    max_height, wfaces, wlo, wstart, wids, wspan, wextent, use_winding):
     """Decision (the body's tips against the detailed triangles; S103 tests particles, not
     triangles): a body vertex standing out of its ring (vertex_tip, `collision.face_tip_heights`)
     can come through the detailed triangle between particles that S103 put the clearance off the
@@ -725,7 +720,7 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
     from the first such particle, at most COVER_WALK_STEPS steps, `geometry.walk_nearest_vertex`;
     or the one of those triangles it misses least, by at most COVER_OUTSIDE, where their normals
     lean). Where the skin faces out through that triangle (n_v . n_t >= COVER_FACING) and the
-    vertex lies at most MAX_COVER_POKE in front of its plane or less than `reach` behind it
+    vertex lies at most MAX_COVER_POKE in front of its plane or less than COVER_REACH behind it
     (s, its height over the plane), the plane is kept the clearance over it: each corner rises
     along its normal by
     (s + clearance) / (n_i . n_t) where that is positive, and S106 may bring it down by no more
@@ -743,38 +738,17 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
     its own part rose into the other (the jumping jacks' squats). Δh stays within max_height; the lifts count in Δh,
     Δh_penetration and `lifted` (sd is left as S103 read it). owner (n_body,) int32: -1 on entry
     and on return; owned (n_body,) int32 scratch; q (3,) scratch. Returns the number of vertices
-    covered by a lift.
-    rings (Decision, the triangles' sag, `SurfaceSettings.covers_rings`): the tips in the rings of the
-    particles' nearest vertices are taken too, each from the nearest particle that has it in its
-    ring: where the particles lie farther apart than the body's vertices (below level 6), a tip
-    under a triangle's middle is no particle's nearest vertex. reach: how far behind the plane a
-    vertex is still taken (COVER_REACH at a 1 mm clearance, grown with it)."""
+    covered by a lift."""
     n_owned = 0
     for i in range(p.shape[0]):  # each tip that is a tested particle's nearest body vertex, once
         if sd[i] == UNTESTED:
             continue
         v = near_vertex[i]
-        if v < 0:
+        if v < 0 or owner[v] >= 0 or vertex_tip[v] < MIN_COVERED_TIP:
             continue
-        if not rings:
-            if owner[v] >= 0 or vertex_tip[v] < MIN_COVERED_TIP:
-                continue
-            owner[v] = i
-            owned[n_owned] = v
-            n_owned += 1
-            continue
-        # (rings: the tips around it too, each owned by the nearest particle that has it in its ring)
-        for k in range(nbr_start[v] - 1, nbr_start[v + 1]):
-            u = v if k < nbr_start[v] else nbr_ids[k]
-            if vertex_tip[u] < MIN_COVERED_TIP:
-                continue
-            o = owner[u]
-            if o < 0:
-                owner[u] = i
-                owned[n_owned] = u
-                n_owned += 1
-            elif _squared_distance(p, i, body_x, u) < _squared_distance(p, o, body_x, u):
-                owner[u] = i
+        owner[v] = i
+        owned[n_owned] = v
+        n_owned += 1
     covered = 0
     for m in range(n_owned):
         v = owned[m]
@@ -783,7 +757,7 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
         vx, vy, vz = body_x[v, 0], body_x[v, 1], body_x[v, 2]
         # (its height over the tangent plane at its nearest particle: most lie deep under it, or far over)
         s = (vx - p[i, 0]) * normals[i, 0] + (vy - p[i, 1]) * normals[i, 1] + (vz - p[i, 2]) * normals[i, 2]
-        if s < -reach - COVER_SLACK or s > MAX_COVER_POKE + COVER_SLACK:
+        if s < -COVER_REACH - COVER_SLACK or s > MAX_COVER_POKE + COVER_SLACK:
             continue
         i = walk_nearest_vertex(vx, vy, vz, p, d_nbr_start, d_nbr_ids, i, COVER_WALK_STEPS)
         t, out, nx, ny, nz = _over_vertex(p, normals, d_tri_start, d_tri_ids, d_tris, i, vx, vy, vz)
@@ -791,7 +765,7 @@ def cover_body_tips(p, normals, dh, dh_pen, lifted, floor, ceiling, body_floor, 
             continue
         a = d_tris[t, 0]
         s = (vx - p[a, 0]) * nx + (vy - p[a, 1]) * ny + (vz - p[a, 2]) * nz  # the vertex's height over the plane
-        if s <= -reach or s > MAX_COVER_POKE:
+        if s <= -COVER_REACH or s > MAX_COVER_POKE:
             continue
         bx, by, bz = vertex_normal(tri_start, tri_ids, face_n, v)
         if bx * nx + by * ny + bz * nz < COVER_FACING:

@@ -1111,48 +1111,6 @@ def test_the_triangle_over_a_body_tip_keeps_it_the_clearance_under_the_surface(a
             assert not inside.any()
 
 
-@pytest.mark.parametrize("rings", [True, False])
-def test_a_tip_between_sparse_particles_is_covered_from_the_rings(rings):
-    """Decision (the triangles' sag, `SurfaceSettings.covers_rings`): at level 3 the particles lie 13 mm apart over a
-    body whose vertices lie 5 mm apart, and a vertex standing 3 mm out of its ring under the middle of a detailed
-    triangle is no particle's nearest body vertex. Taken from the rings of the particles' nearest vertices (the
-    default below level 6), the triangle over it rises until it lies the level's clearance (2 mm) over it, and stays
-    so; without the rings it comes through the triangle (about 0.7 mm)."""
-    level = 3
-    shift = 0.04 / level / 3  # the tip under a detailed triangle's centroid
-    bv, bt = box(half=0.1, n=40)
-    bv = bv + [0.08 + shift, -0.1005, 0.04 + shift]
-    top = np.flatnonzero(np.isclose(bv[:, 1], -0.0005))
-    apex = top[np.argmin(np.linalg.norm(bv[top][:, [0, 2]] - [0.08 + shift, 0.04 + shift], axis=1))]
-    bv[apex, 1] += 0.003
-    bv = np.ascontiguousarray(bv)
-    body = BodyMesh.build(bt, len(bv))
-    pose = BodyPose(body, face_tree=False, tips=True)
-    pose.update(bv)
-    grid = VertexGrid(len(bv))
-    grid.update(pose.x, body.regions, body.parts)
-    winding = WindingGrid(body.winding_faces, len(bv), cell=0.01)
-    winding.update(pose.x)
-    cloth = sheet_model().cloth
-    settings = SurfaceSettings(level=level, tip_share=0.0, cover_rings=None if rings else False)
-    assert settings.covers_rings == rings
-    surf = DetailedSurface(build_surface_model(cloth, settings))
-    x = cloth.rest_positions.copy()
-    nearest = np.array([int(np.argmin(np.linalg.norm(bv - q, axis=1))) for q in x], dtype=np.int32)
-    a = bv[apex].copy()
-    clearance = settings.lift_clearance
-    for frame in range(6):
-        p, _ = surf.step(x, nearest, pose.x, body, pose.face_n, DT, grid, face_tip=pose.face_tips(),
-                         winding=winding.arrays(), vertex_tip=pose.vertex_tip)
-        assert pose.vertex_tip[apex] == pytest.approx(0.003) and apex not in surf.state.near_vertex
-        height = _height_over(p, surf.model.tess.triangles, a)[0] - a[1]
-        if rings:
-            assert clearance - 1e-9 <= height <= clearance + 2e-4
-            assert surf.covered >= (1 if frame == 0 else 0)
-        else:
-            assert height < -0.0005
-
-
 def test_wrinkles_under_another_body_part_stay_out_of_it():
     """Decision (S103-S106): a compressed strip grows wrinkles over a torso box 2 mm below it,
     under an arm box whose bottom is 4 mm above its middle. The particles under the arm are
