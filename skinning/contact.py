@@ -108,9 +108,13 @@ def far_at_rest(rest, rest_normals, rest_centroid, v, f, t, margin, across):
 
 
 @njit(cache=True, nogil=True)
-def face_boxes(x, tris, inv_cell, corners, lo, hi):
+def face_boxes(x, tris, inv_cell, mask, corners, lo, hi, counts):
     """Per face: its corners side by side (corners (m, 9), one load per face in the ray tests)
-    and the cell range of its bounding box (lo/hi (m, 3))."""
+    and the cell range of its bounding box (lo/hi (m, 3) int32); and the counting sort's first
+    pass of `build_face_grid`: counts (mask + 1,) int32, the faces in each hashed cell, counted
+    here while the face's range is at hand (one pass over the faces less: the grid's build was a
+    third of the skin contact's time, ninety-second session)."""
+    counts[:] = 0
     for t in range(tris.shape[0]):
         a, b, c = tris[t, 0], tris[t, 1], tris[t, 2]
         for d in range(3):
@@ -119,21 +123,20 @@ def face_boxes(x, tris, inv_cell, corners, lo, hi):
             corners[t, 6 + d] = x[c, d]
             lo[t, d] = int(np.floor(min(x[a, d], x[b, d], x[c, d]) * inv_cell))
             hi[t, d] = int(np.floor(max(x[a, d], x[b, d], x[c, d]) * inv_cell))
+        for i in range(np.int64(lo[t, 0]), np.int64(hi[t, 0]) + 1):
+            for j in range(np.int64(lo[t, 1]), np.int64(hi[t, 1]) + 1):
+                for k in range(np.int64(lo[t, 2]), np.int64(hi[t, 2]) + 1):
+                    counts[_cell_hash(i, j, k, mask)] += 1
 
 
 @njit(cache=True, nogil=True)
 def build_face_grid(lo, hi, mask, start, ids, counts):
-    """Every face into each hashed cell its bounding box overlaps (`face_boxes`): a counting sort
-    into start/ids, each cell's faces in face order; counts (mask + 1,) scratch. Returns the
-    entries needed (> len(ids): grow ids and ask again). On the calling thread: split over two
-    threads it took as long (450 against 370-430 µs a pose: waking the other thread twice)."""
+    """Every face into each hashed cell its bounding box overlaps (`face_boxes`, which counted
+    them into counts): a counting sort into start/ids (int32), each cell's faces in face order;
+    counts becomes scratch. Returns the entries needed (> len(ids): grow ids, and count again
+    with `face_boxes`). On the calling thread: split over two threads it took as long (450
+    against 370-430 µs a pose: waking the other thread twice)."""
     m = lo.shape[0]
-    counts[:] = 0
-    for t in range(m):
-        for i in range(lo[t, 0], hi[t, 0] + 1):
-            for j in range(lo[t, 1], hi[t, 1] + 1):
-                for k in range(lo[t, 2], hi[t, 2] + 1):
-                    counts[_cell_hash(i, j, k, mask)] += 1
     n = 0
     for h in range(mask + 1):  # counts become the cell's next slot
         start[h] = n
@@ -144,9 +147,9 @@ def build_face_grid(lo, hi, mask, start, ids, counts):
     if n > ids.shape[0]:
         return n
     for t in range(m):
-        for i in range(lo[t, 0], hi[t, 0] + 1):
-            for j in range(lo[t, 1], hi[t, 1] + 1):
-                for k in range(lo[t, 2], hi[t, 2] + 1):
+        for i in range(np.int64(lo[t, 0]), np.int64(hi[t, 0]) + 1):
+            for j in range(np.int64(lo[t, 1]), np.int64(hi[t, 1]) + 1):
+                for k in range(np.int64(lo[t, 2]), np.int64(hi[t, 2]) + 1):
                     h = _cell_hash(i, j, k, mask)
                     ids[counts[h]] = t
                     counts[h] += 1
@@ -496,16 +499,16 @@ class SkinContact:
         self._front = np.empty(len(self.verts), dtype=np.int64)
         self._next = np.empty(len(self.verts), dtype=np.int64)
         self._mask = (1 << _HASH_BITS) - 1
-        self._start = np.zeros(self._mask + 2, dtype=np.int64)
-        self._count = np.zeros(self._mask + 1, dtype=np.int64)
+        self._start = np.zeros(self._mask + 2, dtype=np.int32)
+        self._count = np.zeros(self._mask + 1, dtype=np.int32)
         self._corners = np.empty((len(self.tris), 9))
         # per thread, the ray that last tested each face (first ray of the pose + the vertex's
         # position in verts): a face in several cells of a ray is tested once
         self._rays = 0
         self._stamps = np.full((get_num_threads(), len(self.tris)), -1, dtype=np.int64)
-        self._lo = np.empty((len(self.tris), 3), dtype=np.int64)
-        self._hi = np.empty((len(self.tris), 3), dtype=np.int64)
-        self._ids = np.zeros(8 * len(self.tris), dtype=np.int64)
+        self._lo = np.empty((len(self.tris), 3), dtype=np.int32)
+        self._hi = np.empty((len(self.tris), 3), dtype=np.int32)
+        self._ids = np.zeros(8 * len(self.tris), dtype=np.int32)
         self.moved = 0  # vertices moved in the last pose
         self.rays = 0  # rays cast in the last pose
 
@@ -546,11 +549,13 @@ class SkinContact:
         # the clothed vertices' only, on this thread: 95 µs a pose against 240 in parallel over the whole body
         vertex_normals_at(x, self.tris, self._adj_start, self._adj_faces, self._faces, self.verts, self.normals)
         inv_cell = 1.0 / s.cell
-        face_boxes(x, self.tris, inv_cell, self._corners, self._lo, self._hi)
+        boxes = (x, self.tris, inv_cell, self._mask, self._corners, self._lo, self._hi, self._count)
+        face_boxes(*boxes)
         grid = (self._lo, self._hi, self._mask, self._start)
         n = build_face_grid(*grid, self._ids, self._count)
         if n > len(self._ids):
-            self._ids = np.zeros(2 * n, dtype=np.int64)
+            self._ids = np.zeros(2 * n, dtype=np.int32)
+            face_boxes(*boxes)
             build_face_grid(*grid, self._ids, self._count)
         self.depth[:] = 0.0
         self._seen[:] = False
