@@ -8,7 +8,7 @@ import trimesh
 from services.body_job import SelfContact
 from skinning.animate import BodyAnimator
 from skinning.character import configuration_to_local, local_to_configuration
-from skinning.contact import ContactSettings, SkinContact
+from skinning.contact import ContactSettings, SkinContact, _cell_hash, build_face_grid, face_boxes
 from skinning.kinematics import axis_rotation
 from skinning.source import BVHSource
 from tests.signed_distance import SignedDistance
@@ -106,6 +106,38 @@ def test_settings_are_validated():
     for rounds in (0, 1.5):
         with pytest.raises(ValueError, match="ContactSettings.rounds"):
             ContactSettings(rounds=rounds)
+
+
+def test_face_grid_lists_each_face_in_the_cells_of_its_box_in_face_order():
+    """The rays' face grid, against a brute-force bucketing: each face in every hashed cell its
+    bounding box overlaps, once per cell, a cell's faces in face order; ids grown when short."""
+    rest, posed, tris, _ = two_boxes(0.05)
+    tris = tris.astype(np.int64)
+    m, cell, mask = len(tris), 0.02, (1 << 6) - 1  # a small table: many cells share a slot
+    corners = np.empty((m, 9))
+    lo, hi = np.empty((m, 3), np.int32), np.empty((m, 3), np.int32)
+    start, counts = np.zeros(mask + 2, np.int32), np.zeros(mask + 1, np.int32)
+    ids = np.zeros(8, np.int32)  # too short: build_face_grid says how many it needs
+    face_boxes(posed, tris, 1.0 / cell, mask, corners, lo, hi, counts)
+    need = build_face_grid(lo, hi, mask, start, ids, counts)
+    assert need > len(ids)
+    ids = np.zeros(need, np.int32)
+    face_boxes(posed, tris, 1.0 / cell, mask, corners, lo, hi, counts)
+    assert build_face_grid(lo, hi, mask, start, ids, counts) == need
+    expected = [[] for _ in range(mask + 1)]
+    for t, (a, b, c) in enumerate(tris):
+        box_lo = np.floor(posed[[a, b, c]].min(axis=0) / cell).astype(int)
+        box_hi = np.floor(posed[[a, b, c]].max(axis=0) / cell).astype(int)
+        np.testing.assert_array_equal(lo[t], box_lo)
+        np.testing.assert_array_equal(hi[t], box_hi)
+        np.testing.assert_array_equal(corners[t], posed[[a, b, c]].ravel())
+        for i in range(box_lo[0], box_hi[0] + 1):
+            for j in range(box_lo[1], box_hi[1] + 1):
+                for k in range(box_lo[2], box_hi[2] + 1):
+                    expected[_cell_hash(i, j, k, mask)].append(t)
+    assert need == sum(len(e) for e in expected)
+    for h in range(mask + 1):
+        assert list(ids[start[h]:start[h + 1]]) == expected[h]
 
 
 THIGH, KNEE = -80.0, 110.0
